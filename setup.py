@@ -1,0 +1,81 @@
+"""ament_python / pip packaging for nsflow_ros."""
+
+from glob import glob
+from pathlib import Path
+
+from setuptools import find_packages, setup
+
+PACKAGE = "nsflow_ros"
+
+# (console-script name for a pip install, name under lib/nsflow_ros for `ros2 run`, target)
+TOOLS = [
+    ("nsflow-tracker", "tracker", "nsflow_ros.ros.tracker_node:main"),
+    ("nsflow-replay", "replay", "nsflow_ros.ros.replay_node:main"),
+    ("nsflow-ate", "ate", "nsflow_ros.ate.cli:main"),
+    ("nsflow-bench", "bench", "nsflow_ros.bench:main"),
+    ("nsflow-demo", "demo", "nsflow_ros.demo:main"),
+    ("nsflow-make-sample", "make_sample", "nsflow_ros.data.cli:main"),
+    ("nsflow-train", "train", "nsflow_ros.train.cli:main"),
+    ("nsflow-eval", "evaluate", "nsflow_ros.evaluation.cli:main"),
+]
+
+
+def _data_files() -> list[tuple[str, list[str]]]:
+    files = [
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+    ]
+    for folder in ("config", "models"):
+        for path in sorted(glob(f"{folder}/**/*", recursive=True)):
+            if Path(path).is_file():
+                files.append((f"share/{PACKAGE}/{Path(path).parent}", [path]))
+    return files
+
+
+ROS = [
+    "ros-jazzy-rclpy",
+    "ros-jazzy-sensor-msgs",
+    "ros-jazzy-std-msgs",
+    "ros-jazzy-rosgraph-msgs",
+    "ros-jazzy-rmw-fastrtps-cpp",
+]
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=_data_files(),
+    python_requires=">=3.10",
+    install_requires=[
+        "setuptools",
+        "numpy>=1.24",
+        "opencv-python-headless>=4.8",
+        "onnxruntime>=1.17",
+        "rosbags>=0.11,!=0.11.6",
+        "tqdm",
+        "scikit-image>=0.22",
+        "matplotlib>=3.7",
+        *ROS,
+    ],
+    extras_require={
+        "train": ["torch==2.13.0", "onnx>=1.15"],
+        "test": [
+            "pytest>=7",
+            "ruff",
+            "evo>=1.30",
+            "colcon-common-extensions",
+            "torch==2.13.0",
+            "onnx>=1.15",
+        ],
+    },
+    zip_safe=True,
+    maintainer="nsflow_ros maintainers",
+    maintainer_email="maintainers@nsflow-ros.org",
+    description="NSFlow learned LK front-end for VINS on ROS 2 Jazzy",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [f"{name}={target}" for name, _, target in TOOLS]
+        + [f"{ros_name}={target}" for _, ros_name, target in TOOLS],
+    },
+)
