@@ -6,7 +6,33 @@ is pure NumPy/OpenCV/onnxruntime: importing this package imports neither rclpy n
 
 from __future__ import annotations
 
+from nsflow_ros.core import (
+    CoreError,
+    DescriptorPyramid,
+    EncoderError,
+    IntensityEncoder,
+    LMConfig,
+    OnnxEncoder,
+    TrackResult,
+    build_pyramid,
+    detect_corners,
+    load_encoder,
+    track,
+)
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["NSFlowError"]
+__all__ = [
+    "CoreError",
+    "DescriptorPyramid",
+    "EncoderError",
+    "IntensityEncoder",
+    "LMConfig",
+    "NSFlowError",
+    "OnnxEncoder",
+    "TrackResult",
+    "build_pyramid",
+    "detect_corners",
+    "load_encoder",
+    "track",
+]
 __version__ = "0.1.0"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from nsflow_ros.errors import NSFlowError
@@ -23,10 +24,8 @@ def _candidates() -> list[Path]:
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 
-        try:
+        with contextlib.suppress(PackageNotFoundError):
             found.append(Path(get_package_share_directory(PACKAGE)))
-        except PackageNotFoundError:
-            pass
     except ImportError:
         pass
     # pip install with data_files: <sys.prefix>/share/nsflow_ros.

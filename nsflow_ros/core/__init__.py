@@ -1,0 +1,39 @@
+"""The pure NumPy/OpenCV tracking core: encoders, descriptor pyramids, the LM-LK solver, detection.
+
+Nothing here imports rclpy or torch.
+"""
+
+from __future__ import annotations
+
+from nsflow_ros.core.detector import detect_corners
+from nsflow_ros.core.encoder import (
+    DEFAULT_MODEL,
+    Encoder,
+    IntensityEncoder,
+    OnnxEncoder,
+    load_encoder,
+    to_gray,
+)
+from nsflow_ros.core.errors import CoreError, EncoderError
+from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, descriptor_gradients
+from nsflow_ros.core.solver import IterationRecord, LMConfig, TrackResult, sample_windows, track
+
+__all__ = [
+    "DEFAULT_MODEL",
+    "CoreError",
+    "DescriptorPyramid",
+    "Encoder",
+    "EncoderError",
+    "IntensityEncoder",
+    "IterationRecord",
+    "LMConfig",
+    "OnnxEncoder",
+    "TrackResult",
+    "build_pyramid",
+    "descriptor_gradients",
+    "detect_corners",
+    "load_encoder",
+    "sample_windows",
+    "to_gray",
+    "track",
+]

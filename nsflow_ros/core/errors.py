@@ -1,0 +1,15 @@
+"""Errors of the tracking core."""
+
+from __future__ import annotations
+
+from nsflow_ros.errors import NSFlowError
+
+__all__ = ["CoreError", "EncoderError"]
+
+
+class CoreError(NSFlowError):
+    """Bad input to the tracking core (shapes, dtypes, settings)."""
+
+
+class EncoderError(CoreError):
+    """An encoder model cannot be loaded or run (missing file, wrong ONNX signature, bad image)."""

@@ -1,0 +1,121 @@
+"""Descriptor pyramids: what the solver samples.
+
+Each level stores one C-contiguous float32 array of shape (H, W, 3C): the descriptor map D followed by its
+x- and y-derivatives. Keeping the three in one interleaved array lets a single ``cv2.remap`` call fetch a
+window's descriptors and the Jacobian together (the solver's inner loop), and contiguity matters: remap on
+a non-contiguous slice is ~30x slower.
+
+Coarser levels are made by ``cv2.pyrDown`` of the descriptor map (Gaussian blur + decimation), not by
+running the encoder on a smaller image: it costs ~1 ms instead of a second encoder pass, and the solver's
+coarse levels only need a smooth, aliasing-free approximation.
+
+Derivatives use the normalised Scharr kernel ([-3 0 3; -10 0 10; -3 0 3] / 32) with replicated borders,
+the same filter OpenCV's pyramidal LK uses; the torch training layer mirrors this choice exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from nsflow_ros.core.errors import CoreError
+
+__all__ = ["DescriptorPyramid", "build_pyramid", "descriptor_gradients"]
+
+_BORDER = cv2.BORDER_REPLICATE
+
+
+def descriptor_gradients(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the x- and y-derivatives of a descriptor map (normalised Scharr, replicated border).
+
+    Args:
+        desc: descriptor map.
+
+    Returns:
+        (dx, dy), each the same shape as ``desc``.
+
+    Shape:
+        desc: (H, W, C) float32.
+    """
+    dx = cv2.Scharr(desc, cv2.CV_32F, 1, 0, scale=1.0 / 32.0, borderType=_BORDER)
+    dy = cv2.Scharr(desc, cv2.CV_32F, 0, 1, scale=1.0 / 32.0, borderType=_BORDER)
+    if desc.ndim == 3 and dx.ndim == 2:  # cv2 drops a trailing singleton channel
+        dx, dy = dx[..., None], dy[..., None]
+    return dx, dy
+
+
+def _level(desc: np.ndarray) -> np.ndarray:
+    dx, dy = descriptor_gradients(desc)
+    return np.ascontiguousarray(np.concatenate([desc, dx, dy], axis=2), dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class DescriptorPyramid:
+    """A frame's descriptor maps and their derivatives at every pyramid level.
+
+    Attributes:
+        levels: level 0 first (full resolution); each (H_l, W_l, 3C) float32, channels [D | dD/dx | dD/dy].
+        channels: C, the descriptor dimension.
+    """
+
+    levels: tuple[np.ndarray, ...]
+    channels: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of level 0."""
+        h, w = self.levels[0].shape[:2]
+        return h, w
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.levels)
+
+
+def _check_map(desc: np.ndarray) -> np.ndarray:
+    if not isinstance(desc, np.ndarray):
+        raise CoreError(f"descriptor map must be a numpy array, got {type(desc).__name__}")
+    if desc.ndim == 2:
+        desc = desc[..., None]
+    if desc.ndim != 3:
+        raise CoreError(f"descriptor map must have shape (H, W, C), got {desc.shape}")
+    if desc.shape[0] < 2 or desc.shape[1] < 2 or desc.shape[2] < 1:
+        raise CoreError(f"descriptor map is empty or degenerate: shape {desc.shape}")
+    if not np.issubdtype(desc.dtype, np.floating):
+        raise CoreError(f"descriptor map must be floating point, got dtype {desc.dtype}")
+    return np.ascontiguousarray(desc, dtype=np.float32)
+
+
+def build_pyramid(desc: np.ndarray, levels: int = 3) -> DescriptorPyramid:
+    """Build the solver's pyramid from a full-resolution descriptor map.
+
+    Args:
+        desc: the descriptor map of one frame.
+        levels: number of levels (1 = single scale). Levels whose size would drop below 8 px are
+            not built, so the result may have fewer.
+
+    Returns:
+        the pyramid, level 0 first.
+
+    Raises:
+        CoreError: on a wrong shape or dtype, or ``levels < 1``.
+
+    Shape:
+        desc: (H, W, C) or (H, W), floating point.
+    """
+    if levels < 1:
+        raise CoreError(f"levels must be >= 1, got {levels}")
+    current = _check_map(desc)
+    channels = current.shape[2]
+    out = [_level(current)]
+    for _ in range(1, levels):
+        h, w = current.shape[:2]
+        if min(h, w) // 2 < 8:
+            break
+        current = cv2.pyrDown(current, borderType=_BORDER)
+        if current.ndim == 2:
+            current = current[..., None]
+        out.append(_level(current))
+    return DescriptorPyramid(levels=tuple(out), channels=channels)
