@@ -1,9 +1,10 @@
 """Descriptor pyramids: what the solver samples.
 
-Each level stores one C-contiguous float32 array of shape (H, W, 3C): the descriptor map D followed by its
-x- and y-derivatives. Keeping the three in one interleaved array lets a single ``cv2.remap`` call fetch a
-window's descriptors and the Jacobian together (the solver's inner loop), and contiguity matters: remap on
-a non-contiguous slice is ~30x slower.
+Each level holds the descriptor map D followed by its x- and y-derivatives as channels [D | Dx | Dy]
+(3C in all), split into C-contiguous float32 chunks of at most 4 channels. One ``cv2.remap`` call per
+chunk then fetches a window's descriptors and Jacobian together (the solver's inner loop). Both details
+are measured necessities: remap on a non-contiguous slice is ~30x slower, and OpenCV's remap
+interpolates exactly only up to 4 channels (its generic path for more quantises positions to 1/32 px).
 
 Coarser levels are made by ``cv2.pyrDown`` of the descriptor map (Gaussian blur + decimation), not by
 running the encoder on a smaller image: it costs ~1 ms instead of a second encoder pass, and the solver's
@@ -22,7 +23,7 @@ import numpy as np
 
 from nsflow_ros.core.errors import CoreError
 
-__all__ = ["DescriptorPyramid", "build_pyramid", "descriptor_gradients"]
+__all__ = ["DescriptorPyramid", "build_pyramid", "descriptor_gradients", "split_channels"]
 
 _BORDER = cv2.BORDER_REPLICATE
 
@@ -46,9 +47,20 @@ def descriptor_gradients(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return dx, dy
 
 
-def _level(desc: np.ndarray) -> np.ndarray:
+MAX_CHUNK = 4
+
+
+def split_channels(level: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Split an (H, W, K) map into C-contiguous chunks of at most 4 channels (remap's exact path)."""
+    return tuple(
+        np.ascontiguousarray(level[..., i : i + MAX_CHUNK], dtype=np.float32)
+        for i in range(0, level.shape[2], MAX_CHUNK)
+    )
+
+
+def _level(desc: np.ndarray) -> tuple[np.ndarray, ...]:
     dx, dy = descriptor_gradients(desc)
-    return np.ascontiguousarray(np.concatenate([desc, dx, dy], axis=2), dtype=np.float32)
+    return split_channels(np.concatenate([desc, dx, dy], axis=2))
 
 
 @dataclass(frozen=True)
@@ -56,22 +68,27 @@ class DescriptorPyramid:
     """A frame's descriptor maps and their derivatives at every pyramid level.
 
     Attributes:
-        levels: level 0 first (full resolution); each (H_l, W_l, 3C) float32, channels [D | dD/dx | dD/dy].
+        levels: level 0 first (full resolution); each a tuple of float32 chunks (H_l, W_l, <=4) that
+            together hold the channels [D | dD/dx | dD/dy] (3C) in order.
         channels: C, the descriptor dimension.
     """
 
-    levels: tuple[np.ndarray, ...]
+    levels: tuple[tuple[np.ndarray, ...], ...]
     channels: int
 
     @property
     def shape(self) -> tuple[int, int]:
         """(H, W) of level 0."""
-        h, w = self.levels[0].shape[:2]
+        h, w = self.levels[0][0].shape[:2]
         return h, w
 
     @property
     def num_levels(self) -> int:
         return len(self.levels)
+
+    def level(self, index: int) -> np.ndarray:
+        """Level ``index`` as one (H_l, W_l, 3C) array [D | Dx | Dy] (a copy, for inspection)."""
+        return np.concatenate(self.levels[index], axis=2)
 
 
 def _check_map(desc: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.core.errors import CoreError
-from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid
+from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, split_channels
 
 __all__ = ["IterationRecord", "LMConfig", "TrackResult", "sample_windows", "track"]
 
@@ -122,8 +122,8 @@ class TrackResult:
 def _remap_is_exact() -> bool:
     """Whether cv2.remap interpolates float32 images at full precision.
 
-    OpenCV 4.x quantises the sub-pixel position to 1/32 px inside remap; 5.x does not. With a quantising
-    OpenCV the exact NumPy sampler is used instead (slower, same results).
+    OpenCV 4.x quantises the sub-pixel position to 1/32 px inside remap; 5.x does not for images of up
+    to 4 channels. With a quantising OpenCV the exact NumPy sampler is used instead (slower, same results).
     """
     img = np.tile(np.arange(8, dtype=np.float32), (8, 1))
     mx = np.array([[3.0 + 1.0 / 256.0]], np.float32)
@@ -153,11 +153,14 @@ def _sample_numpy(level: np.ndarray, centers: np.ndarray, window: int) -> np.nda
     return horiz[:, :-1] + b * (horiz[:, 1:] - horiz[:, :-1])
 
 
-def sample_windows(level: np.ndarray, centers: np.ndarray, window: int) -> np.ndarray:
+def sample_windows(
+    level: np.ndarray | tuple[np.ndarray, ...], centers: np.ndarray, window: int
+) -> np.ndarray:
     """Sample square windows of a multi-channel map with exact bilinear interpolation.
 
     Args:
-        level: map to sample, replicated beyond its border.
+        level: map to sample, replicated beyond its border: one (H, W, K) array, or a pyramid level's
+            tuple of contiguous chunks of at most 4 channels (the fast path).
         centers: window centres (x, y) in pixels of ``level``.
         window: odd window side.
 
@@ -165,31 +168,31 @@ def sample_windows(level: np.ndarray, centers: np.ndarray, window: int) -> np.nd
         the windows, rows then columns then channels.
 
     Shape:
-        level: (H, W, K) float32, C-contiguous. centers: (M, 2). Returns (M, window, window, K).
+        level: (H, W, K) float32. centers: (M, 2). Returns (M, window, window, K).
     """
+    chunks = split_channels(level) if isinstance(level, np.ndarray) else level
     m = centers.shape[0]
-    ch = level.shape[2]
+    ch = sum(c.shape[2] for c in chunks)
     if m == 0:
         return np.zeros((0, window, window, ch), np.float32)
     if not _remap_is_exact():
-        return _sample_numpy(level, centers, window)
+        return _sample_numpy(np.concatenate(chunks, axis=2), centers, window)
     off = _window_offsets(window)
     c = centers.astype(np.float32)
-    mapx = np.empty((m, window, window), np.float32)
-    mapy = np.empty((m, window, window), np.float32)
-    mapx[...] = c[:, 0, None, None] + off[None, None, :]
-    mapy[...] = c[:, 1, None, None] + off[None, :, None]
-    out = cv2.remap(
-        level,
-        mapx.reshape(m * window, window),
-        mapy.reshape(m * window, window),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-    return out.reshape(m, window, window, ch)
+    mapx = np.empty((m * window, window), np.float32)
+    mapy = np.empty((m * window, window), np.float32)
+    mapx.reshape(m, window, window)[...] = c[:, 0, None, None] + off[None, None, :]
+    mapy.reshape(m, window, window)[...] = c[:, 1, None, None] + off[None, :, None]
+    parts = [
+        cv2.remap(chunk, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(
+            m, window, window, chunk.shape[2]
+        )
+        for chunk in chunks
+    ]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=3)
 
 
-def _template(level: np.ndarray, pts: np.ndarray, window: int, channels: int) -> np.ndarray:
+def _template(level: tuple[np.ndarray, ...], pts: np.ndarray, window: int, channels: int) -> np.ndarray:
     """Frame-1 descriptor windows D1(x), flattened per point: (N, window^2 * C)."""
     n = pts.shape[0]
     return np.ascontiguousarray(sample_windows(level, pts, window)[..., :channels]).reshape(n, -1)
@@ -213,8 +216,8 @@ def _normal_equations(
 
 
 def _solve_level(
-    level1: np.ndarray,
-    level2: np.ndarray,
+    level1: tuple[np.ndarray, ...],
+    level2: tuple[np.ndarray, ...],
     pts: np.ndarray,
     u: np.ndarray,
     channels: int,

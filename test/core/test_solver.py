@@ -1,0 +1,219 @@
+"""Tests of the LM Lucas-Kanade solver (nsflow_ros.core.solver)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from image_pairs import apply_h, rotation, texture, translation, warp_pair
+
+from nsflow_ros import CoreError, IntensityEncoder, LMConfig, build_pyramid, detect_corners, track
+from nsflow_ros.core import solver as solver_mod
+from nsflow_ros.core.solver import sample_windows
+
+ENC = IntensityEncoder()
+
+
+def _run(gray1, gray2, h, config=None, n=150):
+    pts = detect_corners(gray1, n, min_distance=10)
+    res = track(ENC(gray1), ENC(gray2), pts, config=config)
+    err = np.linalg.norm(pts + res.flow - apply_h(h, pts), axis=1)
+    return pts, res, err
+
+
+@pytest.mark.parametrize("shift", [(0.37, -0.21), (2.3, -1.7), (7.6, 4.2)])
+def test_recovers_subpixel_translations(textures, shift):
+    h = translation(*shift)
+    for gray in textures.values():
+        a, b = warp_pair(gray, h)
+        _, res, err = _run(a, b, h)
+        assert res.status.mean() > 0.9
+        assert np.median(err[res.status]) < 0.05
+
+
+@pytest.mark.parametrize("deg", [-0.5, 0.4])
+def test_recovers_small_rotation(textures, deg):
+    # A translational window model: at 2 degrees the deformation inside an 11x11 window already costs
+    # OpenCV and this solver alike ~0.09 px median, so "small" here means half a degree.
+    gray = textures["astronaut"]
+    h = rotation(deg, (376.0, 240.0))
+    a, b = warp_pair(gray, h)
+    _, res, err = _run(a, b, h)
+    assert res.status.mean() > 0.9
+    assert np.median(err[res.status]) < 0.05
+
+
+def test_recovers_homography(textures):
+    h = np.array([[1.01, 0.01, 2.0], [-0.008, 0.995, -1.5], [1.5e-5, -1e-5, 1.0]])
+    for name in ("coffee", "chelsea"):
+        a, b = warp_pair(textures[name], h)
+        _, res, err = _run(a, b, h)
+        assert res.status.mean() > 0.85
+        assert np.median(err[res.status]) < 0.05
+
+
+def test_multichannel_descriptors(textures):
+    # Three channels (intensity, squared intensity, blurred intensity) run through the same solver.
+    h = translation(1.3, -0.6)
+    a, b = warp_pair(textures["coffee"], h)
+
+    def desc(img):
+        x = img.astype(np.float32) / 255.0
+        return np.dstack([x, x * x, cv2.GaussianBlur(x, (5, 5), 1.0)])
+
+    pts = detect_corners(a, 150, min_distance=10)
+    res = track(desc(a), desc(b), pts)
+    err = np.linalg.norm(pts + res.flow - apply_h(h, pts), axis=1)
+    assert res.status.mean() > 0.9
+    assert np.median(err[res.status]) < 0.05
+
+
+def test_agrees_with_opencv_pyramidal_lk(textures):
+    h = translation(3.4, 1.2)
+    a, b = warp_pair(textures["astronaut"], h)
+    pts = detect_corners(a, 150, min_distance=10)
+    res = track(ENC(a), ENC(b), pts, config=LMConfig(window=21))
+    cv_pts, cv_st, _ = cv2.calcOpticalFlowPyrLK(
+        a, b, pts.astype(np.float32), None, winSize=(21, 21), maxLevel=2,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+    )
+    both = res.status & (cv_st[:, 0] == 1)
+    assert both.mean() > 0.9
+    diff = np.linalg.norm(pts[both] + res.flow[both] - cv_pts[both], axis=1)
+    # Both solve the same 21x21 intensity problem; they differ by their stop rules and gradient filters.
+    assert np.median(diff) < 0.05
+    assert np.percentile(diff, 90) < 0.15
+
+
+def test_every_iteration_follows_accept_reject_rule():
+    # A single Gaussian blob far from its match: Gauss-Newton steps overshoot, so some are rejected.
+    yy, xx = np.mgrid[0:64, 0:64].astype(np.float32)
+    blob = lambda cx, cy: np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 2.0**2))  # noqa: E731
+    d1, d2 = blob(32, 32)[..., None], blob(34.5, 31.0)[..., None]
+    cfg = LMConfig(levels=1, lambda_init=1e-6, nu=3.0, eps=1e-6, max_iterations=40, min_eigen=0)
+    pts = np.array([[32.0, 32.0], [31.0, 33.0], [33.0, 31.5]])
+    res = track(d1, d2, pts, flow0=np.array([[0.2, 0.1], [0.0, 0.0], [-0.3, 0.4]]), config=cfg, record=True)
+    prev_flow = np.array([[0.2, 0.1], [0.0, 0.0], [-0.3, 0.4]])
+    prev_lam = np.full(3, cfg.lambda_init)
+    # cost before the first iteration, evaluated independently of the solver's loop
+    pyr1, pyr2 = build_pyramid(d1, 1), build_pyramid(d2, 1)
+    t = sample_windows(pyr1.levels[0], pts, 11)[..., :1]
+    prev_cost = 0.5 * ((sample_windows(pyr2.levels[0], pts + prev_flow, 11)[..., :1] - t) ** 2).sum((1, 2, 3))
+    rejected = 0
+    for rec in res.history:
+        for i in np.flatnonzero(rec.active):
+            if rec.accepted[i]:
+                assert rec.cost[i] < prev_cost[i]
+                assert rec.lam[i] == pytest.approx(prev_lam[i] / cfg.nu)
+            else:
+                rejected += 1
+                assert np.array_equal(rec.flow[i], prev_flow[i])
+                assert rec.cost[i] == prev_cost[i]
+                assert rec.lam[i] == pytest.approx(prev_lam[i] * cfg.nu)
+        prev_flow, prev_lam, prev_cost = rec.flow.copy(), rec.lam.copy(), rec.cost.copy()
+    assert rejected > 0, "the case was built to force uphill steps"
+    # the blob's sampled derivatives are approximations, so the fixed point is within ~1e-3 px of the shift
+    np.testing.assert_allclose(res.flow, np.tile([2.5, -1.0], (3, 1)), atol=5e-3)
+
+
+def test_stops_at_k_max_and_on_tolerance():
+    img = texture("astronaut", (160, 120))
+    a, b = warp_pair(img, translation(1.2, 0.7))
+    pts = detect_corners(a, 30, min_distance=8)
+    loose = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1, eps=1e-1))
+    tight = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1, eps=1e-12, max_iterations=7))
+    assert tight.iterations.max() == 7
+    assert loose.iterations.mean() < tight.iterations.mean()
+
+
+def test_initial_flow_is_used(textures):
+    h = translation(40.0, -25.0)
+    a, b = warp_pair(textures["coffee"], h)
+    pts = detect_corners(a, 100, min_distance=10)
+    inner = (pts[:, 0] > 60) & (pts[:, 0] < 690) & (pts[:, 1] > 45) & (pts[:, 1] < 430)
+    pts = pts[inner]
+    guess = np.tile([39.0, -24.0], (len(pts), 1))
+    res = track(ENC(a), ENC(b), pts, flow0=guess, config=LMConfig(levels=1))
+    err = np.linalg.norm(res.flow - [40.0, -25.0], axis=1)
+    assert res.status.mean() > 0.9 and np.median(err[res.status]) < 0.05
+    blind = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1))
+    blind_err = np.linalg.norm(blind.flow - [40.0, -25.0], axis=1)
+    assert np.median(blind_err) > 5.0
+
+
+def test_border_points_get_status_false(textures):
+    a, b = warp_pair(textures["astronaut"], translation(0.5, 0.5))
+    inner = detect_corners(a[100:380, 100:650], 1)[0] + 100  # a strong corner well inside
+    pts = np.array([[2.0, 200.0], [400.0, 1.0], [749.0, 300.0], [300.0, 478.5], inner])
+    res = track(ENC(a), ENC(b), pts)
+    assert res.status.tolist() == [False, False, False, False, True]
+    # a flow that carries the window out of frame 2 is lost as well
+    res = track(ENC(a), ENC(b), inner[None], flow0=np.array([[800.0, 0.0]]), config=LMConfig(levels=1))
+    assert not res.status[0]
+
+
+def test_textureless_and_saturated_windows_get_status_false(textures):
+    img = textures["astronaut"].copy()
+    img[100:200, 100:200] = 128  # flat
+    img[300:400, 500:600] = 255  # saturated
+    pts = np.array([[150.0, 150.0], [550.0, 350.0]])
+    res = track(ENC(img), ENC(img), pts, flow0=np.array([[0.5, 0.5], [0.5, -0.5]]))
+    assert not res.status.any()
+    flat = np.full((64, 64), 77, np.uint8)
+    res = track(ENC(flat), ENC(flat), np.array([[32.0, 32.0]]))
+    assert not res.status[0]
+    assert np.isfinite(res.flow).all()
+
+
+def test_empty_point_set():
+    d = np.zeros((32, 32, 1), np.float32)
+    res = track(d, d, np.zeros((0, 2)))
+    assert res.flow.shape == (0, 2) and res.status.shape == (0,)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"points": np.zeros((3, 3))}, r"points must have shape \(N, 2\)"),
+        ({"flow0": np.zeros((2, 2))}, r"flow0 must have shape \(3, 2\)"),
+        ({"points": np.full((3, 2), np.nan)}, "finite"),
+        ({"desc2": np.zeros((16, 32, 1), np.float32)}, "descriptor maps differ"),
+        ({"desc2": np.zeros((32, 32, 2), np.float32)}, "descriptor maps differ"),
+        ({"desc1": np.zeros((32, 32, 1), np.int32)}, "floating point"),
+        ({"desc1": [[0.0]]}, "DescriptorPyramid"),
+    ],
+)
+def test_guards(kwargs, match):
+    args = {"desc1": np.zeros((32, 32, 1), np.float32), "desc2": np.zeros((32, 32, 1), np.float32),
+            "points": np.full((3, 2), 16.0), "flow0": None}
+    args.update(kwargs)
+    with pytest.raises(CoreError, match=match):
+        track(args["desc1"], args["desc2"], args["points"], args["flow0"])
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("window", 10), ("window", 1), ("levels", 0), ("max_iterations", 0), ("lambda_init", 0.0),
+     ("nu", 1.0), ("eps", 0.0), ("min_eigen", -1.0)],
+)
+def test_config_validation(field, value):
+    with pytest.raises(CoreError, match=field):
+        LMConfig(**{field: value})
+
+
+def test_remap_sampler_is_exact_and_matches_numpy_fallback():
+    assert solver_mod._remap_is_exact(), "installed OpenCV quantises remap; the slow fallback would be used"
+    rng = np.random.default_rng(3)
+    level = rng.random((40, 50, 9), dtype=np.float32)
+    centers = rng.uniform(-3, 52, (20, 2))
+    fast = sample_windows(level, centers, 7)
+    slow = solver_mod._sample_numpy(level, centers, 7)
+    np.testing.assert_allclose(fast, slow, atol=2e-6)
+    # bilinear interpolation of a plane is exact
+    yy, xx = np.mgrid[0:40, 0:50].astype(np.float32)
+    plane = (0.3 * xx - 0.2 * yy + 1.0)[..., None]
+    c = np.array([[20.37, 15.81]])
+    win = sample_windows(plane, c, 3)[0, :, :, 0]
+    off = np.array([-1, 0, 1])
+    expect = 0.3 * (c[0, 0] + off)[None, :] - 0.2 * (c[0, 1] + off)[:, None] + 1
+    np.testing.assert_allclose(win, expect, atol=1e-5)
