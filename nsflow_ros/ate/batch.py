@@ -1,0 +1,591 @@
+"""Batch scoring: a directory of runs becomes the paper's EuRoC table, in Markdown and CSV.
+
+Directory layout (every level is a folder; hidden folders and ``mav0`` are skipped)::
+
+    <root>/<sequence>/<level>/<method>/<rep>/vio.csv
+
+* ``<sequence>``: e.g. ``MH_01`` .. ``V2_03`` (table rows, natural order);
+* ``<level>``: perturbation level, e.g. ``none``, ``small``, ``large`` (column groups; ``none``, ``small``,
+  ``medium``, ``large`` come first in that order, other names follow alphabetically);
+* ``<method>``: e.g. ``vins_klt``, ``nsflow`` (columns within a group, alphabetical unless given);
+* ``<rep>``: one repetition: a folder holding the estimate (``vio.csv``, ``vins_result_no_loop.csv``, a
+  single ``vins_result_*.csv``, ``trajectory.tum|txt|csv``; see
+  :data:`~nsflow_ros.ate.formats.ESTIMATE_NAMES`) or directly a trajectory file (``*.csv``, ``*.txt``,
+  ``*.tum``) named after the repetition.
+
+Ground truth of ``<sequence>`` is looked for under ``gt_root`` (default: ``<root>``), first match wins:
+``<gt_root>/<sequence>/groundtruth.{csv,txt,tum}``, ``<gt_root>/<sequence>/mav0/state_groundtruth_estimate0/
+data.csv`` (an ASL sequence folder, e.g. the data set itself or a sample sequence),
+``<gt_root>/<sequence>.{csv,txt,tum}``. Formats are detected (or named).
+
+Failure criteria (a failed repetition is an "F"); the reason is kept per run:
+
+* ``empty``: the repetition holds no estimate file, or the file has no poses;
+* ``unreadable``: a malformed row (the message names the line);
+* ``too short``: no stamp overlap with the ground truth, fewer than 3 matched poses, or matched poses that
+  span less than ``min_coverage`` (default 0.5) of the ground truth's duration;
+* ``diverged``: NaN/inf in the estimate, a degenerate (collapsed) estimate, or an ATE RMSE above
+  ``max_rmse`` (default 10 m).
+
+A cell (sequence, level, method) shows ``mean/median`` of the per-run ATE RMSE over its successful
+repetitions, and "F" according to ``fail_if``: ``any`` (default: one failed repetition fails the cell),
+``majority`` (more than half failed) or ``all``. A cell without any repetition shows "-".
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from nsflow_ros.ate.errors import ATEError
+from nsflow_ros.ate.formats import read_trajectory, resolve_trajectory_path
+from nsflow_ros.ate.metrics import APEResult, ErrorStats, evaluate_ape
+from nsflow_ros.ate.trajectory import Trajectory
+
+__all__ = [
+    "FAIL_POLICIES",
+    "LEVEL_ORDER",
+    "BatchResult",
+    "Cell",
+    "FailureCriteria",
+    "RunResult",
+    "RunSpec",
+    "batch_csv",
+    "batch_markdown",
+    "discover_runs",
+    "find_ground_truth",
+    "runs_csv",
+    "score_batch",
+    "write_batch_tables",
+]
+
+LEVEL_ORDER: tuple[str, ...] = ("none", "small", "medium", "large")
+"""Perturbation levels that come first, in this order; others follow alphabetically."""
+
+FAIL_POLICIES: tuple[str, ...] = ("any", "majority", "all")
+"""Values of :attr:`FailureCriteria.fail_if`."""
+
+_GT_NAMES = (
+    "groundtruth.csv",
+    "groundtruth.txt",
+    "groundtruth.tum",
+    "mav0/state_groundtruth_estimate0/data.csv",
+)
+_TRAJ_SUFFIXES = (".csv", ".txt", ".tum")
+_SKIP_DIRS = ("mav0",)
+
+
+def _natural_key(text: str) -> list[object]:
+    return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", text)]
+
+
+def _level_key(level: str) -> tuple[int, list[object]]:
+    if level in LEVEL_ORDER:
+        return (LEVEL_ORDER.index(level), [])
+    return (len(LEVEL_ORDER), _natural_key(level))
+
+
+@dataclass(frozen=True)
+class FailureCriteria:
+    """When a repetition counts as failed, and when a cell shows "F".
+
+    Attributes:
+        min_coverage: fewest share (0..1) of the ground truth's duration that the matched poses must span.
+        max_rmse: largest ATE RMSE in metres before a run counts as diverged.
+        fail_if: ``"any"``, ``"majority"`` or ``"all"`` failed repetitions make the cell "F".
+    """
+
+    min_coverage: float = 0.5
+    max_rmse: float = 10.0
+    fail_if: str = "any"
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_coverage <= 1.0:
+            raise ATEError(f"min_coverage must be within [0, 1], got {self.min_coverage}")
+        if not self.max_rmse > 0:
+            raise ATEError(f"max_rmse must be positive, got {self.max_rmse}")
+        if self.fail_if not in FAIL_POLICIES:
+            raise ATEError(f"fail_if must be one of {', '.join(FAIL_POLICIES)}, got {self.fail_if!r}")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One repetition found on disk.
+
+    Attributes:
+        sequence: sequence name (table row).
+        level: perturbation level (column group).
+        method: method name (column).
+        rep: repetition name.
+        path: the repetition folder or trajectory file.
+    """
+
+    sequence: str
+    level: str
+    method: str
+    rep: str
+    path: Path
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Score of one repetition.
+
+    Attributes:
+        spec: where it came from.
+        stats: APE statistics (``None`` when the run failed before scoring).
+        reason: empty when the run succeeded, else ``"<category>: <detail>"`` with category ``empty``,
+            ``unreadable``, ``too short`` or ``diverged``.
+        coverage: share of the ground truth's duration spanned by the matched poses (0 when unknown).
+        estimate: the estimate file read, if any.
+    """
+
+    spec: RunSpec
+    stats: ErrorStats | None
+    reason: str = ""
+    coverage: float = 0.0
+    estimate: Path | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Whether the repetition succeeded."""
+        return not self.reason
+
+    @property
+    def category(self) -> str:
+        """``"ok"`` or the failure category."""
+        return "ok" if self.ok else self.reason.split(":", 1)[0]
+
+
+@dataclass(frozen=True)
+class Cell:
+    """The repetitions of one (sequence, level, method) and their summary.
+
+    Attributes:
+        runs: the repetitions.
+        failed: whether the cell shows "F" (per the failure policy).
+        values: ATE RMSE of the successful repetitions (m).
+    """
+
+    runs: tuple[RunResult, ...]
+    failed: bool
+    values: tuple[float, ...] = field(default=())
+
+    @property
+    def mean(self) -> float:
+        """Mean over successful repetitions (NaN when none)."""
+        return float(np.mean(self.values)) if self.values else math.nan
+
+    @property
+    def median(self) -> float:
+        """Median over successful repetitions (NaN when none)."""
+        return float(np.median(self.values)) if self.values else math.nan
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """Every run of a batch, and the table layout.
+
+    Attributes:
+        sequences: table rows, in order.
+        levels: column groups, in order.
+        methods: columns within each group, in order.
+        runs: all scored repetitions.
+        criteria: the failure criteria used.
+        align: the alignment used (``se3``, ``sim3``, ``none``).
+    """
+
+    sequences: tuple[str, ...]
+    levels: tuple[str, ...]
+    methods: tuple[str, ...]
+    runs: tuple[RunResult, ...]
+    criteria: FailureCriteria
+    align: str
+
+    def cell(self, sequence: str, level: str, method: str) -> Cell | None:
+        """Summarise the repetitions of one cell.
+
+        Args:
+            sequence: row.
+            level: column group.
+            method: column.
+
+        Returns:
+            The cell, or ``None`` when no repetition exists for it.
+        """
+        runs = tuple(
+            r
+            for r in self.runs
+            if (r.spec.sequence, r.spec.level, r.spec.method) == (sequence, level, method)
+        )
+        if not runs:
+            return None
+        values = tuple(r.stats.rmse for r in runs if r.ok and r.stats is not None)
+        n_failed = len(runs) - len(values)
+        policy = self.criteria.fail_if
+        if policy == "any":
+            failed = n_failed > 0
+        elif policy == "majority":
+            failed = 2 * n_failed > len(runs)
+        else:
+            failed = n_failed == len(runs)
+        return Cell(runs, failed or not values, values)
+
+
+def _is_trajectory_file(path: Path) -> bool:
+    return path.is_file() and path.suffix.lower() in _TRAJ_SUFFIXES
+
+
+def _subdirs(path: Path) -> list[Path]:
+    return sorted(
+        (p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".") and p.name not in _SKIP_DIRS),
+        key=lambda p: _natural_key(p.name),
+    )
+
+
+def discover_runs(root: str | Path) -> list[RunSpec]:
+    """List the repetitions under ``root`` (layout in the module docstring).
+
+    Args:
+        root: the batch folder.
+
+    Returns:
+        One spec per repetition, in natural order; sequences without any repetition are left out.
+
+    Raises:
+        ATEError: when ``root`` is not a directory.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ATEError(f"{root}: batch root is not a directory", reason="missing")
+    specs: list[RunSpec] = []
+    for seq in _subdirs(root):
+        for level in _subdirs(seq):
+            for method in _subdirs(level):
+                entries = sorted(method.iterdir(), key=lambda p: _natural_key(p.name))
+                for rep in entries:
+                    if rep.name.startswith("."):
+                        continue
+                    if rep.is_dir():
+                        specs.append(RunSpec(seq.name, level.name, method.name, rep.name, rep))
+                    elif _is_trajectory_file(rep):
+                        specs.append(RunSpec(seq.name, level.name, method.name, rep.stem, rep))
+    return specs
+
+
+def find_ground_truth(gt_root: str | Path, sequence: str) -> Path:
+    """Locate the ground truth of a sequence.
+
+    Args:
+        gt_root: folder holding one entry per sequence.
+        sequence: sequence name.
+
+    Returns:
+        The ground-truth file.
+
+    Raises:
+        ATEError: naming every place searched when none exists.
+    """
+    base = Path(gt_root)
+    candidates = [base / sequence / name for name in _GT_NAMES]
+    candidates += [base / f"{sequence}{suffix}" for suffix in _TRAJ_SUFFIXES]
+    for cand in candidates:
+        if cand.is_file():
+            return cand
+    tried = ", ".join(str(c) for c in candidates)
+    raise ATEError(f"no ground truth for sequence {sequence!r} (looked for {tried})", reason="missing")
+
+
+_CATEGORY = {
+    "missing": "empty",
+    "empty": "empty",
+    "malformed": "unreadable",
+    "invalid": "unreadable",
+    "nan": "diverged",
+    "degenerate": "diverged",
+    "no_overlap": "too short",
+    "too_few": "too short",
+}
+
+
+@dataclass(frozen=True)
+class _Options:
+    align: str
+    n_align: int | None
+    max_diff: float
+    offset: float
+    est_format: str | None
+
+
+def _score_run(
+    spec: RunSpec, gt: Trajectory, criteria: FailureCriteria, opts: _Options
+) -> tuple[RunResult, APEResult | None]:
+    estimate: Path | None = None
+    try:
+        estimate = resolve_trajectory_path(spec.path)
+        est = read_trajectory(estimate, opts.est_format)
+        result = evaluate_ape(
+            gt, est, align=opts.align, n_align=opts.n_align, max_diff=opts.max_diff, offset=opts.offset
+        )
+    except ATEError as exc:
+        reason = f"{_CATEGORY.get(exc.reason, 'unreadable')}: {exc}"
+        return RunResult(spec, None, reason, 0.0, estimate), None
+    span = float(result.ref.stamps.max() - result.ref.stamps.min())
+    coverage = span / gt.duration if gt.duration > 0 else 1.0
+    stats = result.stats
+    if coverage < criteria.min_coverage:
+        reason = (
+            f"too short: matched poses span {100 * coverage:.1f}% of the ground truth "
+            f"(< {100 * criteria.min_coverage:.0f}%)"
+        )
+        return RunResult(spec, stats, reason, coverage, estimate), result
+    if stats.rmse > criteria.max_rmse:
+        reason = f"diverged: ATE RMSE {stats.rmse:.3f} m > {criteria.max_rmse} m"
+        return RunResult(spec, stats, reason, coverage, estimate), result
+    return RunResult(spec, stats, "", coverage, estimate), result
+
+
+def score_batch(
+    root: str | Path,
+    *,
+    gt_root: str | Path | None = None,
+    align: str = "se3",
+    n_align: int | None = None,
+    max_diff: float = 0.01,
+    offset: float = 0.0,
+    criteria: FailureCriteria | None = None,
+    methods: Sequence[str] | None = None,
+    levels: Sequence[str] | None = None,
+    gt_format: str | None = None,
+    est_format: str | None = None,
+    plot_dir: str | Path | None = None,
+) -> BatchResult:
+    """Score every repetition under ``root`` against its sequence's ground truth.
+
+    Args:
+        root: batch folder (layout in the module docstring).
+        gt_root: where the ground truth of each sequence lives (default: ``root``).
+        align: ``"se3"``, ``"sim3"`` or ``"none"``.
+        n_align: fit the alignment on the first N matched poses only.
+        max_diff: association tolerance in seconds.
+        offset: seconds added to the estimates' stamps.
+        criteria: failure criteria (default :class:`FailureCriteria()`).
+        methods: columns, in this order (default: all found, alphabetical); runs of other methods are
+            ignored.
+        levels: column groups, in this order (default: all found, :data:`LEVEL_ORDER` first).
+        gt_format: ground-truth format (default: detected).
+        est_format: estimate format (default: detected).
+        plot_dir: when given, a top-view PNG per successfully scored run is written there, named
+            ``<sequence>_<level>_<method>_<rep>.png``.
+
+    Returns:
+        All runs and the table layout.
+
+    Raises:
+        ATEError: when ``root`` holds no repetition, a sequence has no ground truth or it cannot be read,
+            or an option is invalid. A failing repetition is not an error: it is recorded as failed.
+    """
+    criteria = criteria or FailureCriteria()
+    specs = discover_runs(root)
+    if methods is not None:
+        specs = [s for s in specs if s.method in methods]
+    if levels is not None:
+        specs = [s for s in specs if s.level in levels]
+    if not specs:
+        raise ATEError(
+            f"{root}: no runs found (expected <root>/<sequence>/<level>/<method>/<rep>/vio.csv)",
+            reason="empty",
+        )
+    gt_base = Path(gt_root) if gt_root is not None else Path(root)
+    opts = _Options(align, n_align, max_diff, offset, est_format)
+    ground_truth: dict[str, Trajectory] = {}
+    runs: list[RunResult] = []
+    for spec in specs:
+        if spec.sequence not in ground_truth:
+            path = find_ground_truth(gt_base, spec.sequence)
+            ground_truth[spec.sequence] = read_trajectory(path, gt_format)
+        run, result = _score_run(spec, ground_truth[spec.sequence], criteria, opts)
+        runs.append(run)
+        if plot_dir is not None and result is not None and run.stats is not None:
+            from nsflow_ros.ate.plot import plot_top_view
+
+            name = f"{spec.sequence}_{spec.level}_{spec.method}_{spec.rep}.png"
+            plot_top_view(result, Path(plot_dir) / name)
+    sequences = tuple(sorted({s.sequence for s in specs}, key=_natural_key))
+    found_levels = sorted({s.level for s in specs}, key=_level_key)
+    found_methods = sorted({s.method for s in specs}, key=_natural_key)
+    return BatchResult(
+        sequences=sequences,
+        levels=tuple(levels) if levels is not None else tuple(found_levels),
+        methods=tuple(methods) if methods is not None else tuple(found_methods),
+        runs=tuple(runs),
+        criteria=criteria,
+        align=align,
+    )
+
+
+def _fmt(value: float, digits: int) -> str:
+    return f"{value:.{digits}f}"
+
+
+def batch_markdown(result: BatchResult, digits: int = 3, bold_best: bool = True) -> str:
+    """Render the table like the paper's EuRoC table, plus the list of failed runs.
+
+    Rows are sequences; columns are ``<level>: <method>``, grouped by level; each cell is
+    ``mean/median`` of the ATE RMSE over repetitions, "F" for a failed cell, "-" for no run. With
+    ``bold_best`` the lowest mean of each (sequence, level) group is bold.
+
+    Args:
+        result: a :func:`score_batch` result.
+        digits: decimals shown.
+        bold_best: embolden the best cell of each group.
+
+    Returns:
+        Markdown text.
+    """
+    crit = result.criteria
+    lines = [
+        f"ATE RMSE [m], alignment {result.align}; each cell: mean/median over repetitions; "
+        f"F: failed (fail_if={crit.fail_if}, min_coverage={crit.min_coverage}, max_rmse={crit.max_rmse} m); "
+        "-: no run.",
+        "",
+    ]
+    header = ["Seq."] + [f"{lv}: {m}" for lv in result.levels for m in result.methods]
+    lines.append("| " + " | ".join(header) + " |")
+    lines.append("|" + "|".join(["---"] + [":---:"] * (len(header) - 1)) + "|")
+    for seq in result.sequences:
+        row = [seq]
+        for level in result.levels:
+            cells = [result.cell(seq, level, m) for m in result.methods]
+            means = [c.mean for c in cells if c is not None and not c.failed]
+            best = min(means) if means and len(result.methods) > 1 else None
+            for c in cells:
+                if c is None:
+                    row.append("-")
+                elif c.failed:
+                    row.append("F")
+                else:
+                    text = f"{_fmt(c.mean, digits)}/{_fmt(c.median, digits)}"
+                    row.append(f"**{text}**" if bold_best and best is not None and c.mean == best else text)
+        lines.append("| " + " | ".join(row) + " |")
+    failed = [r for r in result.runs if not r.ok]
+    if failed:
+        lines += ["", "Failed runs:", ""]
+        for r in failed:
+            s = r.spec
+            lines.append(f"- {s.sequence} / {s.level} / {s.method} / {s.rep}: {r.reason}")
+    return "\n".join(lines) + "\n"
+
+
+def batch_csv(result: BatchResult, digits: int = 6) -> str:
+    """Render the table as CSV in the same layout: one row per sequence, two columns per cell.
+
+    Columns: ``sequence``, then ``<level>:<method>:mean`` and ``<level>:<method>:median`` for each cell;
+    values are metres, ``F`` for a failed cell, empty for no run.
+
+    Args:
+        result: a :func:`score_batch` result.
+        digits: decimals written.
+
+    Returns:
+        CSV text.
+    """
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    header = ["sequence"]
+    for level in result.levels:
+        for m in result.methods:
+            header += [f"{level}:{m}:mean", f"{level}:{m}:median"]
+    writer.writerow(header)
+    for seq in result.sequences:
+        row = [seq]
+        for level in result.levels:
+            for m in result.methods:
+                c = result.cell(seq, level, m)
+                if c is None:
+                    row += ["", ""]
+                elif c.failed:
+                    row += ["F", "F"]
+                else:
+                    row += [_fmt(c.mean, digits), _fmt(c.median, digits)]
+        writer.writerow(row)
+    return buf.getvalue()
+
+
+def runs_csv(result: BatchResult, digits: int = 6) -> str:
+    """One CSV row per repetition: where it is, its status and all its statistics.
+
+    Columns: sequence, level, method, rep, status (``ok`` or the failure category), rmse, mean, median,
+    std, min, max, n, coverage, reason, estimate.
+
+    Args:
+        result: a :func:`score_batch` result.
+        digits: decimals written.
+
+    Returns:
+        CSV text.
+    """
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    keys = ("rmse", "mean", "median", "std", "min", "max")
+    writer.writerow(
+        ["sequence", "level", "method", "rep", "status", *keys, "n", "coverage", "reason", "estimate"]
+    )
+    for r in result.runs:
+        s = r.spec
+        stats = [_fmt(getattr(r.stats, k), digits) for k in keys] if r.stats else [""] * len(keys)
+        n = str(r.stats.n) if r.stats else ""
+        writer.writerow(
+            [
+                s.sequence,
+                s.level,
+                s.method,
+                s.rep,
+                r.category,
+                *stats,
+                n,
+                _fmt(r.coverage, 4),
+                r.reason,
+                str(r.estimate or ""),
+            ]
+        )
+    return buf.getvalue()
+
+
+def write_batch_tables(
+    result: BatchResult, out_dir: str | Path, stem: str = "ate_table", digits: int = 3
+) -> dict[str, Path]:
+    """Write ``<stem>.md``, ``<stem>.csv`` and ``<stem>_runs.csv`` into ``out_dir`` (created if needed).
+
+    Args:
+        result: a :func:`score_batch` result.
+        out_dir: destination folder.
+        stem: file name stem.
+        digits: decimals in the Markdown table (the CSV files keep 6).
+
+    Returns:
+        ``{"markdown": path, "csv": path, "runs": path}``.
+
+    Raises:
+        ATEError: when a file cannot be written.
+    """
+    out = Path(out_dir)
+    files = {
+        "markdown": (out / f"{stem}.md", batch_markdown(result, digits=digits)),
+        "csv": (out / f"{stem}.csv", batch_csv(result)),
+        "runs": (out / f"{stem}_runs.csv", runs_csv(result)),
+    }
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for path, text in files.values():
+            path.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise ATEError(f"{out}: cannot write the batch tables ({exc.strerror})") from exc
+    return {key: path for key, (path, _) in files.items()}
