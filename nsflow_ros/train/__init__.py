@@ -1,0 +1,30 @@
+"""nsflow_ros.train: training the NSFlow encoder end to end through a differentiable LK layer.
+
+This is the only part of the project that imports torch (``pip install 'nsflow_ros[train]'``); the core
+and the ROS nodes never do. Modules, one concept each:
+
+* :mod:`~nsflow_ros.train.ops` - Scharr derivative maps and exact bilinear window sampling in torch;
+* :mod:`~nsflow_ros.train.lk_layer` - the LM Lucas-Kanade layer with implicit or unrolled backward;
+* :mod:`~nsflow_ros.train.model` - the encoder CNN;
+* :mod:`~nsflow_ros.train.data` - homography pairs of real photos with exact flow and illumination changes;
+* :mod:`~nsflow_ros.train.loss` - the robust endpoint-error loss;
+* :mod:`~nsflow_ros.train.trainer` - the training loop; :mod:`~nsflow_ros.train.cli` - ``nsflow-train``;
+* :mod:`~nsflow_ros.train.export` - ONNX export; :mod:`~nsflow_ros.train.evaluate` - NSFlow vs classical.
+"""
+
+from __future__ import annotations
+
+from nsflow_ros.train.errors import TrainError
+
+try:
+    import torch  # noqa: F401
+except ImportError as err:  # pragma: no cover - depends on the environment
+    raise TrainError(
+        "nsflow_ros.train needs PyTorch, which is not installed: pip install 'nsflow_ros[train]' "
+        "(or pip install torch)"
+    ) from err
+
+from nsflow_ros.train.lk_layer import BackwardMode, LKOutput, lk_track
+from nsflow_ros.train.model import Encoder, EncoderSpec
+
+__all__ = ["BackwardMode", "Encoder", "EncoderSpec", "LKOutput", "TrainError", "lk_track"]

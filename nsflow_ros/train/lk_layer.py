@@ -1,0 +1,293 @@
+"""The differentiable Lucas-Kanade layer: the paper's LM solver (Algorithm 1) in torch, with two backwards.
+
+Forward (both modes) runs exactly the iteration of ``nsflow_ros.core.solver`` at a single pyramid level
+(``LMConfig(levels=1)``), batched over points: J and f at x + u, the closed-form 2x2 solve of
+(J^T J + lambda I) du = -J^T f, accept/reject on the cost with lambda /= nu or *= nu, and the stop tests
+||du|| < eps (1 + ||u||) or ||J^T f||_inf < eps (both on the values before the step). The flow, the LM
+state and the damping are float64 whatever the maps' dtype (as in the NumPy solver); the maps are sampled
+in their own dtype.
+
+Backward modes (:class:`BackwardMode`):
+
+* ``IMPLICIT`` - the implicit function theorem at the converged solution u*. The solver stops where
+  F(D1, D2, u) = J(u)^T f(u) = 0 (J = the Scharr derivative maps of D2 sampled at x + u), so
+  du*/dD = -(dF/du)^-1 dF/dD. dF/du is block diagonal (one 2x2 block per point, each point's F depends on
+  its own u only); the blocks are the exact derivative of F, second-order terms included (the change of
+  the sampled J and f with u), obtained with autograd on one re-evaluation of F at u*, one block row at a
+  time. Each block is inverted in closed form and the gradient reaches D1 and D2 as one
+  vector-Jacobian product through F: grad_D = -(dF/dD)^T (dF/du)^-T grad_u. The forward keeps no graph,
+  so memory does not grow with the number of iterations.
+* ``UNROLL`` - the same iterations recorded by autograd (accept/reject and stopping act as hard masks),
+  the way Theseus' unrolled mode and the authors' LET-NET2 training differentiate. For comparison.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import torch
+
+from nsflow_ros.core.solver import LMConfig
+from nsflow_ros.train.errors import TrainError
+from nsflow_ros.train.ops import sample_windows, scharr_gradients
+
+__all__ = ["BackwardMode", "LKOutput", "lk_track", "optimality_condition"]
+
+
+class BackwardMode(enum.Enum):
+    """How gradients flow back through the LK layer."""
+
+    IMPLICIT = "implicit"
+    UNROLL = "unroll"
+
+
+@dataclass(frozen=True)
+class LKOutput:
+    """Result of :func:`lk_track`.
+
+    Attributes:
+        flow: estimated flow u*, differentiable w.r.t. both descriptor maps, shape (N, 2), float64.
+        status: True where the point counts as tracked (same rule as the NumPy solver), shape (N,).
+        cost: final S(u*) = 1/2 ||f||^2, shape (N,), no gradient.
+        iterations: LM iterations per point, shape (N,), int64.
+    """
+
+    flow: torch.Tensor
+    status: torch.Tensor
+    cost: torch.Tensor
+    iterations: torch.Tensor
+
+
+def _stack_level(desc2: torch.Tensor) -> torch.Tensor:
+    """[D | Dx | Dy] of frame 2, (3C, H, W), like one level of the NumPy pyramid."""
+    dx, dy = scharr_gradients(desc2)
+    return torch.cat([desc2, dx, dy], dim=0)
+
+
+def _normal_equations(
+    level2: torch.Tensor, centers: torch.Tensor, template: torch.Tensor, channels: int, window: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """S, J^T J as (h11, h12, h22) and J^T f at the given frame-2 centres; all (M,) / (M, 3) / (M, 2)."""
+    m = centers.shape[0]
+    s = sample_windows(level2, centers, window).reshape(m, 3, -1)
+    f = s[:, 0] - template
+    jx, jy = s[:, 1], s[:, 2]
+    cost = 0.5 * (f * f).sum(1).double()
+    hess = torch.stack([(jx * jx).sum(1), (jx * jy).sum(1), (jy * jy).sum(1)], 1).double()
+    grad = torch.stack([(jx * f).sum(1), (jy * f).sum(1)], 1).double()
+    return cost, hess, grad
+
+
+def _template(desc1: torch.Tensor, pts: torch.Tensor, window: int) -> torch.Tensor:
+    return sample_windows(desc1, pts, window).reshape(pts.shape[0], -1)
+
+
+def optimality_condition(
+    desc1: torch.Tensor, desc2: torch.Tensor, points: torch.Tensor, flow: torch.Tensor, window: int
+) -> torch.Tensor:
+    """F(D1, D2, u) = J(u)^T f(u) per point, zero at a converged solution of the LM solver.
+
+    Args:
+        desc1: frame-1 descriptor map.
+        desc2: frame-2 descriptor map (its Scharr derivatives are computed here, so F depends on D2
+            through both the sampled descriptors and the sampled Jacobian).
+        points: keypoints x in frame 1.
+        flow: flow u.
+        window: odd window side.
+
+    Returns:
+        F, one 2-vector per point, in the maps' dtype.
+
+    Shape:
+        desc1, desc2: (C, H, W). points, flow: (N, 2). Returns (N, 2).
+    """
+    c = desc1.shape[0]
+    n = points.shape[0]
+    template = _template(desc1, points, window)
+    s = sample_windows(_stack_level(desc2), points + flow, window).reshape(n, 3, -1)
+    f = s[:, 0] - template
+    del c
+    return torch.stack([(s[:, 1] * f).sum(1), (s[:, 2] * f).sum(1)], 1)
+
+
+def _lm_solve(
+    desc1: torch.Tensor, desc2: torch.Tensor, pts: torch.Tensor, u0: torch.Tensor, cfg: LMConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Algorithm 1 at one level; returns (u, cost, hess, iterations). Differentiable if grad is enabled.
+
+    Only the still-active points are evaluated in each iteration; results are written back out of place
+    so that the same code records a valid graph in UNROLL mode.
+    """
+    c = desc1.shape[0]
+    win = cfg.window
+    n = pts.shape[0]
+    level2 = _stack_level(desc2)
+    template = _template(desc1, pts, win)
+    cost, hess, grad = _normal_equations(level2, pts + u0, template, c, win)
+    u = u0
+    lam = torch.full((n,), cfg.lambda_init, dtype=torch.float64, device=pts.device)
+    iterations = torch.zeros(n, dtype=torch.int64, device=pts.device)
+    idx = torch.arange(n, device=pts.device)
+    for _ in range(cfg.max_iterations):
+        if idx.numel() == 0:
+            break
+        u_a, c_a, h_a, g_a, lam_a = u[idx], cost[idx], hess[idx], grad[idx], lam[idx]
+        a11 = h_a[:, 0] + lam_a
+        a22 = h_a[:, 2] + lam_a
+        a12 = h_a[:, 1]
+        det = a11 * a22 - a12 * a12
+        du = -torch.stack([a22 * g_a[:, 0] - a12 * g_a[:, 1], a11 * g_a[:, 1] - a12 * g_a[:, 0]], 1)
+        du = du / det[:, None]
+        du = torch.where(torch.isfinite(du), du, torch.zeros_like(du))
+        cand = u_a + du
+        cc, ch, cg = _normal_equations(level2, pts[idx] + cand, template[idx], c, win)
+        with torch.no_grad():
+            accept = cc < c_a
+            step_small = torch.linalg.vector_norm(du, dim=1) < cfg.eps * (
+                1.0 + torch.linalg.vector_norm(u_a, dim=1)
+            )
+            grad_small = g_a.abs().amax(1) < cfg.eps
+            stop = step_small | grad_small
+        acc = accept[:, None]
+        u = u.index_put((idx,), torch.where(acc, cand, u_a))
+        cost = cost.index_put((idx,), torch.where(accept, cc, c_a))
+        hess = hess.index_put((idx,), torch.where(acc, ch, h_a))
+        grad = grad.index_put((idx,), torch.where(acc, cg, g_a))
+        lam = lam.index_put((idx,), torch.where(accept, lam_a / cfg.nu, lam_a * cfg.nu).detach())
+        iterations[idx] += 1
+        idx = idx[~stop]
+    return u, cost, hess, iterations
+
+
+def _valid(pts: torch.Tensor, u: torch.Tensor, hess: torch.Tensor, shape: tuple[int, int], channels: int,
+           cfg: LMConfig) -> torch.Tensor:
+    """The NumPy solver's status rule: finite, both windows inside the image, textured window."""
+    h, w = shape
+    r = cfg.window // 2
+
+    def inside(p: torch.Tensor) -> torch.Tensor:
+        return (p[:, 0] >= r) & (p[:, 0] <= w - 1 - r) & (p[:, 1] >= r) & (p[:, 1] <= h - 1 - r)
+
+    new = pts + u
+    finite = torch.isfinite(new).all(1)
+    tr = hess[:, 0] + hess[:, 2]
+    diff = hess[:, 0] - hess[:, 2]
+    min_eig = 0.5 * (tr - torch.sqrt(diff * diff + 4.0 * hess[:, 1] ** 2))
+    textured = min_eig / (cfg.window**2 * channels) >= cfg.min_eigen
+    safe_new = torch.where(finite[:, None], new, torch.full_like(new, -1e9))
+    return finite & inside(pts) & inside(safe_new) & textured
+
+
+class _ImplicitLK(torch.autograd.Function):
+    """LM forward without a graph; implicit-function-theorem backward (see the module docstring)."""
+
+    @staticmethod
+    def forward(ctx, desc1, desc2, points, flow0, cfg):  # type: ignore[override]
+        with torch.no_grad():
+            u, cost, hess, iters = _lm_solve(desc1, desc2, points, flow0, cfg)
+            status = _valid(points, u, hess, tuple(desc1.shape[1:]), desc1.shape[0], cfg)
+        ctx.save_for_backward(desc1, desc2, points, u, status)
+        ctx.window = cfg.window
+        ctx.mark_non_differentiable(status, cost, iters)
+        return u, status, cost, iters
+
+    @staticmethod
+    def backward(ctx, grad_u, *_unused):  # type: ignore[override]
+        desc1, desc2, points, u, status = ctx.saved_tensors
+        if grad_u is None:
+            return None, None, None, None, None
+        need1, need2 = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        with torch.enable_grad():
+            d1 = desc1.detach().requires_grad_(need1)
+            d2 = desc2.detach().requires_grad_(need2)
+            uu = u.detach().requires_grad_(True)
+            fval = optimality_condition(d1, d2, points, uu, ctx.window)  # (N, 2)
+            # Exact dF/du, block row by block row (F_i depends on u_i only).
+            row0 = torch.autograd.grad(fval[:, 0].sum(), uu, retain_graph=True)[0]
+            row1 = torch.autograd.grad(fval[:, 1].sum(), uu, retain_graph=True)[0]
+            a00, a01 = row0[:, 0], row0[:, 1]
+            a10, a11 = row1[:, 0], row1[:, 1]
+            det = a00 * a11 - a01 * a10
+            g = grad_u.to(torch.float64)
+            # w = -(dF/du)^-T grad_u, closed form per 2x2 block.
+            w0 = -(a11 * g[:, 0] - a10 * g[:, 1]) / det
+            w1 = -(a00 * g[:, 1] - a01 * g[:, 0]) / det
+            w = torch.stack([w0, w1], 1)
+            ok = status & torch.isfinite(w).all(1) & (det.abs() > 0)
+            w = torch.where(ok[:, None], w, torch.zeros_like(w)).to(fval.dtype)
+            inputs = [t for t, need in ((d1, need1), (d2, need2)) if need]
+            grads = list(torch.autograd.grad(fval, inputs, grad_outputs=w, allow_unused=True)) if inputs else []
+        gd1 = grads.pop(0) if need1 else None
+        gd2 = grads.pop(0) if need2 else None
+        return gd1, gd2, None, None, None
+
+
+def _as_map(desc: torch.Tensor, name: str) -> torch.Tensor:
+    if desc.dim() == 4:
+        if desc.shape[0] != 1:
+            raise TrainError(f"{name} must be (C, H, W) or (1, C, H, W), got {tuple(desc.shape)}")
+        desc = desc[0]
+    if desc.dim() != 3:
+        raise TrainError(f"{name} must be (C, H, W) or (1, C, H, W), got {tuple(desc.shape)}")
+    if not desc.is_floating_point():
+        raise TrainError(f"{name} must be floating point, got {desc.dtype}")
+    return desc
+
+
+def lk_track(
+    desc1: torch.Tensor,
+    desc2: torch.Tensor,
+    points: torch.Tensor,
+    flow0: torch.Tensor | None = None,
+    config: LMConfig | None = None,
+    mode: BackwardMode = BackwardMode.IMPLICIT,
+) -> LKOutput:
+    """Track points from frame 1 to frame 2 with the LM-LK solver, differentiably w.r.t. both maps.
+
+    Args:
+        desc1: frame-1 descriptor map (e.g. the encoder output).
+        desc2: frame-2 descriptor map, same shape.
+        points: keypoints x in frame 1, (x, y) pixels.
+        flow0: initial flow (zeros when None); it receives no gradient.
+        config: solver settings; must be single level (``levels=1``). ``LMConfig(levels=1)`` when None.
+        mode: the backward, :attr:`BackwardMode.IMPLICIT` (default) or :attr:`BackwardMode.UNROLL`.
+
+    Returns:
+        an :class:`LKOutput`; ``flow`` matches ``nsflow_ros.track(..., LMConfig(levels=1, ...))``.
+
+    Raises:
+        TrainError: on mismatched maps, wrong point/flow shapes, or a multi-level config.
+
+    Shape:
+        desc1, desc2: (C, H, W) or (1, C, H, W). points, flow0: (N, 2).
+    """
+    cfg = config or LMConfig(levels=1)
+    if cfg.levels != 1:
+        raise TrainError(f"lk_track is single-scale: config.levels must be 1, got {cfg.levels}")
+    d1 = _as_map(desc1, "desc1")
+    d2 = _as_map(desc2, "desc2")
+    if d1.shape != d2.shape:
+        raise TrainError(f"descriptor maps differ: desc1 {tuple(d1.shape)}, desc2 {tuple(d2.shape)}")
+    if d1.dtype != d2.dtype:
+        raise TrainError(f"descriptor maps differ in dtype: {d1.dtype} vs {d2.dtype}")
+    if points.dim() != 2 or points.shape[1] != 2:
+        raise TrainError(f"points must have shape (N, 2), got {tuple(points.shape)}")
+    n = points.shape[0]
+    pts = points.detach().to(torch.float64)
+    if flow0 is None:
+        u0 = torch.zeros((n, 2), dtype=torch.float64, device=pts.device)
+    else:
+        if tuple(flow0.shape) != (n, 2):
+            raise TrainError(f"flow0 must have shape ({n}, 2) like points, got {tuple(flow0.shape)}")
+        u0 = flow0.detach().to(torch.float64)
+    if not (torch.isfinite(pts).all() and torch.isfinite(u0).all()):
+        raise TrainError("points and flow0 must be finite")
+    if not isinstance(mode, BackwardMode):
+        raise TrainError(f"mode must be a BackwardMode, got {mode!r}")
+    if mode is BackwardMode.IMPLICIT:
+        u, status, cost, iters = _ImplicitLK.apply(d1, d2, pts, u0, cfg)
+        return LKOutput(u, status, cost, iters)
+    u, cost, hess, iters = _lm_solve(d1, d2, pts, u0, cfg)
+    status = _valid(pts, u.detach(), hess.detach(), tuple(d1.shape[1:]), d1.shape[0], cfg)
+    return LKOutput(u, status, cost.detach(), iters)

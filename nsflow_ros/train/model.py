@@ -1,0 +1,105 @@
+"""The NSFlow encoder CNN: image in [0, 1] -> full-resolution d-channel descriptor map.
+
+Architecture (the paper's): 3x3 conv c_in -> 8, 3x3 conv 8 -> 8, 1x1 conv 8 -> 16, 1x1 conv 16 -> d, with
+biases and a ReLU after each of the first three convs. The head's nonlinearity is a setting
+(:class:`EncoderSpec.head`): ``"relu"`` as in the paper, ``"sigmoid"`` as in the authors' released code
+(descriptors in (0, 1) like the intensity baseline the solver's thresholds assume), or ``"none"``.
+The 3x3 convs pad by one pixel with REPLICATED borders, the same border rule as the solver's Scharr
+derivatives and sampling, so no artificial edge appears at the image border. No BatchNorm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+from nsflow_ros.train.errors import TrainError
+
+__all__ = ["HEADS", "Encoder", "EncoderSpec", "count_flops", "count_parameters"]
+
+HEADS = ("sigmoid", "relu", "none")
+
+
+@dataclass(frozen=True)
+class EncoderSpec:
+    """Shape of the encoder.
+
+    Attributes:
+        d: descriptor channels (the solver's per-iteration cost grows with it).
+        in_channels: 1 (gray) or 3 (RGB).
+        head: nonlinearity after the last conv: "sigmoid", "relu" or "none".
+    """
+
+    d: int = 4
+    in_channels: int = 1
+    head: str = "sigmoid"
+
+    def __post_init__(self) -> None:
+        if self.d < 1:
+            raise TrainError(f"EncoderSpec.d must be >= 1, got {self.d}")
+        if self.in_channels not in (1, 3):
+            raise TrainError(f"EncoderSpec.in_channels must be 1 or 3, got {self.in_channels}")
+        if self.head not in HEADS:
+            raise TrainError(f"EncoderSpec.head must be one of {HEADS}, got {self.head!r}")
+
+    def as_dict(self) -> dict[str, object]:
+        return asdict(self)
+
+
+class Encoder(nn.Module):
+    """The descriptor CNN.
+
+    Args:
+        spec: channels and head.
+
+    Shape:
+        forward: (1, c_in, H, W) float in [0, 1] -> (1, d, H, W), same H and W.
+    """
+
+    def __init__(self, spec: EncoderSpec | None = None) -> None:
+        super().__init__()
+        self.spec = spec or EncoderSpec()
+        c = self.spec.in_channels
+        self.conv1 = nn.Conv2d(c, 8, 3, padding=1, padding_mode="replicate")
+        self.conv2 = nn.Conv2d(8, 8, 3, padding=1, padding_mode="replicate")
+        self.conv3 = nn.Conv2d(8, 16, 1)
+        self.conv4 = nn.Conv2d(16, self.spec.d, 1)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """Encode a batch of images.
+
+        Args:
+            image: images scaled to [0, 1].
+
+        Returns:
+            descriptor maps.
+
+        Shape:
+            image: (B, c_in, H, W). Returns (B, d, H, W).
+        """
+        if image.dim() != 4 or image.shape[1] != self.spec.in_channels:
+            raise TrainError(
+                f"encoder expects (B, {self.spec.in_channels}, H, W) input, got {tuple(image.shape)}"
+            )
+        x = torch.relu(self.conv1(image))
+        x = torch.relu(self.conv2(x))
+        x = torch.relu(self.conv3(x))
+        x = self.conv4(x)
+        if self.spec.head == "sigmoid":
+            return torch.sigmoid(x)
+        if self.spec.head == "relu":
+            return torch.relu(x)
+        return x
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def count_flops(spec: EncoderSpec, height: int = 240, width: int = 320) -> int:
+    """Floating-point operations of one forward pass (2 per multiply-add, conv layers only)."""
+    macs = (spec.in_channels * 9 * 8 + 8 * 9 * 8 + 8 * 16 + 16 * spec.d) * height * width
+    return 2 * macs
