@@ -161,6 +161,9 @@ def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def rotation_angle(rotations: np.ndarray) -> np.ndarray:
     """Angle in radians of rotation matrices, in [0, pi].
 
+    Computed as atan2(|sin|, cos) from the skew and the trace parts, which stays accurate near 0 and pi
+    (an arccos of the trace loses half the digits near 0).
+
     Args:
         rotations: rotation matrices.
 
@@ -172,4 +175,8 @@ def rotation_angle(rotations: np.ndarray) -> np.ndarray:
     """
     r = np.asarray(rotations, dtype=np.float64)
     cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arccos(np.clip(cos, -1.0, 1.0))
+    skew = np.stack(
+        [r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], axis=-1
+    )
+    sin = 0.5 * np.linalg.norm(skew, axis=-1)
+    return np.arctan2(sin, cos)

@@ -70,13 +70,13 @@ def gt() -> Trajectory:
     return make_trajectory()
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def rot() -> Callable[[list[float], float], np.ndarray]:
     """Rotation matrix from axis and angle."""
     return rotation_matrix
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def aaq() -> Callable[..., np.ndarray]:
     """Quaternion (w, x, y, z) from axis and angle."""
     return axis_angle_quaternion

@@ -38,6 +38,8 @@ def test_product_composes_rotations(rot, aaq):
 def test_angle(rot):
     assert rotation_angle(rot([3, 1, 2], 1.25)) == pytest.approx(1.25)
     assert rotation_angle(np.eye(3)) == pytest.approx(0.0)
+    assert rotation_angle(rot([1, 0, 0], 1e-9)) == pytest.approx(1e-9, rel=1e-6)
+    assert rotation_angle(rot([0, 1, 1], np.pi)) == pytest.approx(np.pi)
 
 
 def test_shape_guards():
