@@ -47,9 +47,7 @@ def make_trajectory(
     """A smooth 3-D Lissajous flight with turning orientation, sampled at ``rate`` Hz from ``t0``."""
     t = t0 + np.arange(n) / rate
     s = t - t0
-    pos = np.stack(
-        [3.0 * np.sin(0.3 * s), 2.0 * np.sin(0.45 * s + 0.5), 1.0 + 0.5 * np.sin(0.2 * s)], axis=1
-    )
+    pos = np.stack([3.0 * np.sin(0.3 * s), 2.0 * np.sin(0.45 * s + 0.5), 1.0 + 0.5 * np.sin(0.2 * s)], axis=1)
     yaw = axis_angle_quaternion([0, 0, 1], 0.4 * s)
     tilt = axis_angle_quaternion([1, 0.2, 0], 0.1 * np.sin(s))
     quats = _hamilton(yaw, tilt)

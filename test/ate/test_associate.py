@@ -66,7 +66,7 @@ def test_offset_is_added_to_the_estimate():
 def test_max_diff_controls_matches():
     ref = _traj(np.arange(10.0))
     est = _traj(np.arange(10.0) + 0.02)
-    with pytest.raises(ATEError, match="max_diff 0.01 s"):
+    with pytest.raises(ATEError, match=r"max_diff 0\.01 s"):
         associate(ref, est)
     assert len(associate(ref, est, max_diff=0.03)) == 10
 

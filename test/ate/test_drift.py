@@ -69,7 +69,7 @@ def test_sim3_segments(gt, rot):
 
 
 def test_errors(gt):
-    with pytest.raises(ATEError, match="no gap longer than 1.0 s") as info:
+    with pytest.raises(ATEError, match=r"no gap longer than 1\.0 s") as info:
         evaluate_drift(gt, gt)
     assert info.value.reason == "no_overlap"
     with pytest.raises(ATEError, match="se3 or sim3"):

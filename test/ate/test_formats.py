@@ -32,8 +32,7 @@ def _write(path: Path, text: str) -> Path:
 def test_read_euroc_ground_truth_as_published(tmp_path):
     path = _write(
         tmp_path / "data.csv",
-        EUROC_HEAD
-        + "1403636580838555648,4.688319,-1.786938,0.783338,0.534108,-0.153029,-0.827383,-0.082152,"
+        EUROC_HEAD + "1403636580838555648,4.688319,-1.786938,0.783338,0.534108,-0.153029,-0.827383,-0.082152,"
         "-0.027876,0.033207,0.800006,-0.003172,0.021267,0.078502,-0.025266,0.136696,0.075593\n"
         "1403636580843555584,4.688177,-1.786770,0.787350,0.534640,-0.152990,-0.826976,-0.082863,"
         "-0.029272,0.033992,0.804870,-0.003172,0.021267,0.078502,-0.025266,0.136696,0.075593\n",
@@ -66,12 +65,13 @@ def test_read_vins_mono_and_loop_files(tmp_path):
     loop = _write(tmp_path / "vio_loop.csv", "1000000000,1,2,3,1,0,0,0,\n2000000000,1,2,4,1,0,0,0,\n")
     assert detect_format(loop) == "vins"
     assert read_trajectory(loop).stamps.tolist() == [1.0, 2.0]
-    mono = _write(tmp_path / "run" / "vins_result_no_loop.csv", "5000000000,1,2,3,0,0,0,1,0,0,0,\n")
+    _write(tmp_path / "run" / "vins_result_no_loop.csv", "5000000000,1,2,3,0,0,0,1,0,0,0,\n")
     assert read_trajectory(tmp_path / "run").positions.tolist() == [[1.0, 2.0, 3.0]]
 
 
 def test_read_tum_with_comments(tmp_path):
-    path = _write(tmp_path / "traj.txt", "# timestamp tx ty tz qx qy qz qw\n\n1.5 1 2 3 0 0 0 1\n2.5\t1 2 3 0 0 1 0\n")
+    text = "# timestamp tx ty tz qx qy qz qw\n\n1.5 1 2 3 0 0 0 1\n2.5\t1 2 3 0 0 1 0\n"
+    path = _write(tmp_path / "traj.txt", text)
     assert detect_format(path) == "tum"
     traj = read_trajectory(path)
     np.testing.assert_array_equal(traj.stamps, [1.5, 2.5])
@@ -123,7 +123,7 @@ def test_header_without_hash_and_detection_of_euroc_without_header(tmp_path):
         (EUROC_HEAD, "empty trajectory file", "empty"),
         ("1000000000,1,2,3,1,0,0,0,\n2000000000,nan,2,3,1,0,0,0,\n", r"line 2: field px is nan", "nan"),
         ("1000000000,1,2,3,1,0,0,0,\n2000000000,1,2,3,1,0,0\n", r"line 2: expected at least 8", "malformed"),
-        ("1000000000,1,2,3,1,0,0,0,\n2000000000,1,2,x,1,0,0,0,\n", r"line 2: field pz is not a number", "malformed"),
+        ("1000000000,1,2,3,1,0,0,0,\n2000000000,1,2,x,1,0,0,0,\n", r"line 2: field pz is not a", "malformed"),
         ("1000000000,1,2,3,1,0,,0,\n", r"line 1: expected at least 8", "malformed"),
         ("1000000000,1,2,3,0,0,0,0,\n", r"line 1: zero quaternion", "malformed"),
         ("1 2 3 4 5\n", r"line 1: cannot detect the trajectory format", "malformed"),

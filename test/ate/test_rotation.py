@@ -30,9 +30,8 @@ def test_round_trip_all_branches(aaq):
 
 def test_product_composes_rotations(rot, aaq):
     a, b = aaq([0, 1, 1], 0.7), aaq([1, 0, 0], -1.2)
-    np.testing.assert_allclose(
-        quaternion_to_matrix(quaternion_multiply(a, b)), rot([0, 1, 1], 0.7) @ rot([1, 0, 0], -1.2), atol=1e-12
-    )
+    expected = rot([0, 1, 1], 0.7) @ rot([1, 0, 0], -1.2)
+    np.testing.assert_allclose(quaternion_to_matrix(quaternion_multiply(a, b)), expected, atol=1e-12)
 
 
 def test_angle(rot):

@@ -23,7 +23,7 @@ def test_normalises_and_freezes(gt):
     [
         (np.zeros((2, 1)), np.zeros((2, 3)), np.ones((2, 4)), r"stamps must have shape \(N,\), got \(2, 1\)"),
         (np.zeros(2), np.zeros((3, 3)), np.ones((2, 4)), r"positions must have shape \(2, 3\), got \(3, 3\)"),
-        (np.zeros(2), np.zeros((2, 3)), np.ones((2, 3)), r"quaternions must have shape \(2, 4\), got \(2, 3\)"),
+        (np.zeros(2), np.zeros((2, 3)), np.ones((2, 3)), r"quaternions must have shape \(2, 4\), got"),
         (np.array([0.0, np.nan]), np.zeros((2, 3)), np.ones((2, 4)), r"stamps contain NaN .* index 1"),
         (np.zeros(2), np.array([[0, 0, 0], [0, np.inf, 0]]), np.ones((2, 4)), "positions contain NaN"),
         (np.zeros(2), np.zeros((2, 3)), np.array([[1, 0, 0, 0], [0, 0, 0, 0.0]]), "index 1 has zero norm"),
