@@ -257,7 +257,8 @@ def discover_runs(root: str | Path) -> list[RunSpec]:
         root: the batch folder.
 
     Returns:
-        One spec per repetition, in natural order; sequences without any repetition are left out.
+        One spec per repetition, in table order (sequences natural, levels per :data:`LEVEL_ORDER`,
+        methods and repetitions natural); sequences without any repetition are left out.
 
     Raises:
         ATEError: when ``root`` is not a directory.
@@ -267,7 +268,7 @@ def discover_runs(root: str | Path) -> list[RunSpec]:
         raise ATEError(f"{root}: batch root is not a directory", reason="missing")
     specs: list[RunSpec] = []
     for seq in _subdirs(root):
-        for level in _subdirs(seq):
+        for level in sorted(_subdirs(seq), key=lambda p: _level_key(p.name)):
             for method in _subdirs(level):
                 entries = sorted(method.iterdir(), key=lambda p: _natural_key(p.name))
                 for rep in entries:
@@ -417,7 +418,8 @@ def score_batch(
             from nsflow_ros.ate.plot import plot_top_view
 
             name = f"{spec.sequence}_{spec.level}_{spec.method}_{spec.rep}.png"
-            plot_top_view(result, Path(plot_dir) / name)
+            title = f"{spec.sequence} / {spec.level} / {spec.method} / {spec.rep}"
+            plot_top_view(result, Path(plot_dir) / name, title=title)
     sequences = tuple(sorted({s.sequence for s in specs}, key=_natural_key))
     found_levels = sorted({s.level for s in specs}, key=_level_key)
     found_methods = sorted({s.method for s in specs}, key=_natural_key)

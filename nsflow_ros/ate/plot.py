@@ -25,7 +25,8 @@ def plot_top_view(result: APEResult, path: str | Path, title: str | None = None,
     Args:
         result: an :func:`~nsflow_ros.ate.evaluate_ape` result (matched, aligned poses and errors).
         path: PNG file to write (parent folders are created).
-        title: figure title; default: the estimate's name and the RMSE.
+        title: first title line; default: the last parts of the estimate's path. A second line gives
+            the RMSE, the number of poses and the alignment.
         dpi: resolution.
 
     Returns:
@@ -62,11 +63,9 @@ def plot_top_view(result: APEResult, path: str | Path, title: str | None = None,
     ax.grid(True, linewidth=0.3)
     ax.legend(loc="best", fontsize="small")
     s = result.stats
-    ax.set_title(
-        title
-        or f"{Path(result.est.name).name}: APE rmse {s.rmse:.3f} m, n {s.n} ({result.alignment.method})",
-        fontsize="medium",
-    )
+    label = "/".join(Path(result.est.name).parts[-4:])
+    summary = f"APE rmse {s.rmse:.3f} m, n {s.n}, {result.alignment.method}"
+    ax.set_title(f"{title or label}\n{summary}", fontsize="medium")
     out = Path(path)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
