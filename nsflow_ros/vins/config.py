@@ -1,0 +1,419 @@
+"""VINS-Fusion and VINS-Mono configuration files, read as they are.
+
+Both estimators keep their settings in one OpenCV FileStorage YAML file (``%YAML:1.0`` first line,
+``!!opencv-matrix`` maps). The two dialects differ in how they name the camera and where the intrinsics live:
+
+* VINS-Fusion: ``num_of_cam`` (1 or 2), ``image0_topic`` / ``image1_topic``, ``imu`` (0/1), camodocal camera
+  files ``cam0_calib`` / ``cam1_calib`` relative to the config's folder, extrinsics ``body_T_cam0`` /
+  ``body_T_cam1`` as 4x4 matrices.
+* VINS-Mono: one camera on ``image_topic`` whose camodocal keys (``model_type``, ``projection_parameters``,
+  ...) sit inline in the config; extrinsics as ``extrinsicRotation`` (3x3) and ``extrinsicTranslation``
+  (3x1); always with an IMU; ``freq``, ``equalize`` and ``fisheye`` tracker switches.
+
+:func:`load_vins_config` detects the dialect, checks every key the front-end needs and returns one frozen
+:class:`VinsConfig`; :func:`apply_overrides` replaces the tracker settings with values from elsewhere (ROS
+parameters). Optional keys take the value VINS gives a missing key (0 / false), except the tracker settings
+with documented defaults (max_cnt 150, min_dist 30, F_threshold 1.0, freq 0 -> 100). Unlike VINS, a missing
+required key or a value of the wrong type is an error, naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from nsflow_ros.core.camera import CameraError, CameraModel, camera_from_dict, load_camera
+from nsflow_ros.core.opencv_yaml import OpenCVYamlError, read_opencv_yaml
+from nsflow_ros.vins.errors import ConfigError
+
+__all__ = [
+    "DEFAULT_FREQ",
+    "OVERRIDABLE_KEYS",
+    "Dialect",
+    "VinsConfig",
+    "apply_overrides",
+    "load_vins_config",
+]
+
+Dialect = Literal["fusion", "mono"]
+
+DEFAULT_FREQ = 100
+"""Publishing rate (Hz) that ``freq: 0`` stands for, as in VINS-Mono (in effect: every image)."""
+
+OVERRIDABLE_KEYS: tuple[str, ...] = (
+    "max_cnt",
+    "min_dist",
+    "F_threshold",
+    "flow_back",
+    "show_track",
+    "freq",
+    "equalize",
+)
+"""Tracker settings :func:`apply_overrides` accepts, by their VINS config key."""
+
+_KEEP = -1  # override value meaning "keep the config's value" (ROS parameters cannot be None)
+_ROTATION_TOL = 1e-6  # |R R^T - I| bound for an extrinsic rotation
+_FUSION_KEYS = ("image0_topic", "num_of_cam", "cam0_calib")
+_MONO_KEYS = ("image_topic", "model_type")
+_MISSING = object()
+
+
+@dataclass(frozen=True, eq=False)
+class VinsConfig:
+    """What the front-end needs from a VINS-Fusion or VINS-Mono config file.
+
+    Attributes:
+        path: the config file (absolute).
+        dialect: "fusion" (VINS-Fusion) or "mono" (VINS-Mono).
+        image0_topic: left / only camera topic (VINS-Mono ``image_topic``). Topics may be "" (VINS-Fusion's
+            KITTI configs, read from files rather than ROS); a missing topic key is an error.
+        image1_topic: right camera topic; "" when absent (VINS-Fusion keeps it in mono configs too).
+        imu_topic: IMU topic; "" when the config has no IMU and names none.
+        use_imu: VINS-Fusion ``imu``; always true for VINS-Mono.
+        num_of_cam: 1 or 2 (always 1 for VINS-Mono).
+        cameras: one camera model per camera, cam0 first.
+        body_T_cam: per camera, the 4x4 float64 transform from camera to body (IMU) frame, read-only;
+            identity when ``estimate_extrinsic`` is 2 (VINS then has no prior either).
+        image_width, image_height: image size in pixels (VINS ``COL`` / ``ROW``).
+        max_cnt: most features tracked per image.
+        min_dist: minimum distance between features (pixels).
+        F_threshold: RANSAC threshold (pixels) of the fundamental-matrix check.
+        flow_back: track backwards and drop points that do not come back (VINS-Fusion).
+        show_track: publish the debug image.
+        freq: publishing rate in Hz; a 0 in the file reads as :data:`DEFAULT_FREQ`.
+        equalize: apply CLAHE before tracking (VINS-Mono).
+        fisheye: apply the fisheye mask (VINS-Mono).
+        output_path: where VINS writes its trajectory, as written in the file (not expanded).
+    """
+
+    path: Path
+    dialect: Dialect
+    image0_topic: str
+    image1_topic: str
+    imu_topic: str
+    use_imu: bool
+    num_of_cam: int
+    cameras: tuple[CameraModel, ...]
+    body_T_cam: tuple[np.ndarray, ...]  # noqa: N815 (the VINS key body_T_cam0 / body_T_cam1)
+    image_width: int
+    image_height: int
+    max_cnt: int = 150
+    min_dist: int = 30
+    F_threshold: float = 1.0
+    flow_back: bool = False
+    show_track: bool = False
+    freq: int = DEFAULT_FREQ
+    equalize: bool = False
+    fisheye: bool = False
+    output_path: str = ""
+
+    @property
+    def stereo(self) -> bool:
+        """True for two cameras."""
+        return self.num_of_cam == 2
+
+    @property
+    def image_topics(self) -> tuple[str, ...]:
+        """The image topic of each camera, cam0 first."""
+        return (self.image0_topic, self.image1_topic)[: self.num_of_cam]
+
+    def tracker_settings(self) -> dict[str, int | float | bool]:
+        """Return the current value of every key in :data:`OVERRIDABLE_KEYS`."""
+        return {key: getattr(self, key) for key in OVERRIDABLE_KEYS}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Typed access to the parsed file
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, np.ndarray):
+        return f"a {value.shape[0]}x{value.shape[1]} matrix"
+    if isinstance(value, dict):
+        return "a map"
+    if isinstance(value, list):
+        return "a sequence"
+    return f"{type(value).__name__} {value!r}"
+
+
+class _Keys:
+    """Read keys of one parsed config, raising ConfigError that names the file and the key."""
+
+    def __init__(self, data: dict[str, Any], path: Path) -> None:
+        self.data = data
+        self.path = path
+
+    def error(self, key: str, problem: str) -> ConfigError:
+        return ConfigError(f"{self.path}: key '{key}' {problem}")
+
+    def _get(self, key: str, default: Any) -> Any:
+        value = self.data.get(key)
+        if value is None:
+            if default is _MISSING:
+                raise ConfigError(f"{self.path}: missing required key '{key}'")
+            return default
+        return value
+
+    def string(self, key: str, default: Any = _MISSING, *, non_empty: bool = False) -> str:
+        value = self._get(key, default)
+        if not isinstance(value, str):
+            raise self.error(key, f"must be a string, got {_describe(value)}")
+        if non_empty and not value:
+            raise self.error(key, "must not be empty")
+        return value
+
+    def integer(self, key: str, default: Any = _MISSING, *, minimum: int | None = None) -> int:
+        value = self._get(key, default)
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(key, f"must be an integer, got {_describe(value)}")
+        if minimum is not None and value < minimum:
+            raise self.error(key, f"must be >= {minimum}, got {value}")
+        return value
+
+    def real(self, key: str, default: Any = _MISSING, *, positive: bool = False) -> float:
+        value = self._get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.error(key, f"must be a number, got {_describe(value)}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.error(key, f"must be finite, got {value}")
+        if positive and value <= 0.0:
+            raise self.error(key, f"must be > 0, got {value}")
+        return value
+
+    def flag(self, key: str, default: bool = False) -> bool:
+        """An integer switch; non-zero is true, as VINS reads it."""
+        return self.integer(key, int(default)) != 0
+
+    def matrix(self, key: str, shape: tuple[int, int], default: Any = _MISSING) -> np.ndarray:
+        value = self._get(key, default)
+        rows, cols = shape
+        if not isinstance(value, np.ndarray):
+            raise self.error(key, f"must be a {rows}x{cols} !!opencv-matrix, got {_describe(value)}")
+        if value.size == rows * cols and value.shape in ((rows, cols), (cols, rows)) and 1 in shape:
+            value = value.reshape(shape)  # a translation may be written 3x1 or 1x3
+        if value.shape != shape:
+            raise self.error(key, f"must be a {rows}x{cols} !!opencv-matrix, got {_describe(value)}")
+        if not np.all(np.isfinite(value)):
+            raise self.error(key, "must hold finite numbers")
+        return np.array(value, dtype=np.float64)
+
+
+def _check_transform(keys: _Keys, key: str, transform: np.ndarray) -> np.ndarray:
+    rotation = transform[:3, :3]
+    if np.abs(rotation @ rotation.T - np.eye(3)).max() > _ROTATION_TOL or np.linalg.det(rotation) <= 0.0:
+        raise keys.error(key, f"is not a rigid transform: its rotation part is not a rotation\n{rotation}")
+    if transform.shape == (4, 4) and not np.allclose(transform[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise keys.error(key, f"is not a rigid transform: last row must be [0, 0, 0, 1], got {transform[3]}")
+    transform.setflags(write=False)
+    return transform
+
+
+def _identity() -> np.ndarray:
+    out = np.eye(4)
+    out.setflags(write=False)
+    return out
+
+
+def _detect_dialect(keys: _Keys) -> Dialect:
+    if any(key in keys.data for key in _FUSION_KEYS):
+        return "fusion"
+    if any(key in keys.data for key in _MONO_KEYS):
+        return "mono"
+    raise ConfigError(
+        f"{keys.path}: not a VINS config: it has none of the VINS-Fusion keys {', '.join(_FUSION_KEYS)} "
+        f"nor the VINS-Mono keys {', '.join(_MONO_KEYS)}"
+    )
+
+
+def _calibration(keys: _Keys, index: int) -> CameraModel:
+    key = f"cam{index}_calib"
+    name = keys.string(key, non_empty=True)
+    calib = keys.path.parent / name  # VINS-Fusion: relative to the config's folder
+    if not calib.is_file():
+        what = "is not a file" if calib.exists() else "does not exist"
+        raise keys.error(key, f"names camera file {calib}, which {what}")
+    try:
+        return load_camera(calib)
+    except CameraError as err:
+        raise keys.error(key, f"names an unusable camera file: {err}") from err
+
+
+def _estimate_extrinsic(keys: _Keys) -> int:
+    mode = keys.integer("estimate_extrinsic", 0)
+    if mode not in (0, 1, 2):
+        raise keys.error("estimate_extrinsic", f"must be 0, 1 or 2, got {mode}")
+    return mode
+
+
+def _read_fusion(keys: _Keys) -> dict[str, Any]:
+    num_of_cam = keys.integer("num_of_cam")
+    if num_of_cam not in (1, 2):
+        raise keys.error("num_of_cam", f"must be 1 or 2, got {num_of_cam}")
+    stereo = num_of_cam == 2
+    use_imu = keys.flag("imu")
+    cameras = tuple(_calibration(keys, i) for i in range(num_of_cam))
+    if _estimate_extrinsic(keys) == 2:  # VINS-Fusion starts cam0 from identity and ignores body_T_cam0
+        body_T_cam = [_identity()]
+    else:
+        body_T_cam = [_check_transform(keys, "body_T_cam0", keys.matrix("body_T_cam0", (4, 4)))]
+    if stereo:  # VINS-Fusion reads body_T_cam1 whatever estimate_extrinsic says
+        body_T_cam.append(_check_transform(keys, "body_T_cam1", keys.matrix("body_T_cam1", (4, 4))))
+    return {
+        "image0_topic": keys.string("image0_topic"),
+        "image1_topic": keys.string("image1_topic") if stereo else keys.string("image1_topic", ""),
+        "imu_topic": keys.string("imu_topic") if use_imu else keys.string("imu_topic", ""),
+        "use_imu": use_imu,
+        "num_of_cam": num_of_cam,
+        "cameras": cameras,
+        "body_T_cam": tuple(body_T_cam),
+    }
+
+
+def _read_mono(keys: _Keys) -> dict[str, Any]:
+    try:
+        camera = camera_from_dict(keys.data, source=str(keys.path))
+    except CameraError as err:
+        raise ConfigError(f"{err} (VINS-Mono inline camera intrinsics)") from err
+    if _estimate_extrinsic(keys) == 2:
+        transform = _identity()
+    else:
+        transform = np.eye(4)
+        transform[:3, :3] = keys.matrix("extrinsicRotation", (3, 3))
+        transform[:3, 3] = keys.matrix("extrinsicTranslation", (3, 1))[:, 0]
+        transform = _check_transform(keys, "extrinsicRotation", transform)
+    return {
+        "image0_topic": keys.string("image_topic"),
+        "image1_topic": "",
+        "imu_topic": keys.string("imu_topic"),
+        "use_imu": True,
+        "num_of_cam": 1,
+        "cameras": (camera,),
+        "body_T_cam": (transform,),
+    }
+
+
+def load_vins_config(path: str | os.PathLike[str]) -> VinsConfig:
+    """Read a VINS-Fusion or VINS-Mono config file.
+
+    Args:
+        path: the config file (OpenCV FileStorage YAML, ``%YAML:1.0`` first line). VINS-Fusion camera
+            files are looked up relative to its folder.
+
+    Returns:
+        The configuration, dialect detected from the keys present.
+
+    Raises:
+        ConfigError: the file (or a camera file) is missing or malformed, a required key is missing, or a
+            value has the wrong type or range; the message names the file and the key.
+    """
+    path = Path(path).expanduser().absolute()
+    try:
+        data = read_opencv_yaml(path)
+    except OpenCVYamlError as err:
+        raise ConfigError(f"VINS config {err}") from err
+    keys = _Keys(data, path)
+    dialect = _detect_dialect(keys)
+    specific = _read_fusion(keys) if dialect == "fusion" else _read_mono(keys)
+    freq = keys.integer("freq", 0, minimum=0)
+    return VinsConfig(
+        path=path,
+        dialect=dialect,
+        image_width=keys.integer("image_width", minimum=1),
+        image_height=keys.integer("image_height", minimum=1),
+        max_cnt=keys.integer("max_cnt", 150, minimum=1),
+        min_dist=keys.integer("min_dist", 30, minimum=0),
+        F_threshold=keys.real("F_threshold", 1.0, positive=True),
+        flow_back=keys.flag("flow_back"),
+        show_track=keys.flag("show_track"),
+        freq=freq or DEFAULT_FREQ,
+        equalize=keys.flag("equalize"),
+        fisheye=keys.flag("fisheye"),
+        output_path=keys.string("output_path", ""),
+        **specific,
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Overrides
+
+
+def _override_int(key: str, value: Any, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ConfigError(f"tracker setting '{key}' must be an integer, got {_describe(value)}")
+    if int(value) < minimum:
+        raise ConfigError(f"tracker setting '{key}' must be >= {minimum} (or {_KEEP} to keep), got {value}")
+    return int(value)
+
+
+def _override_flag(key: str, value: Any) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, numbers.Integral) and int(value) in (0, 1):
+        return bool(value)
+    raise ConfigError(
+        f"tracker setting '{key}' must be true/false or 0/1 (or {_KEEP} to keep), got {_describe(value)}"
+    )
+
+
+def _override_real(key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ConfigError(f"tracker setting '{key}' must be a number, got {_describe(value)}")
+    out = float(value)
+    if not math.isfinite(out) or out <= 0.0:
+        raise ConfigError(
+            f"tracker setting '{key}' must be a finite number > 0 (or {_KEEP} to keep), got {out}"
+        )
+    return out
+
+
+def _validate_override(key: str, value: Any) -> int | float | bool:
+    if key == "max_cnt":
+        return _override_int(key, value, 1)
+    if key == "min_dist":
+        return _override_int(key, value, 0)
+    if key == "freq":
+        return _override_int(key, value, 0) or DEFAULT_FREQ
+    if key == "F_threshold":
+        return _override_real(key, value)
+    return _override_flag(key, value)
+
+
+def apply_overrides(config: VinsConfig, overrides: Mapping[str, Any]) -> VinsConfig:
+    """Return a copy of ``config`` with tracker settings replaced.
+
+    Args:
+        config: the configuration read from the VINS file.
+        overrides: values by VINS key, a subset of :data:`OVERRIDABLE_KEYS`. A value of ``None`` or -1
+            (-1.0 for F_threshold) keeps the config's value: ROS parameters use -1 for "from the VINS config".
+            Types: max_cnt (>= 1), min_dist (>= 0) and freq (>= 0; 0 means :data:`DEFAULT_FREQ`) are
+            integers; F_threshold is a number > 0; flow_back, show_track and equalize are booleans or 0/1.
+
+    Returns:
+        A new :class:`VinsConfig`; ``config`` is unchanged.
+
+    Raises:
+        ConfigError: an unknown key, or a value of the wrong type or out of range; the message names the key.
+    """
+    if not isinstance(overrides, Mapping):
+        raise ConfigError(f"tracker overrides must be a mapping of key -> value, got {_describe(overrides)}")
+    changes: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if key not in OVERRIDABLE_KEYS:
+            raise ConfigError(f"unknown tracker setting {key!r} (overridable: {', '.join(OVERRIDABLE_KEYS)})")
+        if value is None:
+            continue
+        if not isinstance(value, bool) and isinstance(value, numbers.Real) and value == _KEEP:
+            continue
+        changes[key] = _validate_override(key, value)
+    return dataclasses.replace(config, **changes) if changes else config
