@@ -10,13 +10,10 @@ PACKAGE = "nsflow_ros"
 # (console-script name for a pip install, name under lib/nsflow_ros for `ros2 run`, target)
 TOOLS = [
     ("nsflow-tracker", "tracker", "nsflow_ros.ros.tracker_node:main"),
-    ("nsflow-replay", "replay", "nsflow_ros.ros.replay_node:main"),
     ("nsflow-ate", "ate", "nsflow_ros.ate.cli:main"),
     ("nsflow-bench", "bench", "nsflow_ros.bench:main"),
-    ("nsflow-demo", "demo", "nsflow_ros.demo:main"),
     ("nsflow-make-sample", "make_sample", "nsflow_ros.data.cli:main"),
     ("nsflow-train", "train", "nsflow_ros.train.cli:main"),
-    ("nsflow-eval", "evaluate", "nsflow_ros.evaluation.cli:main"),
 ]
 
 
@@ -73,7 +70,6 @@ setup(
     maintainer_email="maintainers@nsflow-ros.org",
     description="NSFlow learned LK front-end for VINS on ROS 2 Jazzy",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [f"{name}={target}" for name, _, target in TOOLS]
         + [f"{ros_name}={target}" for _, ros_name, target in TOOLS],

@@ -24,7 +24,8 @@ def _candidates() -> list[Path]:
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 
-        with contextlib.suppress(PackageNotFoundError):
+        # ament_index raises OSError when AMENT_PREFIX_PATH is unset (no ROS environment sourced)
+        with contextlib.suppress(PackageNotFoundError, OSError):
             found.append(Path(get_package_share_directory(PACKAGE)))
     except ImportError:
         pass

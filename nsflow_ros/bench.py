@@ -1,0 +1,313 @@
+"""Speed benchmark of the tracking core, with OpenCV's pyramidal KLT measured side by side.
+
+``nsflow-bench`` (or ``ros2 run nsflow_ros bench``) times, per frame of a 752x480 real-texture sequence
+with 150 GFTT points: the encoder, the LM solver (pyramid build + tracking), GFTT detection and the total;
+and in the same run OpenCV's ``calcOpticalFlowPyrLK`` (21x21, 3 levels) plus GFTT, as VINS-Fusion runs
+them. It also times the encoder alone at 320x240 and 752x480 (the paper's Table II sizes) and the
+classical (intensity) mode through the same solver. Medians and 90th percentiles in milliseconds; with
+``--json`` the figures are printed as one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from nsflow_ros.core import (
+    Encoder,
+    IntensityEncoder,
+    LMConfig,
+    build_pyramid,
+    detect_corners,
+    load_encoder,
+    to_gray,
+    track,
+)
+from nsflow_ros.errors import NSFlowError
+
+__all__ = ["main", "make_frames", "paper_encoder_onnx", "run_benchmark"]
+
+WIDTH, HEIGHT = 752, 480
+
+
+def make_frames(count: int, size: tuple[int, int] = (WIDTH, HEIGHT), seed: int = 0) -> list[np.ndarray]:
+    """A smooth camera-like sequence over a real photo: small rotations, zoom and translation per frame.
+
+    Args:
+        count: number of frames.
+        size: (width, height).
+        seed: motion seed.
+
+    Returns:
+        ``count`` BGR uint8 frames.
+    """
+    from skimage import data as skdata
+
+    w, h = size
+    base = cv2.resize(cv2.cvtColor(skdata.astronaut(), cv2.COLOR_RGB2BGR), (w + 80, h + 80))
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i in range(count):
+        ang = 1.5 * np.sin(0.2 * i + rng.uniform(0, 0.1))
+        scale = 1.0 + 0.02 * np.sin(0.13 * i)
+        m = cv2.getRotationMatrix2D(((w + 80) / 2, (h + 80) / 2), ang, scale)
+        m[:, 2] += [3.0 * np.sin(0.1 * i) - 40, 2.0 * np.cos(0.17 * i) - 40]
+        frames.append(cv2.warpAffine(base, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT))
+    return frames
+
+
+def paper_encoder_onnx(path: Path, c_in: int = 3, d: int = 3, seed: int = 0) -> Path:
+    """Write the paper's encoder architecture with random weights (1,003 parameters for RGB, d=3).
+
+    3x3 conv -> 8, 3x3 8 -> 8, 1x1 8 -> 16, 1x1 16 -> d, ReLU after each; dynamic height and width. Used
+    to time the architecture when no trained model is at hand. Needs the ``onnx`` package.
+    """
+    try:
+        import onnx
+        from onnx import TensorProto, helper, numpy_helper
+    except ImportError as err:
+        raise NSFlowError(
+            "the benchmark's random encoder needs onnx: pip install 'nsflow_ros[train]'"
+        ) from err
+    rng = np.random.default_rng(seed)
+    shapes = [(8, c_in, 3, 3), (8, 8, 3, 3), (16, 8, 1, 1), (d, 16, 1, 1)]
+    inits, nodes, prev = [], [], "image"
+    for i, shp in enumerate(shapes):
+        inits += [
+            numpy_helper.from_array(rng.normal(0, 0.3, shp).astype(np.float32), f"w{i}"),
+            numpy_helper.from_array(rng.normal(0, 0.05, shp[0]).astype(np.float32), f"b{i}"),
+        ]
+        pad = [1, 1, 1, 1] if shp[2] == 3 else [0, 0, 0, 0]
+        nodes.append(helper.make_node("Conv", [prev, f"w{i}", f"b{i}"], [f"c{i}"], pads=pad))
+        out = "descriptors" if i == len(shapes) - 1 else f"r{i}"
+        nodes.append(helper.make_node("Relu", [f"c{i}"], [out]))
+        prev = out
+    graph = helper.make_graph(
+        nodes,
+        "paper_encoder",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, c_in, "H", "W"])],
+        [helper.make_tensor_value_info("descriptors", TensorProto.FLOAT, [1, d, "H", "W"])],
+        initializer=inits,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    helper.set_model_props(model, {"name": f"paper-architecture-random-d{d}"})
+    onnx.save(model, path)
+    return path
+
+
+def _stats(samples: list[float]) -> dict[str, float]:
+    arr = np.asarray(samples)
+    return {"median_ms": float(np.median(arr)), "p90_ms": float(np.percentile(arr, 90))}
+
+
+def _timed(fn: Callable[[], Any]) -> tuple[Any, float]:
+    t0 = time.perf_counter()
+    out = fn()
+    return out, (time.perf_counter() - t0) * 1e3
+
+
+def _pipeline(encoder: Encoder, frames: list[np.ndarray], cfg: LMConfig, points: int) -> dict[str, Any]:
+    """Time encoder / solver / detection per frame, tracking each frame's corners into the next."""
+    enc_t, solve_t, det_t, total_t, tracked = [], [], [], [], []
+    prev_pyr = None
+    pts = np.zeros((0, 2))
+    for frame in frames:
+        gray = to_gray(frame)
+        desc, t_enc = _timed(lambda f=frame: encoder(f))
+        t0 = time.perf_counter()
+        pyr = build_pyramid(desc, cfg.levels)
+        if prev_pyr is not None:
+            res = track(prev_pyr, pyr, pts, config=cfg)
+            tracked.append(float(res.status.mean()) if len(pts) else 0.0)
+        t_solve = (time.perf_counter() - t0) * 1e3
+        pts, t_det = _timed(lambda g=gray: detect_corners(g, points, min_distance=30))
+        enc_t.append(t_enc)
+        solve_t.append(t_solve)
+        det_t.append(t_det)
+        total_t.append(t_enc + t_solve + t_det)
+        prev_pyr = pyr
+    # the first frame has nothing to track; drop it from every series
+    return {
+        "encoder": _stats(enc_t[1:]),
+        "solver": _stats(solve_t[1:]),
+        "detection": _stats(det_t[1:]),
+        "total": _stats(total_t[1:]),
+        "tracked_share": float(np.mean(tracked)),
+    }
+
+
+def _opencv_klt(frames: list[np.ndarray], points: int) -> dict[str, Any]:
+    klt_t, det_t, total_t, tracked = [], [], [], []
+    prev = None
+    pts = np.zeros((0, 1, 2), np.float32)
+    for frame in frames:
+        gray = to_gray(frame)
+        t_klt = 0.0
+        if prev is not None and len(pts):
+            (_, st, _), t_klt = _timed(
+                lambda g=gray, p=prev, q=pts: cv2.calcOpticalFlowPyrLK(
+                    p,
+                    g,
+                    q,
+                    None,
+                    winSize=(21, 21),
+                    maxLevel=2,
+                    criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+                )
+            )
+            tracked.append(float(st.mean()))
+        found, t_det = _timed(lambda g=gray: cv2.goodFeaturesToTrack(g, points, 0.01, 30))
+        pts = found.astype(np.float32) if found is not None else np.zeros((0, 1, 2), np.float32)
+        if prev is not None:
+            klt_t.append(t_klt)
+            det_t.append(t_det)
+            total_t.append(t_klt + t_det)
+        prev = gray
+    return {
+        "klt": _stats(klt_t),
+        "detection": _stats(det_t),
+        "total": _stats(total_t),
+        "tracked_share": float(np.mean(tracked)),
+    }
+
+
+def _encoder_only(encoder: Encoder, size: tuple[int, int], repeats: int) -> dict[str, float]:
+    frame = make_frames(1, size)[0]
+    encoder(frame)
+    return _stats([_timed(lambda: encoder(frame))[1] for _ in range(repeats)])
+
+
+def run_benchmark(
+    frames: int = 60,
+    points: int = 150,
+    model: str | None = None,
+    threads: int = 2,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Run the whole benchmark and return its figures.
+
+    Args:
+        frames: frames of the 752x480 sequence.
+        points: GFTT corners per frame.
+        model: ONNX encoder path; None = the shipped model, or the paper architecture with random weights
+            when no model is shipped yet (the result says which).
+        threads: onnxruntime intra-op threads and OpenCV threads.
+        progress: print a line per stage to stderr.
+
+    Returns:
+        a JSON-serialisable dict of figures.
+    """
+    cv2.setNumThreads(threads)
+    seq = make_frames(frames)
+    tmp = None
+    try:
+        try:
+            encoder = load_encoder(model, threads=threads)
+            model_desc = str(encoder.path)
+        except NSFlowError:
+            if model is not None:
+                raise
+            tmp = tempfile.TemporaryDirectory()
+            path = paper_encoder_onnx(Path(tmp.name) / "paper_random.onnx")
+            encoder = load_encoder(path, threads=threads)
+            model_desc = "paper architecture, random weights (no shipped model found)"
+        cfg = LMConfig()
+        stages: list[tuple[str, Callable[[], Any]]] = [
+            ("nsflow", lambda: _pipeline(encoder, seq, cfg, points)),
+            ("classical", lambda: _pipeline(IntensityEncoder(), seq, cfg, points)),
+            ("opencv_klt", lambda: _opencv_klt(seq, points)),
+            ("encoder_320x240", lambda: _encoder_only(encoder, (320, 240), 30)),
+            ("encoder_752x480", lambda: _encoder_only(encoder, (WIDTH, HEIGHT), 30)),
+        ]
+        out: dict[str, Any] = {
+            "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "threads": threads},
+            "setup": {
+                "frames": frames,
+                "points": points,
+                "size": [WIDTH, HEIGHT],
+                "model": model_desc,
+                "descriptor_channels": encoder.channels,
+                "solver": cfg.__dict__,
+            },
+        }
+        for name, fn in stages:
+            if progress:
+                print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+            out[name] = fn()
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    klt = out["opencv_klt"]
+    out["ratios"] = {
+        "nsflow_solver_vs_klt": out["nsflow"]["solver"]["median_ms"] / klt["klt"]["median_ms"],
+        "nsflow_total_vs_klt_total": out["nsflow"]["total"]["median_ms"] / klt["total"]["median_ms"],
+        "classical_solver_vs_klt": out["classical"]["solver"]["median_ms"] / klt["klt"]["median_ms"],
+    }
+    return out
+
+
+def format_table(res: dict[str, Any]) -> str:
+    """Human-readable summary of :func:`run_benchmark`'s figures."""
+    s = res["setup"]
+    lines = [
+        f"nsflow_ros benchmark: {s['frames']} frames {s['size'][0]}x{s['size'][1]}, "
+        f"{s['points']} GFTT points, "
+        f"{res['machine']['cpu_count']} cores, {res['machine']['threads']} threads",
+        f"encoder: {s['model']} (d={s['descriptor_channels']})",
+        "",
+        f"{'stage':34s} {'median ms':>10s} {'p90 ms':>10s}",
+    ]
+
+    def row(name: str, st: dict[str, float]) -> None:
+        lines.append(f"{name:34s} {st['median_ms']:10.2f} {st['p90_ms']:10.2f}")
+
+    for mode in ("nsflow", "classical"):
+        for stage in ("encoder", "solver", "detection", "total"):
+            row(f"{mode} {stage}", res[mode][stage])
+    row("opencv KLT 21x21 x3 levels", res["opencv_klt"]["klt"])
+    row("opencv GFTT", res["opencv_klt"]["detection"])
+    row("opencv total", res["opencv_klt"]["total"])
+    row("encoder alone 320x240", res["encoder_320x240"])
+    row("encoder alone 752x480", res["encoder_752x480"])
+    lines.append("")
+    for key, val in res["ratios"].items():
+        lines.append(f"ratio {key:30s} {val:6.2f}x")
+    lines.append(
+        f"tracked share: nsflow {res['nsflow']['tracked_share']:.3f}, classical "
+        f"{res['classical']['tracked_share']:.3f}, opencv {res['opencv_klt']['tracked_share']:.3f}"
+    )
+    return "\n".join(lines)
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``nsflow-bench`` / ``ros2 run nsflow_ros bench``."""
+    parser = argparse.ArgumentParser(prog="nsflow-bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, default=60, help="frames of the 752x480 sequence (default 60)")
+    parser.add_argument("--points", type=int, default=150, help="GFTT points per frame (default 150)")
+    parser.add_argument("--model", default=None, help="ONNX encoder (default: the shipped model)")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime / OpenCV threads (default 2)")
+    parser.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    opts = parser.parse_args(args)
+    try:
+        res = run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json)
+    except NSFlowError as err:
+        print(f"nsflow-bench: {err}", file=sys.stderr)
+        return 1
+    print(json.dumps(res, indent=2) if opts.json else format_table(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
