@@ -461,3 +461,32 @@ def test_missing_config_file(tmp_path: Path) -> None:
         load_vins_config(path)
     with pytest.raises(ConfigError, match="not a regular file"):
         load_vins_config(tmp_path)
+
+
+# ------------------------------------------------------------------------------------ ROS parameters file
+
+
+def test_tracker_params_file() -> None:
+    yaml = pytest.importorskip("yaml")
+    params_path = EUROC.parent / "tracker_params.yaml"
+    params = yaml.safe_load(params_path.read_text())["nsflow_tracker"]["ros__parameters"]
+    assert set(params) == {
+        "config_file",
+        "method",
+        "model_path",
+        *OVERRIDABLE_KEYS,
+        "output_layout",
+        "feature_topic",
+        "use_imu_prediction",
+        "num_threads",
+    }
+    assert (EUROC.parents[1] / params["config_file"]).is_file()  # relative to the share directory
+    assert params["method"] in ("nsflow", "classical")
+    assert params["output_layout"] in ("", "fusion", "mono")
+    assert params["feature_topic"] == "/feature_tracker/feature"
+    # Every tracker setting defaults to "from the VINS config", and is typed so ROS declares the right type.
+    config = load_vins_config(EUROC.parents[1] / params["config_file"])
+    overrides = {key: params[key] for key in OVERRIDABLE_KEYS}
+    assert apply_overrides(config, overrides).tracker_settings() == config.tracker_settings()
+    assert isinstance(params["F_threshold"], float)
+    assert all(type(params[key]) is int for key in OVERRIDABLE_KEYS if key != "F_threshold")
