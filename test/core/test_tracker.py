@@ -1,0 +1,272 @@
+"""FeatureTracker: VINS-Fusion trackImage semantics on image sequences with known motion."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import synthetic_sequences as syn
+from onnx_models import conv_encoder
+
+from nsflow_ros.core.encoder import IntensityEncoder, load_encoder
+from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.tracker import (
+    FeatureTracker,
+    FrameFeatures,
+    TrackerSettings,
+    reject_with_fundamental,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _classical(**kw) -> TrackerSettings:
+    kw.setdefault("min_dist", 20)
+    return TrackerSettings(method="classical", **kw)
+
+
+def _run(tracker: FeatureTracker, seq: syn.Sequence, n: int | None = None) -> list[FrameFeatures]:
+    out = []
+    for k in range(n or len(seq.frames)):
+        right = seq.right[k] if seq.right is not None else None
+        out.append(tracker.process(float(seq.stamps[k]), seq.frames[k], right))
+    return out
+
+
+def _matches(prev, cur) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (in prev, in cur) of the ids both hold."""
+    where = {int(i): j for j, i in enumerate(prev.ids)}
+    cur_idx = np.array([j for j, i in enumerate(cur.ids) if int(i) in where], np.int64)
+    prev_idx = np.array([where[int(cur.ids[j])] for j in cur_idx], np.int64)
+    return prev_idx, cur_idx
+
+
+@pytest.fixture(scope="module")
+def pan() -> syn.Sequence:
+    return syn.translating(12)
+
+
+@pytest.fixture(scope="module")
+def pan_result(pan):
+    tracker = FeatureTracker([syn.camera()], _classical())
+    return _run(tracker, pan)
+
+
+def test_ids_persist_and_follow_the_true_motion(pan, pan_result):
+    seen: set[int] = set()
+    for k in range(1, len(pan_result)):
+        prev, cur = pan_result[k - 1].cameras[0], pan_result[k].cameras[0]
+        pi, ci = _matches(prev, cur)
+        assert len(pi) >= 0.7 * len(prev), f"frame {k}: only {len(pi)} of {len(prev)} tracks survived"
+        err = np.hypot(*(cur.pixels[ci] - pan.truth(k - 1, k, prev.pixels[pi])).T)
+        assert np.median(err) < 0.15 and np.mean(err < 1.0) > 0.95, f"frame {k}: errors {np.sort(err)[-5:]}"
+        np.testing.assert_array_equal(cur.track_counts[ci], prev.track_counts[pi] + 1)
+        new = np.setdiff1d(cur.ids, prev.ids)
+        assert np.all(cur.track_counts[np.isin(cur.ids, new)] == 1)
+        # fresh ids are never reused: all larger than any id seen so far
+        seen |= set(prev.ids.tolist())
+        assert new.size == 0 or new.min() > max(seen)
+        assert len(np.unique(cur.ids)) == len(cur.ids)
+    long_lived = max(int(f.cameras[0].track_counts.max()) for f in pan_result)
+    assert long_lived == len(pan_result)
+
+
+def test_features_respect_min_dist_and_max_cnt(pan_result):
+    for frame in pan_result:
+        px = frame.cameras[0].pixels
+        assert 0 < len(px) <= 150
+        d = np.hypot(*(px[:, None] - px[None]).transpose(2, 0, 1))
+        d[np.diag_indices_from(d)] = np.inf
+        # the mask works on rounded pixels: allow the rounding
+        assert d.min() >= 20 - 1.5, f"two features only {d.min():.2f} px apart"
+
+
+def test_longest_tracks_win_the_mask():
+    cam = syn.camera()
+    tracker = FeatureTracker([cam], _classical(max_cnt=5, min_dist=40))
+    pts = np.array([[100.0, 100.0], [110.0, 100.0], [200.0, 100.0]])
+    keep, mask = tracker._set_mask(pts, np.array([1, 7, 3]), (cam.width, cam.height))
+    assert keep.tolist() == [1, 2]  # id with count 7 blocks its neighbour with count 1
+    assert mask[100, 110] == 0 and mask[100, 300] == 255
+
+
+def test_velocities_are_undistorted_displacements_over_dt(pan, pan_result):
+    cam = syn.camera()
+    dt = float(pan.stamps[1] - pan.stamps[0])
+    expected = np.array([-2.7 / cam.fx, -1.3 / cam.fy]) / dt
+    assert np.all(pan_result[0].cameras[0].velocities == 0)
+    for k in range(1, len(pan_result)):
+        prev, cur = pan_result[k - 1].cameras[0], pan_result[k].cameras[0]
+        pi, ci = _matches(prev, cur)
+        np.testing.assert_allclose(cur.velocities[ci], (cur.undistorted[ci] - prev.undistorted[pi]) / dt)
+        assert np.allclose(np.median(cur.velocities[ci], axis=0), expected, atol=0.01)
+        fresh = np.ones(len(cur), bool)
+        fresh[ci] = False
+        assert np.all(cur.velocities[fresh] == 0)
+        np.testing.assert_allclose(cur.undistorted, cam.lift(cur.pixels))
+        assert np.all(np.isnan(cur.previous[fresh])) and np.allclose(cur.previous[ci], prev.pixels[pi])
+
+
+def test_occluded_points_are_rejected():
+    # A patch of another photo appears in frame 3 (an occluder): points under it must be dropped, not
+    # reported at wrong places.
+    seq = syn.translating(6)
+    other = syn.base_texture("astronaut")[:80, :90]
+    seq.frames[3] = seq.frames[3].copy()
+    seq.frames[3][60:140, 100:190] = other
+    res = _run(FeatureTracker([syn.camera()], _classical()), seq)
+    prev, cur = res[2].cameras[0], res[3].cameras[0]
+    truth_all = seq.truth(2, 3, prev.pixels)
+    x, y = truth_all.T
+    under = (x > 96) & (x < 194) & (y > 56) & (y < 144)
+    assert under.sum() >= 3, "the occluder should cover some tracked points"
+    pi, ci = _matches(prev, cur)
+    err = np.hypot(*(cur.pixels[ci] - truth_all[pi]).T)
+    assert err.max() < 1.0, f"a wrong track survived: {err.max():.2f} px"
+    survivors_under = np.isin(prev.ids[under], cur.ids).sum()
+    assert survivors_under <= 0.2 * under.sum()
+
+
+def test_fundamental_ransac_rejects_injected_outliers():
+    rng = np.random.default_rng(3)
+    pts3 = np.c_[rng.uniform(-2, 2, (120, 2)), rng.uniform(3, 9, 120)]
+    rot = cv2.Rodrigues(np.array([0.02, -0.05, 0.01]))[0]
+    t = np.array([0.3, 0.05, 0.1])
+    a = pts3[:, :2] / pts3[:, 2:]
+    q = pts3 @ rot.T + t
+    b = q[:, :2] / q[:, 2:]
+    bad = rng.choice(120, 12, replace=False)
+    b_out = b.copy()
+    b_out[bad] += rng.choice([-1, 1], (12, 2)) * rng.uniform(8, 20, (12, 2)) / 460.0
+    inl = reject_with_fundamental(a, b_out, 1.0, (320, 240))
+    assert not inl[bad].any()
+    assert inl.sum() >= 0.95 * (120 - 12)
+    assert reject_with_fundamental(a[:5], b[:5], 1.0, (320, 240)).all()  # too few points: keep all
+
+
+def test_reject_with_f_runs_in_the_tracker(pan):
+    res = _run(FeatureTracker([syn.camera()], _classical(reject_with_f=True)), pan, 5)
+    assert all(len(f.cameras[0]) > 30 for f in res)
+
+
+def test_stereo_ids_pair_with_the_left_ids():
+    seq = syn.translating(8, stereo_disparity=-9.5)
+    tracker = FeatureTracker([syn.camera(), syn.camera()], _classical(stereo=True))
+    res = _run(tracker, seq)
+    for k, frame in enumerate(res):
+        left, right = frame.cameras
+        assert (left.camera_id, right.camera_id) == (0, 1)
+        assert np.isin(right.ids, left.ids).all() and len(np.unique(right.ids)) == len(right.ids)
+        assert len(right) >= 0.7 * len(left)
+        li, ri = _matches(left, right)
+        err = np.hypot(*(right.pixels[ri] - (left.pixels[li] + [-9.5, 0.0])).T)
+        assert np.median(err) < 0.15 and err.max() < 1.0
+        np.testing.assert_array_equal(right.track_counts[ri], left.track_counts[li])
+        if k:
+            prev_right = res[k - 1].cameras[1]
+            pi, ci = _matches(prev_right, right)
+            dt = float(seq.stamps[k] - seq.stamps[k - 1])
+            np.testing.assert_allclose(
+                right.velocities[ci], (right.undistorted[ci] - prev_right.undistorted[pi]) / dt
+            )
+
+
+def test_descriptor_maps_are_computed_once_per_image(pan):
+    calls = []
+
+    class Counting(IntensityEncoder):
+        def __call__(self, image):
+            calls.append(image.shape)
+            return super().__call__(image)
+
+    seq = syn.translating(5, stereo_disparity=-6)
+    mono = FeatureTracker([syn.camera()], _classical(), encoder=Counting())
+    for k in range(5):
+        mono.process(float(seq.stamps[k]), seq.frames[k])
+    assert len(calls) == 5
+    calls.clear()
+    _run(FeatureTracker([syn.camera(), syn.camera()], _classical(stereo=True), encoder=Counting()), seq)
+    assert len(calls) == 10
+
+
+def test_nsflow_method_loads_an_onnx_encoder(tmp_path, pan):
+    model = conv_encoder(tmp_path / "tiny.onnx", c_in=1, d=3)
+    settings = TrackerSettings(model_path=str(model), min_dist=20, num_threads=1)
+    tracker = FeatureTracker([syn.camera()], settings)
+    assert tracker.encoder.channels == 3
+    res = _run(tracker, pan, 4)
+    pi, ci = _matches(res[2].cameras[0], res[3].cameras[0])
+    assert len(ci) > 20
+    err = np.hypot(*(res[3].cameras[0].pixels[ci] - pan.truth(2, 3, res[2].cameras[0].pixels[pi])).T)
+    assert np.median(err) < 0.3
+
+
+def test_missing_model_is_a_clear_error(tmp_path):
+    with pytest.raises(CoreError, match="not found"):
+        FeatureTracker([syn.camera()], TrackerSettings(model_path=str(tmp_path / "none.onnx")))
+    assert load_encoder  # the tracker goes through load_encoder's checks
+
+
+def test_bad_input_raises_and_leaves_the_state_alone(pan):
+    tracker = FeatureTracker([syn.camera()], _classical())
+    first = tracker.process(1.0, pan.frames[0])
+    with pytest.raises(CoreError, match="timestamps must increase"):
+        tracker.process(0.5, pan.frames[1])
+    with pytest.raises(CoreError, match="timestamps must increase"):
+        tracker.process(1.0, pan.frames[1])
+    with pytest.raises(CoreError, match="calibrated for 320x240"):
+        tracker.process(1.1, np.zeros((100, 100), np.uint8))
+    with pytest.raises(CoreError, match="uint8"):
+        tracker.process(1.1, pan.frames[1].astype(np.float32))
+    with pytest.raises(CoreError, match="mono"):
+        tracker.process(1.1, pan.frames[1], pan.frames[1])
+    with pytest.raises(CoreError, match="finite"):
+        tracker.process(float("nan"), pan.frames[1])
+    assert tracker.last_stamp == 1.0
+    second = tracker.process(1.05, pan.frames[1])
+    assert np.isin(first.cameras[0].ids, second.cameras[0].ids).mean() > 0.7
+    stereo = FeatureTracker([syn.camera(), syn.camera()], _classical(stereo=True))
+    with pytest.raises(CoreError, match="needs image1"):
+        stereo.process(0.0, pan.frames[0])
+    with pytest.raises(CoreError, match="needs 2 camera"):
+        FeatureTracker([syn.camera()], _classical(stereo=True))
+
+
+def test_reset_forgets_tracks_but_never_reuses_ids(pan):
+    tracker = FeatureTracker([syn.camera()], _classical())
+    a = tracker.process(5.0, pan.frames[0])
+    tracker.reset()
+    b = tracker.process(1.0, pan.frames[1])  # time may restart after a reset
+    assert b.cameras[0].ids.min() > a.cameras[0].ids.max()
+    assert np.all(b.cameras[0].track_counts == 1) and np.all(b.cameras[0].velocities == 0)
+
+
+def test_detect_false_only_tracks(pan):
+    tracker = FeatureTracker([syn.camera()], _classical())
+    a = tracker.process(0.0, pan.frames[0])
+    b = tracker.process(0.05, pan.frames[1], detect=False)
+    assert np.isin(b.cameras[0].ids, a.cameras[0].ids).all()
+
+
+def test_settings_validation_and_overrides():
+    with pytest.raises(CoreError, match="method"):
+        TrackerSettings(method="orb")
+    s = TrackerSettings().with_overrides({"max_cnt": 80, "window": 15, "levels": 2})
+    assert (s.max_cnt, s.lm.window, s.lm.levels) == (80, 15, 2)
+    with pytest.raises(CoreError, match="unknown tracker setting"):
+        TrackerSettings().with_overrides({"maxcnt": 3})
+
+
+def test_from_vins_config_takes_the_vins_settings():
+    from nsflow_ros.vins.config import load_vins_config
+
+    cfg = load_vins_config(ROOT / "config/euroc/euroc_stereo_imu_config.yaml")
+    tracker = FeatureTracker.from_vins_config(cfg, {"method": "classical", "max_cnt": 99})
+    s = tracker.settings
+    assert s.stereo and s.flow_back and s.max_cnt == 99 and s.min_dist == cfg.min_dist
+    np.testing.assert_allclose(tracker.body_R_cam0, cfg.body_T_cam[0][:3, :3])
+    frame = np.zeros((cfg.image_height, cfg.image_width), np.uint8)
+    out = tracker.process(0.0, frame, frame)
+    assert out.num_cameras == 2 and len(out.cameras[0]) == 0  # black image: nothing to detect
