@@ -490,3 +490,19 @@ def test_tracker_params_file() -> None:
     assert apply_overrides(config, overrides).tracker_settings() == config.tracker_settings()
     assert isinstance(params["F_threshold"], float)
     assert all(type(params[key]) is int for key in OVERRIDABLE_KEYS if key != "F_threshold")
+
+
+def test_no_ros_or_torch_import() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, nsflow_ros.vins, nsflow_ros.core.camera; "
+        "bad = sorted(m for m in ('rclpy', 'torch') if m in sys.modules); "
+        "sys.exit(f'imported {bad}' if bad else 0)"
+    )
+    root = Path(__file__).resolve().parents[2]
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=False
+    )
+    assert result.returncode == 0, result.stderr
