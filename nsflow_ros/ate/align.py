@@ -24,7 +24,7 @@ ALIGN_METHODS: tuple[str, ...] = ("se3", "sim3", "none")
 _MIN_POINTS = 3
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Alignment:
     """A similarity transform ``p' = scale * rotation @ p + translation``.
 
