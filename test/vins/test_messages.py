@@ -1,0 +1,107 @@
+"""Feature message layouts (VINS-Fusion, VINS-Mono) and the debug image."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nsflow_ros.core.tracker import CameraFeatures, FrameFeatures
+from nsflow_ros.vins.draw import draw_tracks, track_colour
+from nsflow_ros.vins.messages import (
+    FeatureMessageError,
+    decode,
+    decode_fusion,
+    decode_mono,
+    encode,
+    encode_fusion,
+    encode_mono,
+)
+
+
+def _cam(cam_id: int, ids, counts) -> CameraFeatures:
+    ids = np.asarray(ids, np.int64)
+    n = ids.size
+    px = np.c_[10.0 * ids + cam_id, 5.0 * ids + 0.25]
+    un = np.c_[0.01 * ids - cam_id * 0.1, -0.02 * ids]
+    vel = np.c_[0.5 * ids, -0.25 * ids + cam_id]
+    prev = np.where(np.asarray(counts)[:, None] > 1, px - 1.0, np.nan)
+    return CameraFeatures(cam_id, ids, px, un, vel, np.asarray(counts, np.int64), prev.reshape(n, 2))
+
+
+@pytest.fixture
+def stereo_frame() -> FrameFeatures:
+    # tracker order is by track length, not by id; right has a subset of the left ids
+    left = _cam(0, [7, 2, 11, 5], [3, 1, 1, 25])
+    right = _cam(1, [11, 7, 5], [1, 3, 25])
+    return FrameFeatures(12.5, (left, right), (320, 240))
+
+
+def test_fusion_layout_sorted_by_id_camera_0_first(stereo_frame):
+    cloud = encode_fusion(stereo_frame)
+    assert cloud.channels.shape == (9, 7) and cloud.points.dtype == np.float32
+    assert np.all(cloud.channels[6:] == 0) and np.all(cloud.points[:, 2] == 1.0)
+    assert cloud.channels[0].tolist() == [2, 5, 5, 7, 7, 11, 11]
+    assert cloud.channels[1].tolist() == [0, 0, 1, 0, 1, 0, 1]
+    feats = decode_fusion(cloud.points, cloud.channels)
+    for cam in stereo_frame.cameras:
+        for j, fid in enumerate(cam.ids):
+            (_, row), = [e for e in feats[int(fid)] if e[0] == cam.camera_id]
+            expect = [*cam.undistorted[j], 1.0, *cam.pixels[j], *cam.velocities[j]]
+            np.testing.assert_allclose(row, expect, rtol=1e-6, atol=1e-6)
+    for entries in feats.values():
+        assert [c for c, _ in entries] == sorted(c for c, _ in entries)  # camera 0 before camera 1
+
+
+def test_mono_layout_drops_new_points_and_packs_camera_into_the_id(stereo_frame):
+    cloud = encode_mono(stereo_frame, num_of_cam=2)
+    assert cloud.channels.shape == (5, 4)
+    assert cloud.channels[0].tolist() == [7 * 2, 5 * 2, 7 * 2 + 1, 5 * 2 + 1]
+    feats = decode_mono(cloud.points, cloud.channels, num_of_cam=2)
+    assert sorted(feats) == [5, 7] and [c for c, _ in feats[7]] == [0, 1]
+    mono = FrameFeatures(1.0, (stereo_frame.cameras[0],), (320, 240))
+    single = decode(*(lambda c: (c.points, c.channels))(encode(mono, "mono")), "mono")
+    np.testing.assert_allclose(single[5][0][1][3:5], mono.cameras[0].pixels[3], rtol=1e-6)
+
+
+def test_large_ids_survive_float32_channels():
+    cam = _cam(0, [2**24 - 3], [2])
+    frame = FrameFeatures(0.0, (cam,), (320, 240))
+    cloud = encode_fusion(frame)
+    assert list(decode_fusion(cloud.points, cloud.channels)) == [2**24 - 3]
+
+
+def test_decoders_reject_what_the_estimator_would_choke_on(stereo_frame):
+    cloud = encode_fusion(stereo_frame)
+    with pytest.raises(FeatureMessageError, match="6-8"):
+        decode_fusion(cloud.points, cloud.channels[:6])
+    with pytest.raises(FeatureMessageError, match="at least 6"):
+        decode_fusion(cloud.points, cloud.channels[:5])
+    bad = cloud.points.copy()
+    bad[0, 2] = 0.5
+    with pytest.raises(FeatureMessageError, match="z == 1"):
+        decode_fusion(bad, cloud.channels)
+    with pytest.raises(FeatureMessageError, match="layout"):
+        encode(stereo_frame, "ros1")  # type: ignore[arg-type]
+    with pytest.raises(FeatureMessageError, match="num_of_cam"):
+        encode_mono(stereo_frame, num_of_cam=1)
+
+
+def test_empty_frame_encodes_to_an_empty_cloud():
+    empty = FrameFeatures(0.0, (_cam(0, [], []),), (320, 240))
+    for layout in ("fusion", "mono"):
+        cloud = encode(empty, layout)
+        assert len(cloud) == 0 and cloud.channels.shape[1] == 0
+
+
+def test_debug_image_colours_and_layout(stereo_frame):
+    assert track_colour(1) == (242, 0, 13)
+    assert track_colour(20) == track_colour(99) == (0, 0, 255)
+    img = np.full((240, 320), 128, np.uint8)
+    out = draw_tracks(stereo_frame, img, img)
+    assert out.shape == (240, 640, 3) and out.dtype == np.uint8
+    left = stereo_frame.cameras[0]
+    x, y = np.rint(left.pixels[3]).astype(int)  # 25 frames: red
+    assert tuple(out[y, x + 2]) == (0, 0, 255)
+    rx, ry = np.rint(stereo_frame.cameras[1].pixels[0]).astype(int)
+    assert tuple(out[ry, rx + 320 + 2]) == (0, 255, 0)
+    assert draw_tracks(stereo_frame, img).shape == (240, 320, 3)
