@@ -1,0 +1,105 @@
+"""What a replay publishes, independent of ROS: the (optionally perturbed, remapped) message stream.
+
+The ROS shell (:mod:`nsflow_ros.ros.replay_node`) only paces and publishes what :func:`replay_stream`
+yields, so the stream itself (and its reproducibility from a seed) is tested without middleware.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from nsflow_ros.data.messages import record_to_cdr
+from nsflow_ros.data.perturb import IlluminationPerturber
+from nsflow_ros.data.records import ImageRecord, ImuRecord, RawMessage, Record
+from nsflow_ros.data.sources import SensorSource
+from nsflow_ros.errors import NSFlowError
+
+__all__ = ["ReplayError", "ReplayOptions", "parse_remaps", "replay_records", "replay_stream"]
+
+
+class ReplayError(NSFlowError):
+    """Bad replay options (remap syntax, rate)."""
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """Settings of a replay.
+
+    Attributes:
+        path: bag file/folder or ASL folder.
+        topics: topics to replay (None = the EuRoC / UMA-VI camera and IMU topics present).
+        start: seconds skipped from the start.
+        duration: seconds replayed (None = to the end).
+        rate: playback speed factor (1.0 = real time; 0 = as fast as possible).
+        perturb: illumination perturbation level, ``none`` / ``small`` / ``large``.
+        seed: seed of the perturbation processes.
+        remap: topic renames, source topic -> published topic.
+    """
+
+    path: Path
+    topics: Sequence[str] | None = None
+    start: float = 0.0
+    duration: float | None = None
+    rate: float = 1.0
+    perturb: str = "none"
+    seed: int = 0
+    remap: Mapping[str, str] | None = None
+
+    def __post_init__(self) -> None:
+        if self.rate < 0:
+            raise ReplayError(f"rate must be >= 0 (0 = as fast as possible), got {self.rate}")
+
+
+def parse_remaps(items: Sequence[str]) -> dict[str, str]:
+    """Parse ``from:=to`` topic remaps (ROS syntax).
+
+    Raises:
+        ReplayError: naming the malformed item.
+    """
+    out: dict[str, str] = {}
+    for item in items:
+        src, sep, dst = item.partition(":=")
+        if not sep or not src.startswith("/") or not dst.startswith("/"):
+            raise ReplayError(f"bad remap {item!r}: expected /from_topic:=/to_topic")
+        out[src] = dst
+    return out
+
+
+def replay_stream(opts: ReplayOptions) -> Iterator[RawMessage]:
+    """The messages of a replay, in time order, as ROS 2 CDR bytes on their published topics.
+
+    Without perturbation the source's bytes pass through untouched (any topic type); with it, camera
+    images are decoded, perturbed as a function of (seed, stamp) and re-serialised, IMU passes through.
+
+    Raises:
+        DataError: from the source (missing path or topic, damaged bag after the last good message).
+    """
+    source = SensorSource(opts.path, topics=opts.topics, start=opts.start, duration=opts.duration)
+    remap = dict(opts.remap or {})
+    if opts.perturb == "none":
+        for msg in source.raw_messages():
+            yield RawMessage(remap.get(msg.topic, msg.topic), msg.msgtype, msg.stamp_ns, msg.cdr)
+        return
+    for rec in replay_records(opts):
+        msgtype, cdr = record_to_cdr(rec)
+        yield RawMessage(rec.topic, msgtype, rec.stamp_ns, cdr)
+
+
+def replay_records(opts: ReplayOptions) -> Iterator[Record]:
+    """Decoded image and IMU records of a replay: perturbed (as a function of seed and stamp), remapped.
+
+    Raises:
+        DataError: from the source.
+    """
+    source = SensorSource(opts.path, topics=opts.topics, start=opts.start, duration=opts.duration)
+    remap = dict(opts.remap or {})
+    perturber = None if opts.perturb == "none" else IlluminationPerturber(opts.perturb, seed=opts.seed)
+    for rec in source.records():
+        topic = remap.get(rec.topic, rec.topic)
+        if isinstance(rec, ImageRecord):
+            image = rec.image if perturber is None else perturber(rec.image, rec.stamp_ns * 1e-9)
+            yield ImageRecord(topic, rec.stamp_ns, image, rec.encoding, rec.frame_id)
+        else:
+            yield ImuRecord(topic, rec.stamp_ns, rec.gyro, rec.accel, rec.frame_id)
