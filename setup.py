@@ -10,6 +10,8 @@ PACKAGE = "nsflow_ros"
 # (console-script name for a pip install, name under lib/nsflow_ros for `ros2 run`, target)
 TOOLS = [
     ("nsflow-tracker", "tracker", "nsflow_ros.ros.tracker_node:main"),
+    ("nsflow-replay", "replay", "nsflow_ros.ros.replay_node:main"),
+    ("nsflow-demo", "demo", "nsflow_ros.demo:main"),
     ("nsflow-ate", "ate", "nsflow_ros.ate.cli:main"),
     ("nsflow-bench", "bench", "nsflow_ros.bench:main"),
     ("nsflow-make-sample", "make_sample", "nsflow_ros.data.cli:main"),

@@ -43,6 +43,7 @@ def publish_stream(
     progress: bool = True,
     total_s: float | None = None,
     should_stop: Any = None,
+    publishers: dict[str, Any] | None = None,
 ) -> int:
     """Publish a message stream from ``node``, paced by the messages' stamps.
 
@@ -54,6 +55,7 @@ def publish_stream(
         progress: show a progress bar (seconds of data replayed).
         total_s: length of the stream in seconds, for the progress bar.
         should_stop: optional callable; replay stops early when it returns True.
+        publishers: topic -> publisher, reused and filled across calls (None: new ones per call).
 
     Returns:
         number of messages published.
@@ -62,7 +64,7 @@ def publish_stream(
     from rosgraph_msgs.msg import Clock
     from tqdm import tqdm
 
-    pubs: dict[str, Any] = {}
+    pubs: dict[str, Any] = {} if publishers is None else publishers
     clock_pub = node.create_publisher(Clock, "/clock", 10) if clock else None
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     bar = tqdm(total=total_s, unit="s", disable=not progress, desc="replay", bar_format=None)
