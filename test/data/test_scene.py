@@ -127,7 +127,8 @@ def test_flow_flags_occlusion_and_leaving_the_image():
     cam = EUROC_CAM0
     Ti = _pose(R_FORWARD, [0.0, -0.6, 0.0])
     Tj = _pose(R_FORWARD, [0.0, 0.0, 0.0])
-    # The wall point (2, 0, 0) is seen from i but hidden behind the box from j; (2, -0.6, 0.5) is seen by both.
+    # The wall point (2, 0, 0) is seen from i but hidden behind the box from j;
+    # (2, -0.6, 0.5) is seen by both.
     pts_w = np.array([[2.0, 0.0, 0.0], [2.0, -0.6, 0.5]])
     pts_i = (Ti[:3, :3].T @ (pts_w - Ti[:3, 3]).T).T
     uv, ok = cam.project(pts_i)
