@@ -1,0 +1,224 @@
+"""Illumination perturbation of image streams (evaluation) and of image pairs (training).
+
+Evaluation follows the NSFlow paper's EuRoC experiment: every frame gets an absolute and a relative
+pixel transform driven by two random variables that change smoothly over time,
+
+    I'(t) = clip(a(t) * I + b(t), 0, 255)
+
+with a gain ``a(t) = exp(g * s_a(t))`` (relative transform) and an offset ``b(t) = B * s_b(t)`` (absolute
+transform). Each ``s(t) = tanh(z(t))`` where ``z`` is a sum of four sinusoids with seeded random
+frequencies, phases and weights, scaled to unit mean-square; so ``s`` is smooth, lies in (-1, 1),
+and is a pure function of ``(seed, t)``: any frame can be perturbed on its own, and replays are
+reproducible.
+
+Levels (exact ranges):
+
+============  ===============================  ======================  ==============================
+level         gain a(t)                        offset b(t) (gray lv.)  sinusoid frequencies
+============  ===============================  ======================  ==============================
+``none``      1 (image returned unchanged)     0                       -
+``small``     (exp(-0.25), exp(0.25)) =        (-20, 20)               0.05 - 0.4 Hz
+              (0.78, 1.28)
+``large``     (exp(-0.7), exp(0.7)) =          (-60, 60)               0.1 - 0.6 Hz
+              (0.50, 2.01)
+============  ===============================  ======================  ==============================
+
+For 16-bit images the offset is scaled by 257 (same relative change).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, replace
+from typing import Any
+
+import cv2
+import numpy as np
+
+from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.records import ImageRecord, Record
+
+__all__ = ["LEVELS", "IlluminationPerturber", "PerturbLevel", "perturb_pair", "perturb_records"]
+
+
+@dataclass(frozen=True)
+class PerturbLevel:
+    """Parameters of one perturbation level.
+
+    Attributes:
+        name: level name.
+        log_gain: g; the gain lies in (exp(-g), exp(g)).
+        offset: B; the offset lies in (-B, B) gray levels (8-bit scale).
+        freq: (low, high) range of the sinusoids' frequencies in Hz.
+    """
+
+    name: str
+    log_gain: float
+    offset: float
+    freq: tuple[float, float]
+
+
+LEVELS: dict[str, PerturbLevel] = {
+    "none": PerturbLevel("none", 0.0, 0.0, (0.0, 0.0)),
+    "small": PerturbLevel("small", 0.25, 20.0, (0.05, 0.4)),
+    "large": PerturbLevel("large", 0.7, 60.0, (0.1, 0.6)),
+}
+
+_N_SINES = 4
+
+
+def _check_image(image: Any, name: str = "image") -> np.ndarray:
+    arr = np.asarray(image)
+    if arr.ndim not in (2, 3) or arr.size == 0:
+        raise DataError(f"{name}: expected shape (H, W) or (H, W, C), got {arr.shape}")
+    if arr.dtype not in (np.uint8, np.uint16) and not np.issubdtype(arr.dtype, np.floating):
+        raise DataError(f"{name}: expected dtype uint8, uint16 or float, got {arr.dtype}")
+    return arr
+
+
+def _full_scale(dtype: np.dtype) -> float:
+    """Value of white: 255 for uint8, 65535 for uint16, 1 for floats (taken as [0, 1] images)."""
+    if dtype == np.uint8:
+        return 255.0
+    if dtype == np.uint16:
+        return 65535.0
+    return 1.0
+
+
+def _to_dtype(x: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    top = _full_scale(dtype)
+    out = np.clip(x, 0.0, top)
+    if np.issubdtype(dtype, np.integer):
+        out = np.rint(out)
+    return out.astype(dtype)
+
+
+class IlluminationPerturber:
+    """Time-varying gain and offset on a stream of images, deterministic in ``(seed, t)``.
+
+    Args:
+        level: ``"none"``, ``"small"``, ``"large"`` (see the module docstring for exact ranges) or a
+            :class:`PerturbLevel`.
+        seed: random seed of the two processes.
+
+    Raises:
+        DataError: for an unknown level name.
+
+    Example:
+        ``perturb = IlluminationPerturber("large", seed=3); out = perturb(image, stamp_ns * 1e-9)``
+    """
+
+    def __init__(self, level: str | PerturbLevel = "small", seed: int = 0) -> None:
+        if isinstance(level, str):
+            if level not in LEVELS:
+                raise DataError(f"unknown illumination level {level!r}; expected one of {sorted(LEVELS)}")
+            level = LEVELS[level]
+        self.level = level
+        self.seed = int(seed)
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x111]))
+        lo, hi = level.freq
+        # Two independent processes (gain, offset), each a weighted sum of sinusoids.
+        self._freq = rng.uniform(lo, hi, (2, _N_SINES)) * 2.0 * np.pi
+        self._phase = rng.uniform(0.0, 2.0 * np.pi, (2, _N_SINES))
+        w = rng.uniform(0.5, 1.0, (2, _N_SINES))
+        self._weight = w / np.sqrt((w * w).sum(axis=1, keepdims=True) / 2.0)  # unit mean square
+
+    def params(self, t: float) -> tuple[float, float]:
+        """Gain ``a(t)`` and offset ``b(t)`` (8-bit gray levels) at time ``t``.
+
+        Args:
+            t: time in seconds: a stamp (``stamp_ns * 1e-9``) or seconds since the sequence start; any
+                clock works as long as it is used consistently, since the output depends only on
+                ``(seed, t)``.
+        """
+        if self.level.log_gain == 0.0 and self.level.offset == 0.0:
+            return 1.0, 0.0
+        z = (self._weight * np.sin(self._freq * float(t) + self._phase)).sum(axis=1)
+        s = np.tanh(z)
+        return float(np.exp(self.level.log_gain * s[0])), float(self.level.offset * s[1])
+
+    def __call__(self, image: Any, t: float) -> np.ndarray:
+        """Perturb one image taken at time ``t`` (seconds; see :meth:`params`).
+
+        Args:
+            image: (H, W) or (H, W, C) image, uint8, uint16 or float in [0, 1].
+            t: time in seconds.
+
+        Returns:
+            The perturbed image, same shape and dtype. At level ``none`` the input array itself.
+
+        Raises:
+            DataError: on a bad shape or dtype.
+        """
+        img = _check_image(image)
+        if self.level.name == "none":
+            return img
+        a, b = self.params(t)
+        scale = _full_scale(img.dtype) / 255.0
+        if img.dtype == np.uint8:
+            # A lookup table is exact for 8 bit and much faster than float arithmetic per pixel.
+            lut = _to_dtype(a * np.arange(256.0) + b, np.dtype(np.uint8))
+            return cv2.LUT(img, lut) if img.ndim == 2 or img.shape[2] in (1, 3, 4) else lut[img]
+        return _to_dtype(a * img.astype(np.float32) + np.float32(b * scale), img.dtype)
+
+
+def perturb_records(records: Iterable[Record], perturber: IlluminationPerturber) -> Iterator[Record]:
+    """Perturb the images of a record stream; IMU records pass unchanged.
+
+    Each image is perturbed at ``t = stamp_ns * 1e-9``, so the cameras of a stereo pair (same stamp)
+    see the same illumination, and a replay of the stream gives the same images.
+    """
+    for rec in records:
+        if isinstance(rec, ImageRecord):
+            yield replace(rec, image=perturber(rec.image, rec.stamp_ns * 1e-9))
+        else:
+            yield rec
+
+
+def perturb_pair(img1: Any, img2: Any, rng: np.random.Generator, strength: float = 1.0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Independent random illumination changes on the two images of a training pair.
+
+    Each image gets, with ``s = strength`` in [0, 1] and ``U`` uniform on (-1, 1):
+
+    * local shading: multiply by ``1 + 0.35 s F`` where ``F`` is a smooth random field in (-1, 1)
+      (a bicubic upsampling of a random 4x4 grid), i.e. uneven lighting;
+    * gamma ``exp(0.35 s U)`` on the normalised image (0.70 - 1.42 at s = 1);
+    * gain ``exp(0.5 s U)`` (0.61 - 1.65) and offset ``40 s U`` gray levels (8-bit scale);
+    * Gaussian noise with standard deviation uniform in (0, 3 s) gray levels.
+
+    Args:
+        img1, img2: (H, W) or (H, W, C) images, uint8, uint16 or float in [0, 1].
+        rng: random generator (the caller owns reproducibility).
+        strength: 0 leaves the images unchanged, 1 is the full range above.
+
+    Returns:
+        The two perturbed images, each with its input's shape and dtype.
+
+    Raises:
+        DataError: on a bad shape or dtype, or a strength outside [0, 1].
+    """
+    if not 0.0 <= strength <= 1.0:
+        raise DataError(f"perturbation strength must be in [0, 1], got {strength}")
+    a, b = _check_image(img1, "img1"), _check_image(img2, "img2")
+    return _perturb_one(a, rng, strength), _perturb_one(b, rng, strength)
+
+
+def _perturb_one(img: np.ndarray, rng: np.random.Generator, s: float) -> np.ndarray:
+    top = _full_scale(img.dtype)
+    x = img.astype(np.float32) / np.float32(top)
+    h, w = img.shape[:2]
+    grid = rng.uniform(-1.0, 1.0, (4, 4)).astype(np.float32)
+    field = np.clip(cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC), -1.0, 1.0)
+    if x.ndim == 3:
+        field = field[:, :, None]
+    gamma = float(np.exp(0.35 * s * rng.uniform(-1, 1)))
+    gain = float(np.exp(0.5 * s * rng.uniform(-1, 1)))
+    offset = 40.0 / 255.0 * s * float(rng.uniform(-1, 1))
+    sigma = 3.0 / 255.0 * s * float(rng.uniform(0, 1))
+    x = x * (1.0 + 0.35 * s * field)
+    x = np.power(np.clip(x, 0.0, 1.0), gamma)
+    x = gain * x + offset
+    if sigma > 0:
+        x = x + rng.standard_normal(x.shape, dtype=np.float32) * np.float32(sigma)
+    return _to_dtype(x * top, img.dtype)
