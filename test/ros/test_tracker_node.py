@@ -1,0 +1,300 @@
+"""The tracker node over real rclpy publish/subscribe: images in, VINS feature clouds out."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+import synthetic_sequences as syn
+from builtin_interfaces.msg import Time
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Image, PointCloud
+from std_msgs.msg import Bool
+
+from nsflow_ros.ros.image_conv import numpy_to_image_fields
+from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode
+from nsflow_ros.vins.errors import ConfigError
+from nsflow_ros.vins.messages import decode_fusion, decode_mono
+
+DISPARITY = -9.5
+T0 = 100.0
+
+
+def write_config(folder: Path, prefix: str, *, stereo: bool = False, dialect: str = "fusion") -> Path:
+    """A VINS config for 320x240 synthetic images with topics under ``prefix``."""
+    cam = syn.camera()
+    common = (
+        f"image_width: {cam.width}\nimage_height: {cam.height}\nmax_cnt: 120\nmin_dist: 20\nfreq: 10\n"
+        "F_threshold: 1.0\nshow_track: 1\nflow_back: 1\nestimate_extrinsic: 2\n"
+    )
+    if dialect == "mono":
+        text = (
+            "%YAML:1.0\n"
+            f"imu_topic: \"{prefix}/imu\"\nimage_topic: \"{prefix}/cam0\"\nmodel_type: PINHOLE\n"
+            "camera_name: camera\ndistortion_parameters:\n   k1: 0.0\n   k2: 0.0\n   p1: 0.0\n   p2: 0.0\n"
+            f"projection_parameters:\n   fx: {cam.fx}\n   fy: {cam.fy}\n   cx: {cam.cx}\n   cy: {cam.cy}\n"
+            + common + "equalize: 0\n"
+        )
+    else:
+        cam.save_yaml(folder / "cam0.yaml")
+        cam.save_yaml(folder / "cam1.yaml")
+        text = (
+            "%YAML:1.0\nimu: 0\n"
+            f"num_of_cam: {2 if stereo else 1}\nimage0_topic: \"{prefix}/cam0\"\n"
+            f"image1_topic: \"{prefix}/cam1\"\ncam0_calib: \"cam0.yaml\"\ncam1_calib: \"cam1.yaml\"\n"
+            "body_T_cam1: !!opencv-matrix\n   rows: 4\n   cols: 4\n   dt: d\n"
+            "   data: [1.0, 0.0, 0.0, 0.1, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]\n"
+            + common
+        )
+    path = folder / f"{dialect}_{'stereo' if stereo else 'mono'}.yaml"
+    path.write_text(text)
+    return path
+
+
+def image_msg(arr: np.ndarray, t: float, **changes) -> Image:
+    fields = numpy_to_image_fields(arr)
+    msg = Image(height=fields["height"], width=fields["width"], encoding=fields["encoding"],
+                is_bigendian=0, step=fields["step"])
+    msg.data = fields["data"]
+    sec = int(t)
+    msg.header.stamp = Time(sec=sec, nanosec=round((t - sec) * 1e9))
+    msg.header.frame_id = "cam0"
+    for key, value in changes.items():
+        setattr(msg, key, value)
+    return msg
+
+
+class Harness:
+    """One context, a tracker node, a publisher node and a receiver node on one executor."""
+
+    def __init__(self, config: Path, prefix: str, **params) -> None:
+        self.ctx = Context()
+        rclpy.init(context=self.ctx)
+        self.nodes = []
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        overrides = [Parameter("config_file", value=str(config)), Parameter("method", value="classical"),
+                     Parameter("feature_topic", value=f"{prefix}/feature"),
+                     Parameter("restart_topic", value=f"{prefix}/restart"),
+                     Parameter("image_track_topic", value=f"{prefix}/image_track")]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.tracker = TrackerNode(context=self.ctx, parameter_overrides=overrides)
+        self.io = rclpy.create_node(f"io_{uuid.uuid4().hex[:8]}", context=self.ctx)
+        self.nodes = [self.tracker, self.io]
+        self.pubs = [
+            self.io.create_publisher(Image, f"{prefix}/cam{i}", qos_profile_sensor_data) for i in (0, 1)
+        ]
+        self.clouds: list[PointCloud] = []
+        self.restarts: list[bool] = []
+        self.tracks: list[Image] = []
+        self.io.create_subscription(PointCloud, f"{prefix}/feature", self.clouds.append, FEATURE_QOS)
+        self.io.create_subscription(
+            Bool, f"{prefix}/restart", lambda m: self.restarts.append(m.data), FEATURE_QOS
+        )
+        self.io.create_subscription(Image, f"{prefix}/image_track", self.tracks.append, 10)
+        for node in self.nodes:
+            self.executor.add_node(node)
+        used = self.pubs[: len(self.tracker.config.image_topics)]
+        self.spin_until(
+            lambda: all(p.get_subscription_count() > 0 for p in used)
+            and self.tracker._feature_pub.get_subscription_count() > 0,
+            10.0,
+        )
+
+    def spin_until(self, done, timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if done():
+                return True
+            self.executor.spin_once(timeout_sec=0.01)
+        return done()
+
+    def send(self, cam: int, msg: Image, expect_cloud: bool = True, timeout: float = 5.0) -> None:
+        before = len(self.clouds)
+        self.pubs[cam].publish(msg)
+        if expect_cloud:
+            assert self.spin_until(lambda: len(self.clouds) > before, timeout), "no feature message came"
+        else:
+            self.spin_until(lambda: False, 0.05)
+
+    def close(self) -> None:
+        try:
+            self.executor.shutdown()
+            for node in self.nodes:
+                node.destroy_node()
+        finally:
+            rclpy.shutdown(context=self.ctx)
+
+
+@pytest.fixture
+def prefix() -> str:
+    return f"/nsflow_test_{uuid.uuid4().hex[:10]}"
+
+
+@pytest.fixture(scope="module")
+def pan() -> syn.Sequence:
+    return syn.translating(8, stereo_disparity=DISPARITY)
+
+
+def _cloud_arrays(msg: PointCloud) -> tuple[np.ndarray, np.ndarray]:
+    pts = np.array([[p.x, p.y, p.z] for p in msg.points], np.float64).reshape(-1, 3)
+    ch = np.array([np.asarray(c.values, np.float64) for c in msg.channels]).reshape(len(msg.channels), -1)
+    return pts, ch
+
+
+def test_mono_fusion_layout_end_to_end(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix), prefix)
+    try:
+        for k in range(len(pan.frames)):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+        assert len(h.clouds) == len(pan.frames)
+        cam = syn.camera()
+        prev = None
+        for k, msg in enumerate(h.clouds):
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            assert t == pytest.approx(T0 + pan.stamps[k], abs=1e-9) and msg.header.frame_id == "cam0"
+            pts, ch = _cloud_arrays(msg)
+            assert ch.shape[0] == 9 and np.all(ch[6:] == 0) and 0 < len(pts) <= 120
+            feats = decode_fusion(pts, ch)
+            assert all(len(v) == 1 and v[0][0] == 0 for v in feats.values())
+            rows = {fid: v[0][1] for fid, v in feats.items()}
+            uv = np.array([r[3:5] for r in rows.values()])
+            xy = np.array([r[0:2] for r in rows.values()])
+            np.testing.assert_allclose(xy, cam.lift(uv), atol=1e-5)  # float32 channels
+            ids = np.array(list(rows))
+            assert np.all(np.diff(ids) > 0)  # sorted by id
+            if prev is not None:
+                common = [i for i in rows if i in prev]
+                assert len(common) >= 0.7 * len(prev)
+                truth = pan.truth(k - 1, k, np.array([prev[i][3:5] for i in common]))
+                err = np.hypot(*(np.array([rows[i][3:5] for i in common]) - truth).T)
+                assert np.median(err) < 0.2
+                for i in common:
+                    np.testing.assert_allclose(rows[i][5:7], (rows[i][0:2] - prev[i][0:2]) / 0.05, atol=2e-3)
+                for i in set(rows) - set(prev):
+                    assert np.all(rows[i][5:7] == 0)
+            else:
+                assert all(np.all(r[5:7] == 0) for r in rows.values())
+            prev = rows
+        assert h.spin_until(lambda: len(h.tracks) == len(pan.frames), 2.0)
+        assert h.tracks[0].encoding == "bgr8"
+        assert h.tracks[0].width == 320
+    finally:
+        h.close()
+
+
+def test_stereo_pairs_by_stamp_and_orders_camera_0_first(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix)
+    try:
+        for k in range(len(pan.frames)):
+            t = T0 + pan.stamps[k]
+            first, second = (0, 1) if k % 2 == 0 else (1, 0)  # arrival order must not matter
+            imgs = (pan.frames[k], pan.right[k])
+            h.send(first, image_msg(imgs[first], t), expect_cloud=False)
+            h.send(second, image_msg(imgs[second], t))
+        h.send(1, image_msg(pan.right[0], T0 + 50.0), expect_cloud=False)  # right image without a partner
+        assert len(h.clouds) == len(pan.frames)
+        n_right = 0
+        for msg in h.clouds:
+            pts, ch = _cloud_arrays(msg)
+            feats = decode_fusion(pts, ch)
+            for entries in feats.values():
+                cams = [c for c, _ in entries]
+                assert cams in ([0], [0, 1])  # no right-only ids; camera 0 first
+                if len(entries) == 2:
+                    n_right += 1
+                    left_uv, right_uv = entries[0][1][3:5], entries[1][1][3:5]
+                    np.testing.assert_allclose(right_uv - left_uv, [DISPARITY, 0.0], atol=1.0)
+        assert n_right >= 0.7 * sum(len(_cloud_arrays(m)[0]) for m in h.clouds) / 2
+        assert h.spin_until(lambda: len(h.tracks) == len(pan.frames), 2.0)
+        assert h.tracks[-1].width == 640  # left | right
+    finally:
+        h.close()
+
+
+def test_garbage_frames_are_skipped_and_features_keep_coming(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix), prefix)
+    try:
+        good = 0
+        garbage = [
+            dict(encoding="bayer_rggb8"),
+            dict(step=100),
+            dict(data=b"\x00" * 1000),
+            dict(encoding="32FC1"),
+        ]
+        for k in range(len(pan.frames)):
+            t = T0 + pan.stamps[k]
+            bad = garbage[k % len(garbage)]
+            h.send(0, image_msg(pan.frames[k], t - 0.01, **bad), expect_cloud=False)
+            h.send(0, image_msg(pan.frames[k], t))
+            good += 1
+        # wrong image size (decodes fine, the tracker refuses it) and a repeated stamp
+        h.send(0, image_msg(np.zeros((100, 100), np.uint8), T0 + 10.0), expect_cloud=False)
+        h.send(0, image_msg(pan.frames[0], T0 + pan.stamps[-1]), expect_cloud=False)
+        h.send(0, image_msg(pan.frames[0], T0 + 10.1))
+        assert len(h.clouds) == good + 1
+        stats = h.tracker.stats
+        assert stats["bad:encoding:bayer_rggb8"] == 2 and stats["bad:step"] == 2 and stats["bad:truncated"] == 2
+        assert stats["bad:duplicate_stamp"] == 1 and stats["bad_frames"] == 10
+    finally:
+        h.close()
+
+
+def test_vins_mono_layout_drops_first_frame_throttles_and_restarts(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix, dialect="mono"), prefix)
+    try:
+        assert h.tracker.layout == "mono" and h.tracker.tracker.settings.reject_with_f
+        for k in range(len(pan.frames)):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]), expect_cloud=False)
+        h.spin_until(lambda: False, 0.2)
+        # 20 Hz in, freq 10: about every other frame published, minus the first published one
+        assert 2 <= len(h.clouds) <= 4
+        for msg in h.clouds:
+            pts, ch = _cloud_arrays(msg)
+            assert ch.shape[0] == 5
+            feats = decode_mono(pts, ch, 1)
+            assert feats and all(v[0][0] == 0 for v in feats.values())
+            assert np.all(pts[:, 2] == 1.0)
+        h.send(0, image_msg(pan.frames[0], T0 + 5.0), expect_cloud=False)  # 4.6 s gap
+        assert h.spin_until(lambda: h.restarts == [True], 2.0)
+    finally:
+        h.close()
+
+
+def test_bad_config_is_a_clear_start_up_error(tmp_path, prefix):
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        with pytest.raises(ConfigError, match="not found"):
+            missing = Parameter("config_file", value=str(tmp_path / "x.yaml"))
+            TrackerNode(context=ctx, parameter_overrides=[missing])
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("%YAML:1.0\nfoo: 1\n")
+        with pytest.raises(ConfigError, match="not a VINS config"):
+            TrackerNode(context=ctx, parameter_overrides=[Parameter("config_file", value=str(bad))])
+        with pytest.raises(Exception, match="not found"):
+            TrackerNode(context=ctx, parameter_overrides=[
+                Parameter("config_file", value=str(write_config(tmp_path, prefix))),
+                Parameter("model_path", value=str(tmp_path / "missing.onnx"))])
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+def test_main_exits_1_on_a_missing_config(tmp_path):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 100))
+    code = ("import sys; from nsflow_ros.ros.tracker_node import main; "
+            f"sys.exit(main(['x', '--ros-args', '-p', 'config_file:={tmp_path / 'none.yaml'}']))")
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert out.returncode == 1
+    assert "not found" in out.stderr
