@@ -243,7 +243,8 @@ def test_garbage_frames_are_skipped_and_features_keep_coming(tmp_path, prefix, p
         h.send(0, image_msg(pan.frames[0], T0 + 10.1))
         assert len(h.clouds) == good + 1
         stats = h.tracker.stats
-        assert stats["bad:encoding:bayer_rggb8"] == 2 and stats["bad:step"] == 2 and stats["bad:truncated"] == 2
+        assert stats["bad:encoding:bayer_rggb8"] == 2 and stats["bad:step"] == 2
+        assert stats["bad:truncated"] == 2
         assert stats["bad:duplicate_stamp"] == 1 and stats["bad_frames"] == 10
     finally:
         h.close()
