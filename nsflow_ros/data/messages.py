@@ -1,0 +1,269 @@
+"""Build, serialise and decode the sensor messages the data layer handles, with rosbags typestores.
+
+ROS 1 and ROS 2 differ in the header (ROS 1 has ``seq``) and in serialisation (ROS 1 wire format vs CDR):
+every builder takes the typestore to build for, :func:`ros2_store` (Jazzy) or :func:`ros1_store` (Noetic).
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from typing import Any
+
+import cv2
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
+
+__all__ = [
+    "COMPRESSED_IMAGE",
+    "ENCODINGS",
+    "IMAGE",
+    "IMU",
+    "POINT_STAMPED",
+    "decode_compressed",
+    "decode_image",
+    "default_encoding",
+    "image_message",
+    "imu_message",
+    "is_ros1",
+    "message_to_record",
+    "point_message",
+    "record_to_cdr",
+    "record_to_message",
+    "ros1_store",
+    "ros2_store",
+    "serialize",
+    "to_gray",
+]
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+IMU = "sensor_msgs/msg/Imu"
+POINT_STAMPED = "geometry_msgs/msg/PointStamped"
+
+# encoding -> (dtype, channels)
+ENCODINGS: dict[str, tuple[np.dtype, int]] = {
+    "mono8": (np.dtype(np.uint8), 1),
+    "8UC1": (np.dtype(np.uint8), 1),
+    "mono16": (np.dtype(np.uint16), 1),
+    "16UC1": (np.dtype(np.uint16), 1),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "rgb8": (np.dtype(np.uint8), 3),
+    "bgra8": (np.dtype(np.uint8), 4),
+    "rgba8": (np.dtype(np.uint8), 4),
+}
+
+
+def default_encoding(dtype: np.dtype, channels: int) -> str | None:
+    """The encoding OpenCV-style pixels get by default: mono8, mono16, bgr8 or bgra8 (None otherwise)."""
+    u8, u16 = np.dtype(np.uint8), np.dtype(np.uint16)
+    table = {(u8, 1): "mono8", (u16, 1): "mono16", (u8, 3): "bgr8", (u8, 4): "bgra8"}
+    return table.get((np.dtype(dtype), channels))
+
+
+@cache
+def ros2_store() -> Any:
+    """The ROS 2 Jazzy typestore (shared, built once)."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+@cache
+def ros1_store() -> Any:
+    """The ROS 1 Noetic typestore (shared, built once)."""
+    return get_typestore(Stores.ROS1_NOETIC)
+
+
+def is_ros1(store: Any) -> bool:
+    """Whether a typestore has ROS 1 headers (with ``seq``)."""
+    return any(name == "seq" for name, _ in store.fielddefs["std_msgs/msg/Header"][1])
+
+
+def _header(store: Any, stamp_ns: int, frame_id: str, seq: int) -> Any:
+    stamp = store.types["builtin_interfaces/msg/Time"](sec=int(stamp_ns // 1_000_000_000),
+                                                        nanosec=int(stamp_ns % 1_000_000_000))
+    Header = store.types["std_msgs/msg/Header"]
+    if is_ros1(store):
+        return Header(seq=int(seq), stamp=stamp, frame_id=frame_id)
+    return Header(stamp=stamp, frame_id=frame_id)
+
+
+def _stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str | None = None,
+                  *, seq: int = 0, step: int | None = None) -> Any:
+    """A sensor_msgs/Image.
+
+    Args:
+        store: typestore to build for.
+        stamp_ns: header stamp in nanoseconds.
+        frame_id: header frame id.
+        image: (H, W) or (H, W, C) uint8 / uint16 pixels.
+        encoding: one of :data:`ENCODINGS`; default mono8 / mono16 / bgr8 / bgra8 from dtype and channels.
+        seq: ROS 1 header sequence number (ignored for ROS 2).
+        step: row length in bytes; larger than the packed row to pad rows (default: packed).
+
+    Raises:
+        DataError: when the image does not match the encoding or ``step`` is too small.
+    """
+    img = np.asarray(image)
+    channels = 1 if img.ndim == 2 else (img.shape[2] if img.ndim == 3 else -1)
+    if encoding is None:
+        encoding = default_encoding(img.dtype, channels) or ""
+    if encoding not in ENCODINGS:
+        raise DataError(f"cannot encode image of dtype {img.dtype} and shape {img.shape} as {encoding!r}; "
+                        f"supported encodings: {', '.join(ENCODINGS)}")
+    dtype, want = ENCODINGS[encoding]
+    if img.dtype != dtype or channels != want:
+        raise DataError(f"image for encoding {encoding}: expected dtype {dtype} with {want} channel(s), "
+                        f"got dtype {img.dtype} and shape {img.shape}")
+    h, w = img.shape[:2]
+    row = w * want * dtype.itemsize
+    step = row if step is None else int(step)
+    if step < row:
+        raise DataError(f"image step {step} is smaller than a packed row of {row} bytes")
+    little = np.ascontiguousarray(img).astype(dtype.newbyteorder("<"), copy=False)  # is_bigendian = 0
+    packed = little.view(np.uint8).reshape(h, row)
+    if step > row:
+        padded = np.zeros((h, step), np.uint8)
+        padded[:, :row] = packed
+        packed = padded
+    return store.types[IMAGE](header=_header(store, stamp_ns, frame_id, seq), height=h, width=w,
+                              encoding=encoding, is_bigendian=0, step=step, data=packed.reshape(-1))
+
+
+def imu_message(store: Any, stamp_ns: int, frame_id: str, gyro: Any, accel: Any, *, seq: int = 0) -> Any:
+    """A sensor_msgs/Imu with no orientation (``orientation_covariance[0] = -1``, the ROS convention)."""
+    t = store.types
+    ocov = np.zeros(9)
+    ocov[0] = -1.0
+    g = np.asarray(gyro, dtype=np.float64).reshape(3)
+    a = np.asarray(accel, dtype=np.float64).reshape(3)
+    return t[IMU](
+        header=_header(store, stamp_ns, frame_id, seq),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=ocov,
+        angular_velocity=t["geometry_msgs/msg/Vector3"](x=float(g[0]), y=float(g[1]), z=float(g[2])),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=t["geometry_msgs/msg/Vector3"](x=float(a[0]), y=float(a[1]), z=float(a[2])),
+        linear_acceleration_covariance=np.zeros(9),
+    )
+
+
+def point_message(store: Any, stamp_ns: int, frame_id: str, xyz: Any, *, seq: int = 0) -> Any:
+    """A geometry_msgs/PointStamped."""
+    p = np.asarray(xyz, dtype=np.float64).reshape(3)
+    point = store.types["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2]))
+    return store.types[POINT_STAMPED](header=_header(store, stamp_ns, frame_id, seq), point=point)
+
+
+def serialize(store: Any, msg: Any, msgtype: str) -> bytes:
+    """Serialise for the typestore's ROS version: ROS 1 wire format or CDR (little endian)."""
+    if is_ros1(store):
+        return bytes(store.serialize_ros1(msg, msgtype))
+    return bytes(store.serialize_cdr(msg, msgtype))
+
+
+def decode_image(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
+    """Pixels of a sensor_msgs/Image, honouring ``step`` (padded rows) and ``is_bigendian``.
+
+    Returns:
+        ``(image, encoding)``: a writable copy, (H, W) or (H, W, C), uint8 or uint16.
+
+    Raises:
+        DataError: for an unknown encoding, a step shorter than a row, or too little data.
+    """
+    enc = str(msg.encoding)
+    where = topic or "image"
+    if enc not in ENCODINGS:
+        raise DataError(f"{where}: unknown image encoding {enc!r}; supported: {', '.join(ENCODINGS)}")
+    dtype, ch = ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    row = w * ch * dtype.itemsize
+    data = np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data
+    if step < row:
+        raise DataError(f"{where}: step {step} is shorter than a row of {w} x {ch} x {dtype.itemsize} bytes")
+    if h and data.size < step * (h - 1) + row:
+        raise DataError(f"{where}: {data.size} bytes of data for {h} rows of step {step}")
+    # Rows may be padded (step > row): view them with the step as stride, then copy packed.
+    rows = np.lib.stride_tricks.as_strided(data, shape=(h, row), strides=(step, 1))
+    wire = dtype.newbyteorder(">" if msg.is_bigendian else "<")
+    pixels = np.ascontiguousarray(rows).view(wire).astype(dtype)  # copy in native order
+    return pixels.reshape((h, w) if ch == 1 else (h, w, ch)), enc
+
+
+def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
+    """Pixels of a sensor_msgs/CompressedImage (png / jpeg), as mono8 / mono16 / bgr8 / bgra8.
+
+    Raises:
+        DataError: when the bytes cannot be decoded.
+    """
+    img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(f"{topic or 'image'}: cannot decode compressed image (format {msg.format!r})")
+    ch = 1 if img.ndim == 2 else img.shape[2]
+    enc = {1: "mono8" if img.dtype == np.uint8 else "mono16", 3: "bgr8", 4: "bgra8"}[ch]
+    return img, enc
+
+
+def to_gray(image: np.ndarray, encoding: str) -> np.ndarray:
+    """8-bit gray version of decoded pixels. Shape: (H, W[, C]) -> (H, W) uint8.
+
+    Raises:
+        DataError: for an unknown encoding.
+    """
+    if encoding not in ENCODINGS:
+        raise DataError(f"unknown image encoding {encoding!r}; supported: {', '.join(ENCODINGS)}")
+    if encoding in ("mono16", "16UC1"):
+        return (image >> 8).astype(np.uint8)
+    if encoding in ("mono8", "8UC1"):
+        return image
+    code = {"bgr8": cv2.COLOR_BGR2GRAY, "rgb8": cv2.COLOR_RGB2GRAY, "bgra8": cv2.COLOR_BGRA2GRAY,
+            "rgba8": cv2.COLOR_RGBA2GRAY}[encoding]
+    return cv2.cvtColor(image, code)
+
+
+def record_to_message(store: Any, record: Record, seq: int = 0) -> tuple[str, Any]:
+    """Message object for a record: ``(msgtype, message)`` for the given typestore."""
+    if isinstance(record, ImageRecord):
+        msg = image_message(store, record.stamp_ns, record.frame_id, record.image, record.encoding, seq=seq)
+        return IMAGE, msg
+    if isinstance(record, ImuRecord):
+        msg = imu_message(store, record.stamp_ns, record.frame_id, record.gyro, record.accel, seq=seq)
+        return IMU, msg
+    raise DataError(f"cannot serialise a {type(record).__name__}; expected ImageRecord or ImuRecord")
+
+
+def record_to_cdr(record: Record) -> tuple[str, bytes]:
+    """ROS 2 CDR bytes of a record (e.g. a perturbed image) for a raw rclpy publisher.
+
+    Returns:
+        ``(msgtype, cdr)`` with the ROS 2 type name and the bytes including the encapsulation header.
+    """
+    msgtype, msg = record_to_message(ros2_store(), record)
+    return msgtype, serialize(ros2_store(), msg, msgtype)
+
+
+def _image_from_msg(msg: Any, msgtype: str, topic: str) -> tuple[np.ndarray, str]:
+    if msgtype == COMPRESSED_IMAGE:
+        return decode_compressed(msg, topic)
+    return decode_image(msg, topic)
+
+
+def message_to_record(topic: str, msgtype: str, msg: Any) -> Record:
+    """Record of a deserialised Image / CompressedImage / Imu message.
+
+    Raises:
+        DataError: for another message type or a bad image.
+    """
+    if msgtype in (IMAGE, COMPRESSED_IMAGE):
+        img, enc = _image_from_msg(msg, msgtype, topic)
+        return ImageRecord(topic, _stamp_ns(msg.header), img, enc, str(msg.header.frame_id))
+    if msgtype == IMU:
+        av, la = msg.angular_velocity, msg.linear_acceleration
+        return ImuRecord(topic, _stamp_ns(msg.header), np.array([av.x, av.y, av.z], dtype=np.float64),
+                         np.array([la.x, la.y, la.z], dtype=np.float64), str(msg.header.frame_id))
+    raise DataError(f"topic {topic} has type {msgtype}; expected {IMAGE}, {COMPRESSED_IMAGE} or {IMU}")
