@@ -15,7 +15,7 @@ TOOLS = [
     ("nsflow-ate", "ate", "nsflow_ros.ate.cli:main"),
     ("nsflow-bench", "bench", "nsflow_ros.bench:main"),
     ("nsflow-make-sample", "make_sample", "nsflow_ros.data.cli:main"),
-    ("nsflow-train", "train", "nsflow_ros.train.cli:main"),
+    ("nsflow-train", "train", "nsflow_ros.tools:train"),
 ]
 
 
