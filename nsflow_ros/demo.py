@@ -115,7 +115,7 @@ def _run_one(
         "-p",
         f"method:={method}",
         "-p",
-        "show_track:=true",
+        "show_track:=1",
     ]
     with log.open("wb") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
