@@ -303,7 +303,9 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
     tmp.mkdir(parents=True)
     try:
         _generate(tmp, params, key, fmts, n_frames, progress, workers)
-        _replace(tmp, root)
+        # Another process may have finished the same sequence meanwhile: keep its copy then.
+        if not _is_complete(root, key, fmts):
+            _replace(tmp, root)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
@@ -374,6 +376,7 @@ def _generate(out: Path, p: _Params, key: dict[str, Any], fmts: tuple[str, ...],
         return m
 
     renderers = [Renderer(scene, cam) for cam in cams]
+    _ = scene.atlas  # built here once, not raced for by the render threads
     params = key
 
     def render_frame(i: int) -> list[tuple[np.ndarray, bytes | None]]:
