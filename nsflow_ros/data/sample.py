@@ -10,9 +10,10 @@ seeded trajectory with a synthetic IMU (:mod:`.motion`) and writes, under ``out_
   ``/cam0/image_raw``, ``/cam1/image_raw`` (sensor_msgs/Image mono8, frame ids cam0 / cam1), ``/imu0``
   (sensor_msgs/Imu, frame id imu0) and ``/leica/position`` (geometry_msgs/PointStamped, body position at
   the camera rate);
-* ``sequence.json`` (parameters, calibration, scene and trajectory descriptions, stamps) and
-  ``poses.npz`` (camera and body poses per frame): what evaluation needs. :class:`SampleSequence`
-  reloads them and recomputes exact depth and optical flow for any pixel of any frame;
+* ``sequence.json`` (parameters, calibration, scene and trajectory descriptions, stamps),
+  ``poses.npz`` (camera and body poses per frame) and ``groundtruth.csv`` (EuRoC ground-truth layout
+  at the IMU rate): what evaluation needs. :class:`SampleSequence` reloads them and recomputes exact
+  depth and optical flow for any pixel of any frame;
 * ``done``: written last. Everything is built in a hidden temporary folder next to ``out_dir`` and
   renamed into place at the end, so an interrupted run never leaves something that looks complete.
 
@@ -49,7 +50,7 @@ from nsflow_ros.data.motion import (
     synthesize_imu,
 )
 from nsflow_ros.data.scene import Rendered, Renderer, Scene, flow_between, ray_depth
-from nsflow_ros.data.writers import AslWriter, BagWriter
+from nsflow_ros.data.writers import ASL_GROUNDTRUTH_HEADER, AslWriter, BagWriter, groundtruth_row
 
 __all__ = [
     "FORMATS",
@@ -61,7 +62,7 @@ __all__ = [
     "make_sample_sequence",
 ]
 
-SAMPLE_VERSION = 1  # bump whenever the generator's output changes, so stale copies are not reused
+SAMPLE_VERSION = 2  # bump whenever the generator's output changes, so stale copies are not reused
 FORMATS = ("asl", "ros2", "ros1")
 IMAGE_TOPIC = "/cam{}/image_raw"
 IMU_TOPIC = "/imu0"
@@ -145,6 +146,14 @@ class SampleSequence:
     def ros1_path(self) -> Path:
         """The ROS 1 bag file."""
         return self.root / "sample.bag"
+
+    @property
+    def groundtruth_csv(self) -> Path:
+        """Body (IMU) ground truth at the IMU rate in EuRoC's state_groundtruth_estimate0 csv layout.
+
+        Written for every sequence, whatever its formats (the ASL folder holds an identical copy).
+        """
+        return self.root / "groundtruth.csv"
 
     def path(self, fmt: str) -> Path:
         """Location of one format (``asl``, ``ros2`` or ``ros1``)."""
@@ -436,5 +445,11 @@ def _generate(out: Path, p: _Params, key: dict[str, Any], fmts: tuple[str, ...],
         "trajectory": traj.to_dict(),
     }
     np.savez(out / "poses.npz", **poses)
+    # Ground truth for trajectory evaluation whatever the formats (EuRoC csv layout, IMU rate).
+    with (out / "groundtruth.csv").open("w", newline="\n") as f:
+        f.write(ASL_GROUNDTRUTH_HEADER + "\n")
+        for m in range(n_imu):
+            f.write(groundtruth_row(int(imu_stamps[m]), gt_p[m], gt_q[m], gt_v[m], imu.gyro_bias[m],
+                                    imu.accel_bias[m]))
     (out / "sequence.json").write_text(json.dumps(meta, indent=1))
     (out / "done").write_text(json.dumps(key) + "\n")

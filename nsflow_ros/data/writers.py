@@ -44,6 +44,7 @@ __all__ = [
     "ASL_IMU_HEADER",
     "AslWriter",
     "BagWriter",
+    "groundtruth_row",
     "write_ros2_bag",
 ]
 
@@ -65,6 +66,12 @@ def _num(x: float) -> str:
 def _matrix_yaml(T: np.ndarray) -> str:
     rows = ",\n         ".join(", ".join(_num(v) for v in row) for row in np.asarray(T))
     return f"  cols: 4\n  rows: 4\n  data: [{rows}]\n"
+
+
+def groundtruth_row(stamp_ns: int, p: Any, q_wxyz: Any, v: Any, bw: Any, ba: Any) -> str:
+    """One line of EuRoC's state_groundtruth_estimate0/data.csv (with its newline)."""
+    vals = ",".join(_num(x) for part in (p, q_wxyz, v, bw, ba) for x in np.ravel(part))
+    return f"{int(stamp_ns)},{vals}\n"
 
 
 class AslWriter:
@@ -175,8 +182,7 @@ class AslWriter:
     def write_groundtruth(self, stamp_ns: int, p: Any, q_wxyz: Any, v: Any, bw: Any, ba: Any) -> None:
         """Append a ground-truth row: position, quaternion (w, x, y, z), velocity, gyro / accel bias."""
         f = self._csv("state_groundtruth_estimate0", ASL_GROUNDTRUTH_HEADER)
-        vals = ",".join(_num(x) for part in (p, q_wxyz, v, bw, ba) for x in np.ravel(part))
-        f.write(f"{int(stamp_ns)},{vals}\n")
+        f.write(groundtruth_row(stamp_ns, p, q_wxyz, v, bw, ba))
 
     def close(self) -> None:
         """Flush and close the CSV files."""

@@ -32,6 +32,7 @@ def test_euroc_layout(sample_seq):
     assert np.diff([int(x.split(",")[0]) for x in imu[1:]]).tolist() == [5_000_000] * 100
     gt = (mav0 / "state_groundtruth_estimate0" / "data.csv").read_text().splitlines()
     assert gt[0] == ASL_GROUNDTRUTH_HEADER and len(gt) == 102 and len(gt[1].split(",")) == 17
+    assert sample_seq.groundtruth_csv.read_text().splitlines() == gt
     assert (sample_seq.ros2_dir / "metadata.yaml").is_file() and sample_seq.ros1_path.is_file()
     assert (sample_seq.root / "done").is_file()
     meta = json.loads((sample_seq.root / "sequence.json").read_text())
