@@ -269,9 +269,8 @@ class SensorSource:
         ros1 = self.kind == "ros1"
         store = ros1_store() if ros1 else ros2_store()
         deser = store.deserialize_ros1 if ros1 else store.deserialize_cdr
-        wanted = set(self.requested) if self.requested is not None else {*IMAGE_TOPICS, *IMU_TOPICS[:1]}
-        if self.requested is None and not raw:
-            wanted.add(IMU_TOPICS[1])
+        # The topic list is unknown until scanned: take the defaults under either IMU name.
+        wanted = set(self.requested) if self.requested is not None else {*IMAGE_TOPICS, *IMU_TOPICS}
         lo = hi = None
         try:
             for make in files:
