@@ -307,13 +307,37 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--model", default=None, help="ONNX encoder (default: the shipped model)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime / OpenCV threads (default 2)")
     parser.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    parser.add_argument(
+        "--node-frames",
+        type=int,
+        default=0,
+        help="also run the ROS 2 node benchmark (latency, memory after 1,000 / 10,000 frames) on this many "
+        "320x240 frames, mono and stereo; 10000 takes several minutes (default 0 = skip)",
+    )
     opts = parser.parse_args(args)
     try:
         res = run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json)
+        if opts.node_frames > 0:
+            from nsflow_ros.ros.bench_node import run_node_benchmark
+
+            res["node"] = {
+                mode: run_node_benchmark(opts.node_frames, mode == "stereo", progress=not opts.json)
+                for mode in ("mono", "stereo")
+            }
     except NSFlowError as err:
         print(f"nsflow-bench: {err}", file=sys.stderr)
         return 1
-    print(json.dumps(res, indent=2) if opts.json else format_table(res))
+    if opts.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print(format_table(res))
+    for mode, node in res.get("node", {}).items():
+        lat = node["latency_ms"]
+        rss = ", ".join(f"{v:.1f} MB after {k} frames" for k, v in node["rss_mb"].items()) or "n/a"
+        print(
+            f"node {mode:6s} latency median {lat['median']:.2f} ms, p90 {lat['p90']:.2f} ms; "
+            f"RSS {rss}; growth {node['rss_growth_mb']} MB"
+        )
     return 0
 
 
