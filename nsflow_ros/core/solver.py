@@ -9,7 +9,7 @@ square window and all descriptor channels. One iteration, for every still-active
 4. stop when ||du|| < eps (1 + ||u^(k)||) or ||J^T f||_inf < eps, or after K_max iterations.
 
 Sampling is exact bilinear interpolation with replicated borders. Frame-2 quantities at a candidate are
-fetched in one ``cv2.remap`` call over the pyramid level's interleaved [D | Dx | Dy] array, and J^T J,
+fetched by one ``cv2.remap`` call per channel over the pyramid level's [D_c, Dx_c, Dy_c] chunks, and J^T J,
 J^T f and S are reduced from it immediately, so nothing window-sized is kept between iterations.
 Points that have stopped leave the active set, so late iterations cost only what is left.
 
@@ -195,16 +195,16 @@ def sample_windows(
 def _template(level: tuple[np.ndarray, ...], pts: np.ndarray, window: int, channels: int) -> np.ndarray:
     """Frame-1 descriptor windows D1(x), flattened per point: (N, window^2 * C)."""
     n = pts.shape[0]
-    return np.ascontiguousarray(sample_windows(level, pts, window)[..., :channels]).reshape(n, -1)
+    return np.ascontiguousarray(sample_windows(level, pts, window)[..., 0::3]).reshape(n, -1)
 
 
 def _normal_equations(
     sampled: np.ndarray, template: np.ndarray, channels: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reduce sampled [D | Dx | Dy] windows to S, J^T J as (h11, h12, h22) and J^T f per point."""
+    """Reduce sampled [D_c, Dx_c, Dy_c]... windows to S, J^T J as (h11, h12, h22) and J^T f per point."""
     m = sampled.shape[0]
     # (m, 3, window^2 * C) contiguous: rows D2, Jx, Jy; contiguous rows make the dot products fast.
-    q = np.ascontiguousarray(sampled.reshape(m, -1, 3, channels).transpose(0, 2, 1, 3)).reshape(m, 3, -1)
+    q = np.ascontiguousarray(sampled.reshape(m, -1, channels, 3).transpose(0, 3, 1, 2)).reshape(m, 3, -1)
     f = q[:, 0]
     f -= template
     jx, jy = q[:, 1], q[:, 2]

@@ -15,8 +15,11 @@ def test_levels_halve_and_hold_map_and_derivatives():
     pyr = build_pyramid(desc, 3)
     assert pyr.num_levels == 3 and pyr.channels == 3 and pyr.shape == (120, 160)
     assert [pyr.level(i).shape for i in range(3)] == [(120, 160, 9), (60, 80, 9), (30, 40, 9)]
-    assert all(c.shape[2] <= 4 and c.flags.c_contiguous for lev in pyr.levels for c in lev)
-    np.testing.assert_array_equal(pyr.level(0)[..., :3], desc)
+    assert all(c.shape[2] == 3 and c.flags.c_contiguous for lev in pyr.levels for c in lev)
+    np.testing.assert_array_equal(pyr.level(0)[..., 0::3], desc)
+    dx, dy = descriptor_gradients(desc)
+    np.testing.assert_array_equal(pyr.level(0)[..., 1::3], dx)
+    np.testing.assert_array_equal(pyr.level(0)[..., 2::3], dy)
 
 
 def test_gradients_of_a_ramp_are_its_slopes():
