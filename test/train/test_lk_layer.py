@@ -108,8 +108,11 @@ def test_forward_matches_numpy_solver(textures32):
     cfg = LMConfig(levels=1)
     ref = track(img1[..., None], img2[..., None], pts, flow0, cfg)
     out = lk_track(
-        torch.from_numpy(img1)[None], torch.from_numpy(img2)[None], torch.from_numpy(pts),
-        torch.from_numpy(flow0), cfg,
+        torch.from_numpy(img1)[None],
+        torch.from_numpy(img2)[None],
+        torch.from_numpy(pts),
+        torch.from_numpy(flow0),
+        cfg,
     )
     ok = ref.status
     assert ok.mean() > 0.7

@@ -1,0 +1,258 @@
+"""Training and validation pairs with exact ground-truth flow, made from real photos (nothing downloaded).
+
+A pair is two views of one photo (scikit-image's and matplotlib's bundled images): frame 1 is a random
+similarity crop of the photo, frame 2 the same crop seen through a random homography P of frame-1 pixel
+coordinates (corner jitter plus translation), both rendered with ``cv2.warpPerspective`` from the
+full-resolution photo. A frame-1 point x moves to P(x), so the ground-truth flow is exact.
+
+Illumination perturbation (the paper's absolute and relative intensity changes driven by random
+variables, plus local shading, gamma and sensor noise) is applied to each frame independently, so the
+brightness-constancy assumption of classical LK is broken between the two frames.
+
+Source images are split once and for all: :data:`TRAIN_IMAGES` for training, :data:`HELDOUT_IMAGES`
+(coffee, chelsea, grace_hopper: scenes that appear in no training image) for validation and for the
+NSFlow-vs-classical evaluation.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from nsflow_ros.train.errors import TrainError
+
+__all__ = [
+    "HELDOUT_IMAGES",
+    "TRAIN_IMAGES",
+    "Pair",
+    "PairConfig",
+    "load_image",
+    "make_pair",
+    "perturb_illumination",
+    "render_views",
+]
+
+TRAIN_IMAGES = (
+    "astronaut",
+    "camera",
+    "brick",
+    "grass",
+    "gravel",
+    "rocket",
+    "motorcycle_left",
+    "coins",
+    "moon",
+    "page",
+    "clock_motion",
+    "hubble_deep_field",
+)
+HELDOUT_IMAGES = ("coffee", "chelsea", "grace_hopper")
+
+
+@functools.cache
+def load_image(name: str) -> np.ndarray:
+    """Load a bundled photo as an (H, W) uint8 gray image.
+
+    Args:
+        name: a scikit-image data file stem (e.g. "astronaut") or "grace_hopper" (matplotlib).
+
+    Returns:
+        the gray image.
+    """
+    if name == "grace_hopper":
+        import matplotlib
+
+        path = Path(matplotlib.get_data_path()) / "sample_data" / "grace_hopper.jpg"
+    else:
+        import skimage
+
+        folder = Path(os.path.dirname(skimage.__file__)) / "data"
+        matches = sorted(folder.glob(f"{name}.*"))
+        if not matches:
+            raise TrainError(f"no bundled image named {name!r} in {folder}")
+        path = matches[0]
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise TrainError(f"cannot read image {path}")
+    return img
+
+
+@dataclass(frozen=True)
+class PairConfig:
+    """How pairs are made.
+
+    Attributes:
+        width, height: frame size in pixels.
+        corner_jitter: max displacement of each frame corner by the homography P, pixels.
+        translation: max common translation of P, pixels.
+        max_points: GFTT corners per pair (at most).
+        min_distance: GFTT minimum distance between corners.
+        window: solver window; points whose window (in frame 1 or at the GT target) leaves the image drop.
+        init_sigma: std of the Gaussian noise added to the GT flow to make the initial flow, pixels.
+    """
+
+    width: int = 320
+    height: int = 240
+    corner_jitter: float = 6.0
+    translation: float = 8.0
+    max_points: int = 200
+    min_distance: float = 7.0
+    window: int = 11
+    init_sigma: float = 2.5
+
+
+@dataclass(frozen=True)
+class Pair:
+    """One training pair.
+
+    Attributes:
+        image1, image2: (H, W) uint8 frames (after perturbation).
+        points: (N, 2) float64 GFTT corners of frame 1.
+        flow_gt: (N, 2) float64 exact flow.
+        flow0: (N, 2) float64 initial flow (GT + noise).
+        homography: (3, 3) P mapping frame-1 pixels to frame-2 pixels.
+    """
+
+    image1: np.ndarray
+    image2: np.ndarray
+    points: np.ndarray
+    flow_gt: np.ndarray
+    flow0: np.ndarray
+    homography: np.ndarray
+
+
+def render_views(
+    src: np.ndarray, rng: np.random.Generator, cfg: PairConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render an unperturbed pair of views of a photo.
+
+    Args:
+        src: (H, W) uint8 photo.
+        rng: random generator.
+        cfg: frame size and motion ranges.
+
+    Returns:
+        (frame1, frame2, P): uint8 (height, width) frames and the 3x3 homography x1 -> x2.
+    """
+    w, h = cfg.width, cfg.height
+    sh, sw = src.shape[:2]
+    fit = min(sw / w, sh / h)  # source pixels per frame pixel at which the frame just fits
+    scale = fit * rng.uniform(0.45, 0.9)
+    theta = np.deg2rad(rng.uniform(-15.0, 15.0))
+    cos, sin = np.cos(theta) * scale, np.sin(theta) * scale
+    half = 0.5 * scale * np.hypot(w, h)
+    cx = rng.uniform(half, sw - half) if sw > 2 * half else sw / 2
+    cy = rng.uniform(half, sh - half) if sh > 2 * half else sh / 2
+    # frame-1 pixel -> photo pixel
+    m1 = np.array([[cos, -sin, cx], [sin, cos, cy], [0, 0, 1]]) @ np.array(
+        [[1, 0, -w / 2], [0, 1, -h / 2], [0, 0, 1]]
+    )
+    corners = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+    moved = corners + rng.uniform(-cfg.corner_jitter, cfg.corner_jitter, (4, 2)).astype(np.float32)
+    moved += rng.uniform(-cfg.translation, cfg.translation, 2).astype(np.float32)
+    p = cv2.getPerspectiveTransform(corners, moved).astype(np.float64)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    f1 = cv2.warpPerspective(src, m1, (w, h), flags=flags, borderMode=cv2.BORDER_REFLECT_101)
+    f2 = cv2.warpPerspective(
+        src, m1 @ np.linalg.inv(p), (w, h), flags=flags, borderMode=cv2.BORDER_REFLECT_101
+    )
+    return f1, f2, p
+
+
+def perturb_illumination(image: np.ndarray, rng: np.random.Generator, strength: float) -> np.ndarray:
+    """Change the illumination of one frame.
+
+    Relative change (gain a), absolute change (offset b), a smooth local shading field (a linear ramp
+    plus a Gaussian light spot), a gamma curve and Gaussian sensor noise, all drawn at random with
+    ranges scaled by ``strength`` (0 = unchanged, 1 = strong).
+
+    Args:
+        image: (H, W) uint8 frame.
+        rng: random generator.
+        strength: perturbation strength in [0, 1+].
+
+    Returns:
+        the perturbed (H, W) uint8 frame.
+    """
+    if strength <= 0:
+        return image.copy()
+    h, w = image.shape
+    x = image.astype(np.float32) / 255.0
+    gain = rng.uniform(1.0 - 0.5 * strength, 1.0 + 0.5 * strength)
+    offset = rng.uniform(-0.15, 0.15) * strength
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    xx, yy = xx / w - 0.5, yy / h - 0.5
+    ramp = rng.normal(0, 1, 2) * 0.35 * strength
+    spot_c = rng.uniform(-0.5, 0.5, 2)
+    spot_r = rng.uniform(0.15, 0.5)
+    spot = (
+        rng.uniform(-0.5, 0.5)
+        * strength
+        * np.exp(-((xx - spot_c[0]) ** 2 + (yy - spot_c[1]) ** 2) / spot_r**2)
+    )
+    shading = np.clip(1.0 + ramp[0] * xx + ramp[1] * yy + spot, 0.2, 3.0)
+    x = np.clip((gain * x + offset) * shading, 0.0, 1.0)
+    gamma = float(np.exp(rng.uniform(-0.5, 0.5) * strength))
+    x = x**gamma
+    noise = rng.uniform(0.0, 4.0 / 255.0) * strength
+    x = x + rng.normal(0.0, 1.0, x.shape).astype(np.float32) * noise
+    return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
+
+
+def _perturb_pair(img1: np.ndarray, img2: np.ndarray, rng: np.random.Generator, strength: float):
+    try:  # the project's shared perturbation, when another module provides it
+        from nsflow_ros.data.perturb import perturb_pair  # type: ignore[import-not-found]
+    except ImportError:
+        return perturb_illumination(img1, rng, strength), perturb_illumination(img2, rng, strength)
+    return perturb_pair(img1, img2, rng, strength)
+
+
+def make_pair(
+    src: np.ndarray,
+    rng: np.random.Generator,
+    cfg: PairConfig | None = None,
+    strength: float = 1.0,
+    init_error: float | None = None,
+) -> Pair:
+    """Make one pair with GFTT points, exact flow and an initial flow.
+
+    Args:
+        src: (H, W) uint8 photo.
+        rng: random generator (geometry, perturbation, points' initial error).
+        cfg: pair settings; ``PairConfig()`` when None.
+        strength: illumination perturbation strength (0 = none).
+        init_error: when given, the initial flow is GT plus an error of exactly this length in a random
+            direction (evaluation); otherwise GT plus N(0, cfg.init_sigma^2) noise (training).
+
+    Returns:
+        the :class:`Pair` (possibly with zero points).
+    """
+    cfg = cfg or PairConfig()
+    if src.ndim != 2 or src.dtype != np.uint8:
+        raise TrainError(f"source photo must be (H, W) uint8, got {src.shape} {src.dtype}")
+    f1, f2, p = render_views(src, rng, cfg)
+    f1, f2 = _perturb_pair(f1, f2, rng, strength)
+    found = cv2.goodFeaturesToTrack(f1, cfg.max_points, 0.01, cfg.min_distance)
+    pts = np.zeros((0, 2)) if found is None else found.reshape(-1, 2).astype(np.float64)
+    target = cv2.perspectiveTransform(pts[None], p)[0] if len(pts) else pts.copy()
+    r = cfg.window // 2
+
+    def inside(q: np.ndarray) -> np.ndarray:
+        return (
+            (q[:, 0] >= r) & (q[:, 0] <= cfg.width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= cfg.height - 1 - r)
+        )
+
+    keep = inside(pts) & inside(target)
+    pts, target = pts[keep], target[keep]
+    gt = target - pts
+    if init_error is None:
+        flow0 = gt + rng.normal(0.0, cfg.init_sigma, gt.shape)
+    else:
+        ang = rng.uniform(0.0, 2 * np.pi, len(gt))
+        flow0 = gt + init_error * np.stack([np.cos(ang), np.sin(ang)], 1)
+    return Pair(f1, f2, pts, gt, flow0, p)

@@ -1,0 +1,133 @@
+"""NSFlow vs classical on held-out pairs, with the project's NumPy solver (what runs on the robot).
+
+Both modes run ``nsflow_ros.track`` on the same pairs, points and initial flows; they differ only in
+the descriptor maps: the ONNX encoder through onnxruntime (NSFlow) or ``IntensityEncoder`` (classical).
+Pairs come from :data:`~nsflow_ros.train.data.HELDOUT_IMAGES` only, with a fixed seed, and start from
+an initial error of exactly ``init_error`` pixels in a random direction.
+
+Metrics are over ALL points of all pairs, a point that the solver reports as lost (status False or
+non-finite flow) counting as an infinite error, so a mode cannot look better by dropping hard points:
+``median_epe`` (px), ``within_1px`` (share with error < 1 px), ``within_3px``, ``tracked`` (share with
+status True) and ``median_epe_tracked`` (median over tracked points only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nsflow_ros.core.encoder import Encoder, IntensityEncoder
+from nsflow_ros.core.solver import LMConfig, track
+from nsflow_ros.train.data import HELDOUT_IMAGES, Pair, PairConfig, load_image, make_pair
+
+__all__ = ["Comparison", "ModeMetrics", "compare", "format_table", "heldout_pairs", "mode_metrics"]
+
+
+@dataclass(frozen=True)
+class ModeMetrics:
+    """Accuracy of one mode on a pair set (see the module docstring)."""
+
+    median_epe: float
+    within_1px: float
+    within_3px: float
+    tracked: float
+    median_epe_tracked: float
+    points: int
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """NSFlow and classical metrics on one pair set."""
+
+    label: str
+    nsflow: ModeMetrics
+    classical: ModeMetrics
+    config: LMConfig
+
+
+def heldout_pairs(
+    per_image: int = 20, strength: float = 1.0, init_error: float = 5.0, seed: int = 20240601
+) -> list[Pair]:
+    """The fixed held-out evaluation pairs (same geometry for every strength; only lighting differs).
+
+    Args:
+        per_image: pairs per held-out photo.
+        strength: illumination perturbation strength (0 = none).
+        init_error: initial flow error in pixels.
+        seed: base seed.
+
+    Returns:
+        ``per_image * len(HELDOUT_IMAGES)`` pairs.
+    """
+    pairs = []
+    for k, name in enumerate(HELDOUT_IMAGES):
+        src = load_image(name)
+        for i in range(per_image):
+            rng = np.random.default_rng([seed, k, i])
+            pairs.append(make_pair(src, rng, PairConfig(), strength=strength, init_error=init_error))
+    return pairs
+
+
+def mode_metrics(errors: np.ndarray, status: np.ndarray) -> ModeMetrics:
+    """Summarise endpoint errors (inf for lost points) and statuses of all points."""
+    e = np.where(status & np.isfinite(errors), errors, np.inf)
+    if e.size == 0:
+        return ModeMetrics(float("nan"), 0.0, 0.0, 0.0, float("nan"), 0)
+    tracked = e[np.isfinite(e)]
+    return ModeMetrics(
+        median_epe=float(np.median(e)),
+        within_1px=float(np.mean(e < 1.0)),
+        within_3px=float(np.mean(e < 3.0)),
+        tracked=float(np.mean(np.isfinite(e))),
+        median_epe_tracked=float(np.median(tracked)) if tracked.size else float("nan"),
+        points=int(e.size),
+    )
+
+
+def _run_mode(encoder: Encoder, pairs: list[Pair], config: LMConfig) -> ModeMetrics:
+    errs, stats = [], []
+    for p in pairs:
+        if len(p.points) == 0:
+            continue
+        res = track(encoder(p.image1), encoder(p.image2), p.points, p.flow0, config)
+        errs.append(np.linalg.norm(res.flow - p.flow_gt, axis=1))
+        stats.append(res.status)
+    if not errs:
+        return mode_metrics(np.zeros(0), np.zeros(0, bool))
+    return mode_metrics(np.concatenate(errs), np.concatenate(stats))
+
+
+def compare(
+    encoder: Encoder, pairs: list[Pair], config: LMConfig | None = None, label: str = ""
+) -> Comparison:
+    """Run NSFlow (``encoder``) and the classical mode on the same pairs with the NumPy solver.
+
+    Args:
+        encoder: the learned encoder, e.g. ``nsflow_ros.load_encoder(path)``.
+        pairs: evaluation pairs, e.g. :func:`heldout_pairs`.
+        config: solver settings; ``LMConfig()`` (3 levels, as deployed) when None.
+        label: name of the pair set for tables.
+
+    Returns:
+        the :class:`Comparison`.
+    """
+    cfg = config or LMConfig()
+    return Comparison(label, _run_mode(encoder, pairs, cfg), _run_mode(IntensityEncoder(), pairs, cfg), cfg)
+
+
+def format_table(comparisons: list[Comparison]) -> str:
+    """A Markdown table of comparisons."""
+    lines = [
+        "| pairs | solver | mode | median EPE (px) | < 1 px | < 3 px | tracked "
+        "| median EPE tracked (px) | points |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in comparisons:
+        solver = f"levels={c.config.levels}"
+        for name, m in (("NSFlow", c.nsflow), ("classical", c.classical)):
+            lines.append(
+                f"| {c.label} | {solver} | {name} | {m.median_epe:.3f} | {m.within_1px:.1%} "
+                f"| {m.within_3px:.1%} | {m.tracked:.1%} | {m.median_epe_tracked:.3f} | {m.points} |"
+            )
+    return "\n".join(lines)

@@ -1,0 +1,66 @@
+"""ONNX export of the encoder, in the contract ``nsflow_ros.load_encoder`` checks.
+
+Input "image" (1, c_in, H, W) float32 in [0, 1]; output "descriptors" (1, d, H, W) float32; H and W
+dynamic; opset 17; metadata_props name="nsflow-d{d}" plus the encoder spec. The encoder has no
+BatchNorm, so there is nothing to fold.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+
+import torch
+
+from nsflow_ros.train.errors import TrainError
+from nsflow_ros.train.model import Encoder
+
+__all__ = ["OPSET", "export_onnx"]
+
+OPSET = 17
+
+
+def export_onnx(model: Encoder, path: str | os.PathLike[str], metadata: dict[str, str] | None = None) -> Path:
+    """Export an encoder to ONNX.
+
+    Args:
+        model: the encoder (its spec gives c_in, d and the name).
+        path: the .onnx file to write (parent folders are created).
+        metadata: extra metadata_props (string values), e.g. the training command.
+
+    Returns:
+        the path written.
+    """
+    import onnx
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    spec = model.spec
+    was_training = model.training
+    model = model.eval()
+    dummy = torch.rand(1, spec.in_channels, 48, 64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            model,
+            (dummy,),
+            str(out),
+            input_names=["image"],
+            output_names=["descriptors"],
+            dynamic_axes={"image": {2: "height", 3: "width"}, "descriptors": {2: "height", 3: "width"}},
+            opset_version=OPSET,
+            dynamo=False,
+        )
+    model.train(was_training)
+    proto = onnx.load(str(out))
+    props = {"name": f"nsflow-d{spec.d}", "spec": json.dumps(spec.as_dict()), **(metadata or {})}
+    for key, value in props.items():
+        if not isinstance(value, str):
+            raise TrainError(f"metadata value for {key!r} must be a string, got {type(value).__name__}")
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(out))
+    return out

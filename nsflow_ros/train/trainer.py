@@ -1,0 +1,231 @@
+"""The training loop (paper, Algorithm 2): pair -> encoder -> LK layer -> robust EPE loss -> Adam."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nsflow_ros.core.solver import LMConfig
+from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, load_image, make_pair
+from nsflow_ros.train.errors import TrainError
+from nsflow_ros.train.evaluate import heldout_pairs
+from nsflow_ros.train.figures import plot_loss, plot_validation
+from nsflow_ros.train.lk_layer import BackwardMode, lk_track
+from nsflow_ros.train.loss import flow_loss
+from nsflow_ros.train.model import Encoder, EncoderSpec
+
+__all__ = ["TrainConfig", "TrainResult", "encode_pair", "train", "train_step", "validate"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Settings of a training run.
+
+    Attributes:
+        spec: encoder shape.
+        out: run folder (checkpoint, figures, log).
+        minutes: wall-clock budget (training stops after it; validation and export come after).
+        steps: step limit (None = only the time limit).
+        seed: seeds torch and the pair generator.
+        lr: Adam learning rate.
+        mode: LK layer backward.
+        lm: solver settings in the training forward (single level). ``min_eigen=0``: the loss masks only
+            lost points (outside the image, non-finite), not flat windows - a fresh encoder's descriptors
+            are nearly flat everywhere and would otherwise mask every point and stall training.
+        pair: pair settings.
+        huber_delta: scale of the robust loss in pixels.
+        rho: the robust loss (see :func:`~nsflow_ros.train.loss.flow_loss`).
+        val_every: steps between validations (one "epoch").
+        val_per_image: validation pairs per held-out photo and condition.
+        threads: torch intra-op threads.
+        images: training photos.
+    """
+
+    spec: EncoderSpec = field(default_factory=EncoderSpec)
+    out: Path = Path("out/train")
+    minutes: float = 40.0
+    steps: int | None = None
+    seed: int = 0
+    lr: float = 1e-3
+    mode: BackwardMode = BackwardMode.IMPLICIT
+    lm: LMConfig = field(
+        default_factory=lambda: LMConfig(levels=1, max_iterations=30, eps=1e-3, min_eigen=0.0)
+    )
+    pair: PairConfig = field(default_factory=PairConfig)
+    huber_delta: float = 1.0
+    rho: str = "huber"
+    val_every: int = 500
+    val_per_image: int = 3
+    threads: int = 2
+    images: tuple[str, ...] = TRAIN_IMAGES
+
+
+@dataclass
+class TrainResult:
+    """What a run produced."""
+
+    model: Encoder
+    losses: list[float]
+    val_steps: list[int]
+    val_within: list[float]
+    steps: int
+    seconds: float
+    files: dict[str, Path]
+
+
+def _to_tensor(image: np.ndarray, in_channels: int) -> torch.Tensor:
+    x = torch.from_numpy(image.astype(np.float32) / 255.0)[None, None]
+    return x.expand(1, in_channels, *image.shape).contiguous() if in_channels == 3 else x
+
+
+def encode_pair(model: Encoder, pair: Pair) -> tuple[torch.Tensor, torch.Tensor]:
+    """Encoder outputs (d, H, W) of both frames of a pair (one batched forward)."""
+    x = torch.cat(
+        [_to_tensor(pair.image1, model.spec.in_channels), _to_tensor(pair.image2, model.spec.in_channels)]
+    )
+    d = model(x)
+    return d[0], d[1]
+
+
+def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: TrainConfig) -> float | None:
+    """One optimisation step on one pair; returns the loss, or None when no point was usable."""
+    d1, d2 = encode_pair(model, pair)
+    res = lk_track(d1, d2, torch.from_numpy(pair.points), torch.from_numpy(pair.flow0), cfg.lm, mode=cfg.mode)
+    loss, used = flow_loss(res.flow, torch.from_numpy(pair.flow_gt), res.status, cfg.huber_delta, cfg.rho)
+    if used == 0:
+        return None
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return float(loss.detach())
+
+
+def _pair_errors(model: Encoder | None, pair: Pair, lm: LMConfig) -> tuple[np.ndarray, np.ndarray]:
+    with torch.no_grad():
+        if model is None:
+            d1 = torch.from_numpy(pair.image1.astype(np.float32) / 255.0)[None]
+            d2 = torch.from_numpy(pair.image2.astype(np.float32) / 255.0)[None]
+        else:
+            d1, d2 = encode_pair(model, pair)
+        out = lk_track(d1, d2, torch.from_numpy(pair.points), torch.from_numpy(pair.flow0), lm)
+    err = np.linalg.norm(out.flow.numpy() - pair.flow_gt, axis=1)
+    return np.where(out.status.numpy(), err, np.inf), out.status.numpy()
+
+
+def validate(model: Encoder | None, pairs: list[Pair], lm: LMConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Endpoint errors (inf where lost) and statuses of all points; ``model=None`` is the classical mode."""
+    errs, stats = zip(*(_pair_errors(model, p, lm) for p in pairs if len(p.points)), strict=True)
+    return np.concatenate(errs), np.concatenate(stats)
+
+
+def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
+    """Train an encoder from scratch.
+
+    Args:
+        cfg: run settings.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        the trained model (final weights, no selection on validation data) and the run's records.
+    """
+    if cfg.lm.levels != 1:
+        raise TrainError(f"training runs the single-level solver: lm.levels must be 1, got {cfg.lm.levels}")
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(cfg.threads)
+    rng = np.random.default_rng(cfg.seed)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sources = [load_image(n) for n in cfg.images]
+    model = Encoder(cfg.spec)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    val_lm = LMConfig(levels=1)
+    val_sets = {
+        "perturbed": heldout_pairs(cfg.val_per_image, strength=1.0, seed=7),
+        "clean": heldout_pairs(cfg.val_per_image, strength=0.0, seed=7),
+    }
+    baseline = {k: validate(None, v, val_lm) for k, v in val_sets.items()}
+    losses: list[float] = []
+    val_steps: list[int] = []
+    val_within: list[float] = []
+    log = (out / "log.jsonl").open("w")
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.steps, unit="step", dynamic_ncols=True)
+    start = time.monotonic()
+    deadline = start + 60.0 * cfg.minutes
+    step = 0
+
+    def run_validation() -> None:
+        model.eval()
+        results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        record: dict[str, float | int] = {"step": step, "seconds": round(time.monotonic() - start, 1)}
+        for name, pairs in val_sets.items():
+            err, st = validate(model, pairs, val_lm)
+            results[f"NSFlow {name}"] = (err, st)
+            results[f"classical {name}"] = baseline[name]
+            record[f"{name}_within1"] = float((err < 1).mean())
+            record[f"{name}_median"] = float(np.median(err))
+            record[f"{name}_classical_within1"] = float((baseline[name][0] < 1).mean())
+        model.train()
+        val_steps.append(step)
+        val_within.append(float(record["perturbed_within1"]))
+        epoch = len(val_steps) - 1
+        plot_validation(
+            results,
+            f"held-out validation, step {step} (levels=1, 5 px start)",
+            out / f"val_epoch{epoch:02d}.png",
+        )
+        log.write(json.dumps(record) + "\n")
+        log.flush()
+        if bar is not None:
+            bar.set_postfix(
+                val1px=f"{record['perturbed_within1']:.3f}",
+                cls=f"{record['perturbed_classical_within1']:.3f}",
+            )
+
+    run_validation()
+    model.train()
+    while (cfg.steps is None or step < cfg.steps) and time.monotonic() < deadline:
+        src = sources[int(rng.integers(len(sources)))]
+        pair = make_pair(src, rng, cfg.pair, strength=float(rng.uniform(0.0, 1.0)))
+        if len(pair.points) < 4:
+            continue
+        value = train_step(model, opt, pair, cfg)
+        if value is None:
+            continue
+        step += 1
+        losses.append(value)
+        if bar is not None:
+            bar.update(1)
+            if step % 20 == 0:
+                bar.set_description(f"loss {np.mean(losses[-100:]):.4f}")
+        if step % cfg.val_every == 0:
+            run_validation()
+            torch.save(
+                {"spec": cfg.spec.as_dict(), "state": model.state_dict(), "step": step}, out / "encoder.pt"
+            )
+    if not val_steps or val_steps[-1] != step:
+        run_validation()
+    seconds = time.monotonic() - start
+    if bar is not None:
+        bar.close()
+    log.close()
+    torch.save({"spec": cfg.spec.as_dict(), "state": model.state_dict(), "step": step}, out / "encoder.pt")
+    np.save(out / "losses.npy", np.asarray(losses))
+    loss_png = plot_loss(losses, val_steps, val_within, out / "loss.png")
+    files = {
+        "checkpoint": out / "encoder.pt",
+        "loss_png": loss_png,
+        "val_png": out / f"val_epoch{len(val_steps) - 1:02d}.png",
+        "log": out / "log.jsonl",
+    }
+    meta = {"config": {k: str(v) for k, v in asdict(cfg).items()}, "steps": step, "seconds": seconds}
+    (out / "run.json").write_text(json.dumps(meta, indent=1))
+    return TrainResult(model.eval(), losses, val_steps, val_within, step, seconds, files)

@@ -1,0 +1,95 @@
+"""CI smoke test of training: a few steps lower the loss; the ONNX export loads and matches torch."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nsflow_ros import load_encoder  # noqa: E402
+from nsflow_ros.train.cli import main  # noqa: E402
+from nsflow_ros.train.data import PairConfig, load_image, make_pair  # noqa: E402
+from nsflow_ros.train.export import export_onnx  # noqa: E402
+from nsflow_ros.train.model import Encoder, EncoderSpec, count_parameters  # noqa: E402
+from nsflow_ros.train.trainer import TrainConfig, train_step  # noqa: E402
+
+
+def test_import_nsflow_ros_does_not_import_torch():
+    code = "import sys, nsflow_ros; sys.exit(1 if 'torch' in sys.modules else 0)"
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
+
+
+def test_loss_decreases_on_a_repeated_pair():
+    torch.manual_seed(0)
+    torch.set_num_threads(2)
+    pair_cfg = PairConfig(width=128, height=96, max_points=60, init_sigma=1.5)
+    pair = make_pair(load_image("astronaut"), np.random.default_rng(1), pair_cfg, strength=0.5)
+    assert len(pair.points) > 20
+    cfg = TrainConfig(spec=EncoderSpec(d=2), pair=pair_cfg, rho="cauchy")
+    model = Encoder(cfg.spec)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    losses = [train_step(model, opt, pair, cfg) for _ in range(60)]
+    assert all(v is not None for v in losses)
+    first, last = np.mean(losses[:5]), np.mean(losses[-10:])
+    assert last < 0.9 * first, f"loss did not decrease: first {first:.4f}, last {last:.4f}"
+
+
+@pytest.mark.parametrize("spec", [EncoderSpec(d=4), EncoderSpec(d=3, in_channels=3, head="relu")])
+def test_export_loads_and_matches_torch(tmp_path, spec):
+    torch.manual_seed(0)
+    model = Encoder(spec).eval()
+    path = export_onnx(model, tmp_path / "enc.onnx")
+    enc = load_encoder(path)
+    assert enc.channels == spec.d and enc.input_channels == spec.in_channels
+    assert enc.name == f"nsflow-d{spec.d}"
+    img = np.random.default_rng(0).integers(0, 256, (37, 53, 3), dtype=np.uint8)  # BGR, odd size
+    got = enc(img)
+    if spec.in_channels == 1:
+        import cv2
+
+        x = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)[None, None]
+    else:
+        x = img[..., ::-1].transpose(2, 0, 1)[None]
+    with torch.no_grad():
+        ref = model(torch.from_numpy(x.astype(np.float32) / 255.0))[0].permute(1, 2, 0).numpy()
+    assert got.shape == (37, 53, spec.d)
+    assert np.abs(got - ref).max() < 1e-5
+
+
+def test_parameter_count_matches_the_paper():
+    # The paper's 1.01e-3 M parameters: RGB input, d = 3, with biases.
+    assert count_parameters(Encoder(EncoderSpec(d=3, in_channels=3, head="relu"))) == 1003
+
+
+def test_cli_runs_end_to_end(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(
+        [
+            "--steps",
+            "3",
+            "--out",
+            str(out),
+            "--d",
+            "2",
+            "--val-every",
+            "3",
+            "--eval-per-image",
+            "1",
+            "--no-progress",
+            "--val-per-image",
+            "1",
+        ]
+    )
+    assert code == 0
+    for name in ("nsflow_encoder.onnx", "loss.png", "val_epoch00.png", "eval.md", "encoder.pt"):
+        assert (out / name).is_file(), name
+    assert "ONNX vs torch" in capsys.readouterr().out
+
+
+def test_cli_reports_known_errors(tmp_path, capsys):
+    assert main(["--steps", "1", "--d", "0", "--out", str(tmp_path / "x")]) == 1
+    assert "EncoderSpec.d" in capsys.readouterr().err
