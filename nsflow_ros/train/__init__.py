@@ -9,7 +9,10 @@ and the ROS nodes never do. Modules, one concept each:
 * :mod:`~nsflow_ros.train.data` - homography pairs of real photos with exact flow and illumination changes;
 * :mod:`~nsflow_ros.train.loss` - the robust endpoint-error loss;
 * :mod:`~nsflow_ros.train.trainer` - the training loop; :mod:`~nsflow_ros.train.cli` - ``nsflow-train``;
-* :mod:`~nsflow_ros.train.export` - ONNX export; :mod:`~nsflow_ros.train.evaluate` - NSFlow vs classical.
+* :mod:`~nsflow_ros.train.export` - ONNX export; :mod:`~nsflow_ros.train.evaluate` - NSFlow vs classical;
+* :mod:`~nsflow_ros.train.figures` - loss / validation PNGs; :mod:`~nsflow_ros.train.card` - the model card.
+
+Without torch, importing this package raises :class:`TrainError` naming the install command.
 """
 
 from __future__ import annotations
@@ -24,7 +27,22 @@ except ImportError as err:  # pragma: no cover - depends on the environment
         "(or pip install torch)"
     ) from err
 
+from nsflow_ros.train.evaluate import compare, heldout_pairs
+from nsflow_ros.train.export import export_onnx
 from nsflow_ros.train.lk_layer import BackwardMode, LKOutput, lk_track
 from nsflow_ros.train.model import Encoder, EncoderSpec
+from nsflow_ros.train.trainer import TrainConfig, train
 
-__all__ = ["BackwardMode", "Encoder", "EncoderSpec", "LKOutput", "TrainError", "lk_track"]
+__all__ = [
+    "BackwardMode",
+    "Encoder",
+    "EncoderSpec",
+    "LKOutput",
+    "TrainConfig",
+    "TrainError",
+    "compare",
+    "export_onnx",
+    "heldout_pairs",
+    "lk_track",
+    "train",
+]

@@ -23,6 +23,16 @@ def test_import_nsflow_ros_does_not_import_torch():
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 
 
+def test_missing_torch_gives_a_clear_error():
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "try:\n    import nsflow_ros.train\n"
+        "except Exception as err:\n    print(type(err).__name__, err)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False).stdout
+    assert out.startswith("TrainError") and "pip install 'nsflow_ros[train]'" in out
+
+
 def test_loss_decreases_on_a_repeated_pair():
     torch.manual_seed(0)
     torch.set_num_threads(2)
