@@ -22,6 +22,7 @@ def write_model_card(
     tables: str,
     figures: dict[str, str],
     notes: str = "",
+    loss: str = "cauchy",
 ) -> Path:
     """Write the Markdown model card.
 
@@ -36,6 +37,7 @@ def write_model_card(
         tables: the held-out comparison, Markdown.
         figures: caption -> PNG path relative to the card.
         notes: extra Markdown (design measurements, caveats).
+        loss: the robust loss used (``--rho``).
     """
     head = {"sigmoid": "sigmoid (descriptors in (0, 1))", "relu": "ReLU", "none": "none (linear)"}[spec.head]
     c_in = "gray (1 channel)" if spec.in_channels == 1 else "RGB (3 channels)"
@@ -69,8 +71,8 @@ the tracker runs its descriptors through the same NumPy LM solver as the classic
   initial flow = ground truth + N(0, 2.5^2) px. Held out (never trained on): coffee, chelsea,
   grace_hopper. See `nsflow_ros/train/data.py`.
 * Layer: single-level LM (window 11, up to 30 iterations, eps 1e-3), implicit backward.
-* Loss: robust rho of the endpoint error over points that stay in the image; Adam, lr 1e-3, one pair
-  per step.
+* Loss: mean {loss} penalty of the endpoint error (scale 1 px) over points that stay in the image;
+  Adam, lr 1e-3, one pair per step.
 * Command: `{command}`
 * Run: {steps:,} steps in {seconds / 60:.1f} min wall time on a 2-core CPU (shared with other jobs).
 

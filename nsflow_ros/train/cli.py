@@ -69,6 +69,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     from nsflow_ros.train.card import write_model_card
     from nsflow_ros.train.evaluate import compare, format_table, heldout_pairs
     from nsflow_ros.train.export import export_onnx
+    from nsflow_ros.train.figures import plot_validation
     from nsflow_ros.train.lk_layer import BackwardMode
     from nsflow_ros.train.model import EncoderSpec, count_flops, count_parameters
     from nsflow_ros.train.trainer import TrainConfig, train
@@ -109,13 +110,23 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     table = format_table(comparisons)
     (out / "eval.md").write_text(table + "\n")
     print(table)
-    files = {"loss": result.files["loss_png"], "val": result.files["val_png"]}
+    curves = {
+        f"{mode} {c.label}": (err, None)
+        for c in comparisons
+        if c.config.levels == 3
+        for mode, err in (("NSFlow", c.nsflow_errors), ("classical", c.classical_errors))
+    }
+    eval_png = plot_validation(
+        curves, "held-out pairs, NumPy solver (3 levels), 5 px start", out / "eval_heldout.png"
+    )
+    files = {"loss": result.files["loss_png"], "val": result.files["val_png"], "eval": eval_png}
     if opts.install:
         models = Path(opts.models_dir)
         models.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(onnx_path, models / "nsflow_encoder.onnx")
         shutil.copyfile(files["loss"], models / "train_loss.png")
         shutil.copyfile(files["val"], models / "train_validation.png")
+        shutil.copyfile(files["eval"], models / "eval_heldout.png")
         notes = opts.card_notes.read_text() if opts.card_notes else ""
         write_model_card(
             models / "README.md",
@@ -127,10 +138,12 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             seconds=result.seconds,
             tables=table,
             figures={
+                "Held-out comparison, NumPy solver as deployed (3 levels), 5 px start": "eval_heldout.png",
                 "Training loss and held-out validation share < 1 px per epoch": "train_loss.png",
                 "Held-out validation, last epoch (torch layer, levels=1, 5 px start)": "train_validation.png",
             },
             notes=notes,
+            loss=opts.rho,
         )
         print(f"installed {models / 'nsflow_encoder.onnx'} and {models / 'README.md'}")
     return 0

@@ -13,7 +13,7 @@ status True) and ``median_epe_tracked`` (median over tracked points only).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,12 +38,14 @@ class ModeMetrics:
 
 @dataclass(frozen=True)
 class Comparison:
-    """NSFlow and classical metrics on one pair set."""
+    """NSFlow and classical metrics on one pair set, with every point's error (inf where lost)."""
 
     label: str
     nsflow: ModeMetrics
     classical: ModeMetrics
     config: LMConfig
+    nsflow_errors: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    classical_errors: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
 
 def heldout_pairs(
@@ -85,7 +87,7 @@ def mode_metrics(errors: np.ndarray, status: np.ndarray) -> ModeMetrics:
     )
 
 
-def _run_mode(encoder: Encoder, pairs: list[Pair], config: LMConfig) -> ModeMetrics:
+def _run_mode(encoder: Encoder, pairs: list[Pair], config: LMConfig) -> tuple[ModeMetrics, np.ndarray]:
     errs, stats = [], []
     for p in pairs:
         if len(p.points) == 0:
@@ -94,8 +96,9 @@ def _run_mode(encoder: Encoder, pairs: list[Pair], config: LMConfig) -> ModeMetr
         errs.append(np.linalg.norm(res.flow - p.flow_gt, axis=1))
         stats.append(res.status)
     if not errs:
-        return mode_metrics(np.zeros(0), np.zeros(0, bool))
-    return mode_metrics(np.concatenate(errs), np.concatenate(stats))
+        return mode_metrics(np.zeros(0), np.zeros(0, bool)), np.zeros(0)
+    e, s = np.concatenate(errs), np.concatenate(stats)
+    return mode_metrics(e, s), np.where(s & np.isfinite(e), e, np.inf)
 
 
 def compare(
@@ -113,7 +116,9 @@ def compare(
         the :class:`Comparison`.
     """
     cfg = config or LMConfig()
-    return Comparison(label, _run_mode(encoder, pairs, cfg), _run_mode(IntensityEncoder(), pairs, cfg), cfg)
+    learned, learned_err = _run_mode(encoder, pairs, cfg)
+    classical, classical_err = _run_mode(IntensityEncoder(), pairs, cfg)
+    return Comparison(label, learned, classical, cfg, learned_err, classical_err)
 
 
 def format_table(comparisons: list[Comparison]) -> str:

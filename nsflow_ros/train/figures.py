@@ -48,12 +48,13 @@ def plot_loss(
 
 
 def plot_validation(
-    results: dict[str, tuple[np.ndarray, np.ndarray]], title: str, path: str | os.PathLike[str]
+    results: dict[str, tuple[np.ndarray, np.ndarray | None]], title: str, path: str | os.PathLike[str]
 ) -> Path:
     """Cumulative share of points within an error, per mode and pair set.
 
     Args:
-        results: label -> (errors (inf for lost points), unused) arrays.
+        results: label -> (errors with inf for lost points, statuses or None); labels containing
+            "NSFlow" are drawn solid, others dashed, in pairs of colours.
         title: figure title.
         path: PNG to write.
     """

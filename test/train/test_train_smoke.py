@@ -76,28 +76,26 @@ def test_parameter_count_matches_the_paper():
 
 
 def test_cli_runs_end_to_end(tmp_path, capsys):
-    out = tmp_path / "run"
-    code = main(
-        [
-            "--steps",
-            "3",
-            "--out",
-            str(out),
-            "--d",
-            "2",
-            "--val-every",
-            "3",
-            "--eval-per-image",
-            "1",
-            "--no-progress",
-            "--val-per-image",
-            "1",
-        ]
-    )
+    out, models = tmp_path / "run", tmp_path / "models"
+    args = "--steps 3 --d 2 --val-every 3 --eval-per-image 1 --val-per-image 1 --no-progress --install"
+    code = main([*args.split(), "--out", str(out), "--models-dir", str(models)])
     assert code == 0
-    for name in ("nsflow_encoder.onnx", "loss.png", "val_epoch00.png", "eval.md", "encoder.pt"):
+    for name in (
+        "nsflow_encoder.onnx",
+        "loss.png",
+        "val_epoch00.png",
+        "eval.md",
+        "encoder.pt",
+        "eval_heldout.png",
+    ):
         assert (out / name).is_file(), name
     assert "ONNX vs torch" in capsys.readouterr().out
+    card = (models / "README.md").read_text()
+    assert "| perturbed | levels=3 | NSFlow |" in card and "| clean | levels=1 | classical |" in card
+    assert "--steps 3" in card
+    assert load_encoder(models / "nsflow_encoder.onnx").channels == 2
+    for png in ("train_loss.png", "train_validation.png", "eval_heldout.png"):
+        assert (models / png).stat().st_size < 200_000
 
 
 def test_cli_reports_known_errors(tmp_path, capsys):
