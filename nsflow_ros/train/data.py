@@ -7,7 +7,9 @@ full-resolution photo. A frame-1 point x moves to P(x), so the ground-truth flow
 
 Illumination perturbation (the paper's absolute and relative intensity changes driven by random
 variables, plus local shading, gamma and sensor noise) is applied to each frame independently, so the
-brightness-constancy assumption of classical LK is broken between the two frames.
+brightness-constancy assumption of classical LK is broken between the two frames. The project's shared
+``nsflow_ros.data.perturb.perturb_pair`` is used when it is importable (the shipped model was trained
+and evaluated with it); :func:`perturb_illumination` here is the stand-alone equivalent.
 
 Source images are split once and for all: :data:`TRAIN_IMAGES` for training, :data:`HELDOUT_IMAGES`
 (coffee, chelsea, grace_hopper: scenes that appear in no training image) for validation and for the
@@ -204,8 +206,13 @@ def perturb_illumination(image: np.ndarray, rng: np.random.Generator, strength: 
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
-def _perturb_pair(img1: np.ndarray, img2: np.ndarray, rng: np.random.Generator, strength: float):
-    try:  # the project's shared perturbation, when another module provides it
+def _perturb_pair(
+    img1: np.ndarray, img2: np.ndarray, rng: np.random.Generator, strength: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Perturb both frames independently: ``nsflow_ros.data.perturb.perturb_pair`` when present (the
+    project's shared training perturbation), else :func:`perturb_illumination`."""
+    strength = float(np.clip(strength, 0.0, 1.0))
+    try:
         from nsflow_ros.data.perturb import perturb_pair  # type: ignore[import-not-found]
     except ImportError:
         return perturb_illumination(img1, rng, strength), perturb_illumination(img2, rng, strength)
