@@ -16,7 +16,14 @@ Backward modes (:class:`BackwardMode`):
   the sampled J and f with u), obtained with autograd on one re-evaluation of F at u*, one block row at a
   time. Each block is inverted in closed form and the gradient reaches D1 and D2 as one
   vector-Jacobian product through F: grad_D = -(dF/dD)^T (dF/du)^-T grad_u. The forward keeps no graph,
-  so memory does not grow with the number of iterations.
+  so memory does not grow with the number of iterations. Points whose block is not positive definite
+  (not at a local minimum) get no gradient (``min_curvature``); training diverged without this test.
+
+  Caveat, measured: LM does not always end exactly at F = 0. Its step uses the Scharr J, its accept test
+  the bilinear cost S, and the Scharr J is not the exact derivative of S; near F = 0 the step can fail
+  to lower S, LM rejects until the step test stops it, and the output then sits ~1e-5..1e-3 away from
+  F = 0. Where LM does reach F = 0 the implicit gradient matches finite differences of the whole solver
+  to ~5e-9 (test/train/test_lk_layer.py); at stalled points it is the gradient of the nearby fixed point.
 * ``UNROLL`` - the same iterations recorded by autograd (accept/reject and stopping act as hard masks),
   the way Theseus' unrolled mode and the authors' LET-NET2 training differentiate. For comparison.
 """
