@@ -32,7 +32,7 @@ def plot_loss(
         smooth = np.convolve(losses, np.ones(k) / k, mode="valid")
         ax.plot(steps[k - 1 :], smooth, color="C0", lw=1.5, label=f"loss ({k}-step mean)")
     ax.set_xlabel("step")
-    ax.set_ylabel("Huber(EPE)")
+    ax.set_ylabel("robust loss rho(EPE)")
     ax.set_yscale("log")
     if val_steps:
         ax2 = ax.twinx()
