@@ -83,7 +83,7 @@ def test_loss_masks_invalid_and_non_finite_points():
 
 def test_encoder_shapes_and_guards():
     model = Encoder(EncoderSpec(d=4))
-    out = model(torch.rand(1, 1, 30, 41))
+    out = model(torch.rand(1, 1, 30, 41)).detach()
     assert out.shape == (1, 4, 30, 41) and float(out.min()) > 0 and float(out.max()) < 1
     with pytest.raises(TrainError, match=r"expects \(B, 1, H, W\) input, got \(1, 3, 30, 41\)"):
         model(torch.rand(1, 3, 30, 41))
