@@ -64,20 +64,9 @@ class _Collector:
 def _stats(frames: dict[int, dict[int, np.ndarray]], seq: Any) -> dict[str, Any]:
     from nsflow_ros.offline import TrackStats
 
-    stats = TrackStats()
-    index = {int(s): i for i, s in enumerate(seq.stamps_ns)}
-    prev: tuple[int, dict[int, np.ndarray]] | None = None
+    stats = TrackStats(seq)
     for stamp in sorted(frames):
-        cur = frames[stamp]
-        k = index.get(stamp)
-        carried = [i for i in cur if prev is not None and i in prev[1]]
-        stats.add(np.array(list(cur), np.int64), len(carried))
-        if prev is not None and carried and k is not None:
-            p0 = np.array([prev[1][i] for i in carried])
-            gt, vis = seq.flow(prev[0], k, p0)
-            obs = np.array([cur[i] for i in carried])
-            stats.errors.extend(np.linalg.norm(obs - (p0 + gt), axis=1)[vis].tolist())
-        prev = (k, cur) if k is not None else None
+        stats.add_frame(stamp, frames[stamp])
     return stats.figures()
 
 

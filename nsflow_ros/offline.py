@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,28 +38,52 @@ CSV_HEADER = "stamp_ns,camera_id,feature_id,u,v,x,y,velocity_x,velocity_y,track_
 
 @dataclass
 class TrackStats:
-    """Front-end figures accumulated over frames (camera 0).
+    """Front-end figures accumulated frame by frame (camera 0).
+
+    Args:
+        sample: the sample sequence the frames come from, for errors against ground-truth flow (None:
+            no errors are measured).
 
     Attributes:
         frames: frames processed.
         features: features published, summed over frames.
         tracked: features carried over from the previous frame, summed.
+        followers: features of all frames but the first (the ones that could have been carried over).
         lengths: final length (frames) of every track.
         errors: tracking error (px) of each carried-over feature against ground-truth flow, when known.
     """
 
+    sample: Any = None
     frames: int = 0
     features: int = 0
     tracked: int = 0
+    followers: int = 0
     lengths: dict[int, int] = field(default_factory=dict)
     errors: list[float] = field(default_factory=list)
+    _index: dict[int, int] = field(default_factory=dict, repr=False)
+    _prev: tuple[int | None, dict[int, np.ndarray]] | None = field(default=None, repr=False)
 
-    def add(self, ids: np.ndarray, n_tracked: int) -> None:
+    def __post_init__(self) -> None:
+        if self.sample is not None:
+            self._index = {int(s): i for i, s in enumerate(self.sample.stamps_ns)}
+
+    def add_frame(self, stamp_ns: int, features: dict[int, np.ndarray]) -> None:
+        """Add one frame's camera-0 features (id -> distorted pixel), in time order."""
+        k = self._index.get(int(stamp_ns))
+        carried = [] if self._prev is None else [i for i in features if i in self._prev[1]]
         self.frames += 1
-        self.features += len(ids)
-        self.tracked += n_tracked
-        for i in ids.tolist():
+        self.features += len(features)
+        if self._prev is not None:
+            self.followers += len(features)
+        self.tracked += len(carried)
+        for i in features:
             self.lengths[i] = self.lengths.get(i, 0) + 1
+        if carried and k is not None and self._prev is not None and self._prev[0] is not None:
+            p0 = np.array([self._prev[1][i] for i in carried])
+            gt, visible = self.sample.flow(self._prev[0], k, p0)
+            obs = np.array([features[i] for i in carried])
+            self.errors.extend(np.linalg.norm(obs - (p0 + gt), axis=1)[visible].tolist())
+        self._prev = (k, features)
 
     def figures(self) -> dict[str, Any]:
         """Summary numbers: features per frame, mean track length, error median / share within 1 px."""
@@ -68,7 +92,7 @@ class TrackStats:
         return {
             "frames": self.frames,
             "features_per_frame": self.features / max(self.frames, 1),
-            "tracked_share": self.tracked / max(self.features - self.features / max(self.frames, 1), 1),
+            "tracked_share": self.tracked / max(self.followers, 1),
             "mean_track_length": float(lengths.mean()),
             "tracks_10_frames": int((lengths >= 10).sum()),
             "error_median_px": float(np.median(err)) if err.size else None,
@@ -192,42 +216,19 @@ def run_offline(
     cfg = load_vins_config(config or share_file("config/euroc/euroc_mono_imu_config.yaml"))
     tracker = FeatureTracker.from_vins_config(cfg, {"method": method, "stereo": False, **(overrides or {})})
     topic0 = (opts.remap or {}).get(cfg.image0_topic, cfg.image0_topic)
-    sample = _sample_of(Path(opts.path))
-    index = {int(s): i for i, s in enumerate(sample.stamps_ns)} if sample is not None else {}
-    stats = TrackStats()
+    stats = TrackStats(_sample_of(Path(opts.path)))
     rows: list[str] = []
     sheet: list[tuple[int, np.ndarray]] = []
-    prev: tuple[int, dict[int, np.ndarray]] | None = None
     error: NSFlowError | None = None
     bar = tqdm(desc=f"offline {method}", unit="frame", disable=not progress)
     try:
-        for rec in replay_records(
-            ReplayOptions(
-                opts.path,
-                [cfg.image0_topic],
-                opts.start,
-                opts.duration,
-                opts.rate,
-                opts.perturb,
-                opts.seed,
-                opts.remap,
-            )
-        ):
+        for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
             if not isinstance(rec, ImageRecord) or rec.topic != topic0:
                 continue
-            feats = tracker.process(rec.stamp_ns * 1e-9, rec.gray())
+            gray = rec.gray()
+            feats = tracker.process(rec.stamp_ns * 1e-9, gray)
             cf = feats.cameras[0]
-            cur = {int(i): p for i, p in zip(cf.ids, cf.pixels, strict=True)}
-            carried = [i for i in cur if prev is not None and i in prev[1]]
-            stats.add(cf.ids, len(carried))
-            k = index.get(rec.stamp_ns)
-            if prev is not None and carried and k is not None and prev[0] is not None:
-                p0 = np.array([prev[1][i] for i in carried])
-                gt, visible = sample.flow(prev[0], k, p0)
-                obs = np.array([cur[i] for i in carried])
-                err = np.linalg.norm(obs - (p0 + gt), axis=1)[visible]
-                stats.errors.extend(err.tolist())
-            prev = (k, cur)
+            stats.add_frame(rec.stamp_ns, {int(i): p for i, p in zip(cf.ids, cf.pixels, strict=True)})
             for j in range(len(cf.ids)):
                 rows.append(
                     f"{rec.stamp_ns},0,{cf.ids[j]},{cf.pixels[j, 0]:.4f},{cf.pixels[j, 1]:.4f},"
@@ -235,7 +236,7 @@ def run_offline(
                     f"{cf.velocities[j, 1]:.6f},{cf.track_counts[j]}"
                 )
             if stats.frames % 10 == 5 and len(sheet) < 4 * sheet_frames:
-                sheet.append((stats.frames, draw_tracks(feats, rec.gray())))
+                sheet.append((stats.frames, draw_tracks(feats, gray)))
             bar.update(1)
     except NSFlowError as err:
         error = err  # keep what was processed; report after writing
