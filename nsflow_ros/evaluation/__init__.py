@@ -1,0 +1,33 @@
+"""The evaluation suite: the paper's analyses for NSFlow beside the classical baselines.
+
+Only NumPy/OpenCV/onnxruntime (and matplotlib for figures, imported inside functions); no ROS, no torch.
+"""
+
+from __future__ import annotations
+
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.methods import (
+    CLASSICAL,
+    KLT,
+    NSFLOW,
+    KLTMethod,
+    LMMethod,
+    PairMethod,
+    PairResult,
+    default_methods,
+)
+from nsflow_ros.evaluation.section import HeadlineRow, Section
+
+__all__ = [
+    "CLASSICAL",
+    "KLT",
+    "NSFLOW",
+    "EvaluationError",
+    "HeadlineRow",
+    "KLTMethod",
+    "LMMethod",
+    "PairMethod",
+    "PairResult",
+    "Section",
+    "default_methods",
+]

@@ -1,0 +1,11 @@
+"""Errors of the evaluation suite."""
+
+from __future__ import annotations
+
+from nsflow_ros.errors import NSFlowError
+
+__all__ = ["EvaluationError"]
+
+
+class EvaluationError(NSFlowError):
+    """An evaluation cannot run: missing model or data, bad settings, an unwritable output folder."""
