@@ -1,0 +1,125 @@
+"""What every analysis of the evaluation suite receives: :class:`EvalContext`, plus small shared helpers.
+
+An analysis is a function ``run(ctx: EvalContext) -> Section``. It reads its settings from the context,
+writes its figures into ``ctx.out_dir`` (with :func:`atomic_write` / :func:`save_figure`) and returns
+the :class:`~nsflow_ros.evaluation.section.Section` that the report writer puts together.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.methods import PairMethod
+
+__all__ = ["EvalContext", "atomic_write", "new_figure", "save_figure"]
+
+T = TypeVar("T")
+
+
+@dataclass
+class EvalContext:
+    """Settings and shared objects of one evaluation run.
+
+    Attributes:
+        methods: the compared methods, NSFlow first, then ``LM (intensity)`` and ``OpenCV KLT``
+            (:func:`~nsflow_ros.evaluation.methods.default_methods`), all at the deployed 3 levels.
+        model: the ONNX encoder file NSFlow uses, or None for the shipped model (for sections that need
+            the file itself, e.g. parameter / FLOP counts).
+        quick: tiny sizes (tests, CI): the whole quick run must take well under a minute, so every
+            analysis shrinks its pairs / frames / grids drastically and says so in its text.
+        out_dir: the report folder (exists); figures go directly into it, named after the section key.
+        progress: show tqdm progress bars (use :meth:`bar`).
+        seed: base seed; analyses derive their generators from it (``np.random.default_rng([seed, k])``)
+            so a run is reproducible.
+        threads: onnxruntime / OpenCV threads the methods were built with (for timing sections).
+        extra: free-form settings for an analysis, keyed by the analysis key (unused by default).
+    """
+
+    methods: list[PairMethod]
+    model: Path | None = None
+    quick: bool = False
+    out_dir: Path = Path("out/evaluation")
+    progress: bool = True
+    seed: int = 0
+    threads: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def method(self, name: str) -> PairMethod:
+        """The method called ``name`` (see :data:`~nsflow_ros.evaluation.methods.NSFLOW` etc.).
+
+        Raises:
+            EvaluationError: no such method in this run.
+        """
+        for m in self.methods:
+            if m.name == name:
+                return m
+        raise EvaluationError(f"no method {name!r} in this run; have {[m.name for m in self.methods]}")
+
+    def bar(
+        self, iterable: Iterable[T], desc: str, total: int | None = None, unit: str = "it"
+    ) -> Iterator[T]:
+        """``iterable`` wrapped in a tqdm progress bar (silent when ``progress`` is False)."""
+        from tqdm import tqdm
+
+        return iter(tqdm(iterable, desc=desc, total=total, unit=unit, disable=not self.progress, leave=False))
+
+
+def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
+    """Write a file through a temporary name and rename it, so a crash never leaves half a file.
+
+    Args:
+        path: the final file.
+        write: called with the temporary path; must create the file there.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        EvaluationError: the folder is not writable.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except OSError as err:
+        raise EvaluationError(f"cannot write {path}: {err}") from err
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def new_figure(width: float = 8.0, height: float = 4.5) -> Any:
+    """A matplotlib ``Figure`` on the Agg canvas (no pyplot state, no display needed).
+
+    Args:
+        width, height: size in inches.
+
+    Returns:
+        the figure; add axes with ``fig.subplots(...)`` and save with :func:`save_figure`.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height))
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def save_figure(fig: Any, path: Path, dpi: int = 110) -> Path:
+    """Save a figure made by :func:`new_figure` as a PNG, atomically.
+
+    Args:
+        fig: a ``matplotlib.figure.Figure``.
+        path: the PNG file.
+        dpi: resolution.
+
+    Returns:
+        ``path``.
+    """
+    return atomic_write(Path(path), lambda p: fig.savefig(p, dpi=dpi, format="png", bbox_inches="tight"))
