@@ -11,21 +11,21 @@ brightness-constancy assumption of classical LK is broken between the two frames
 ``nsflow_ros.data.perturb.perturb_pair`` is used when it is importable (the shipped model was trained
 and evaluated with it); :func:`perturb_illumination` here is the stand-alone equivalent.
 
-Source images are split once and for all: :data:`TRAIN_IMAGES` for training, :data:`HELDOUT_IMAGES`
-(coffee, chelsea, grace_hopper: scenes that appear in no training image) for validation and for the
-NSFlow-vs-classical evaluation.
+Source images are split once and for all (in the torch-free :mod:`nsflow_ros.data.photos`, shared with
+the evaluation suite): :data:`TRAIN_IMAGES` for training, :data:`HELDOUT_IMAGES` (coffee, chelsea,
+grace_hopper: scenes that appear in no training image) for validation and for the NSFlow-vs-classical
+evaluation.
 """
 
 from __future__ import annotations
 
-import functools
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 
+from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.photos import HELDOUT_IMAGES, TRAIN_IMAGES, load_photo
 from nsflow_ros.train.errors import TrainError
 
 __all__ = [
@@ -39,49 +39,20 @@ __all__ = [
     "render_views",
 ]
 
-TRAIN_IMAGES = (
-    "astronaut",
-    "camera",
-    "brick",
-    "grass",
-    "gravel",
-    "rocket",
-    "motorcycle_left",
-    "coins",
-    "moon",
-    "page",
-    "clock_motion",
-    "hubble_deep_field",
-)
-HELDOUT_IMAGES = ("coffee", "chelsea", "grace_hopper")
 
-
-@functools.cache
 def load_image(name: str) -> np.ndarray:
-    """Load a bundled photo as an (H, W) uint8 gray image.
+    """Load a bundled photo as an (H, W) uint8 gray image (:func:`nsflow_ros.data.photos.load_photo`).
 
     Args:
         name: a scikit-image data file stem (e.g. "astronaut") or "grace_hopper" (matplotlib).
 
     Returns:
-        the gray image.
+        the gray image (cached: do not modify it in place).
     """
-    if name == "grace_hopper":
-        import matplotlib
-
-        path = Path(matplotlib.get_data_path()) / "sample_data" / "grace_hopper.jpg"
-    else:
-        import skimage
-
-        folder = Path(os.path.dirname(skimage.__file__)) / "data"
-        matches = sorted(folder.glob(f"{name}.*"))
-        if not matches:
-            raise TrainError(f"no bundled image named {name!r} in {folder}")
-        path = matches[0]
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise TrainError(f"cannot read image {path}")
-    return img
+    try:
+        return load_photo(name)
+    except DataError as err:
+        raise TrainError(str(err)) from err
 
 
 @dataclass(frozen=True)
