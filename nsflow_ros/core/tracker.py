@@ -21,6 +21,12 @@ optical-flow calls replaced by the NSFlow descriptor LM solver (:func:`nsflow_ro
 Each frame's descriptor pyramid is computed once: frame t's pyramid is frame 2 of the pair (t-1, t) and
 frame 1 of (t, t+1); the right image's pyramid serves both stereo directions.
 
+Method ``"klt"`` is the baseline VINS itself runs: steps 1, 2 and 7 call OpenCV's
+``cv2.calcOpticalFlowPyrLK`` with VINS-Fusion's exact arguments (21x21 window, maxLevel 3, or maxLevel 1
+with ``OPTFLOW_USE_INITIAL_FLOW`` for the predicted and the flow-back calls; criteria COUNT|EPS 30 / 0.01)
+on the gray (or CLAHE'd) images, and everything else (detection, 0.5 px flow-back test, border, mask, ids)
+is the same code as for the LM methods, so differences between methods come from the flow alone.
+
 Nothing here imports rclpy or torch: the ROS node and the offline replayer/demo share this class.
 """
 
@@ -47,16 +53,29 @@ if TYPE_CHECKING:  # the core does not depend on the VINS layer at run time
     from nsflow_ros.vins.config import VinsConfig
 
 __all__ = [
+    "KLT_CRITERIA",
+    "KLT_GUIDED_MAX_LEVEL",
+    "KLT_MAX_LEVEL",
+    "KLT_WINDOW",
     "METHODS",
     "CameraFeatures",
     "FeatureTracker",
     "FrameFeatures",
     "TrackerSettings",
+    "klt_track",
     "reject_with_fundamental",
 ]
 
-METHODS = ("nsflow", "classical")
-"""Tracking methods: the NSFlow encoder (ONNX) or image intensity, both through the same LM solver."""
+METHODS = ("nsflow", "classical", "klt")
+"""Tracking methods: the NSFlow encoder (ONNX) or image intensity, both through the same LM solver, or
+OpenCV's pyramidal KLT called exactly as VINS-Fusion calls it (the baseline)."""
+
+# VINS-Fusion's calcOpticalFlowPyrLK arguments (feature_tracker.cpp): window, full-pyramid maxLevel, the
+# maxLevel of the calls that start from a given flow (prediction, flow-back), and the stop criteria.
+KLT_WINDOW = (21, 21)
+KLT_MAX_LEVEL = 3
+KLT_GUIDED_MAX_LEVEL = 1
+KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 # VINS-Mono's FOCAL_LENGTH: the virtual pinhole on which the F-matrix RANSAC threshold is measured.
 _VIRTUAL_FOCAL = 460.0
@@ -67,7 +86,10 @@ class TrackerSettings:
     """Settings of :class:`FeatureTracker` (VINS names where VINS has the setting).
 
     Attributes:
-        method: "nsflow" (learned encoder, the default) or "classical" (intensity descriptors).
+        method: "nsflow" (learned encoder, the default), "classical" (intensity descriptors, same LM
+            solver) or "klt" (OpenCV ``calcOpticalFlowPyrLK`` on the gray / CLAHE'd image with VINS-Fusion's
+            arguments: 21x21, maxLevel 3, criteria COUNT|EPS 30 / 0.01; ``lm`` is then unused, the rest of
+            the pipeline is the same).
         model_path: ONNX encoder for "nsflow"; None means the shipped ``models/nsflow_encoder.onnx``.
         num_threads: onnxruntime threads; None = onnxruntime's default.
         max_cnt: VINS ``max_cnt``, the number of features kept per frame.
@@ -265,7 +287,48 @@ def _velocities(
     return vel, match
 
 
-def _make_encoder(settings: TrackerSettings) -> Encoder:
+def klt_track(
+    image1: np.ndarray,
+    image2: np.ndarray,
+    pts: np.ndarray,
+    start: np.ndarray | None = None,
+    max_level: int = KLT_MAX_LEVEL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One ``cv2.calcOpticalFlowPyrLK`` call with VINS-Fusion's window and criteria.
+
+    Args:
+        image1: gray uint8 image the points lie in.
+        image2: gray uint8 image to track them into.
+        pts: points in image 1.
+        start: initial positions in image 2 (``OPTFLOW_USE_INITIAL_FLOW``, as VINS's predicted and
+            flow-back calls); None starts from ``pts``.
+        max_level: OpenCV ``maxLevel`` (VINS: 3, or 1 when starting from ``start``).
+
+    Returns:
+        (positions in image 2, OpenCV's status); lost points keep a finite position.
+
+    Shape:
+        pts, start: (N, 2). Returns (N, 2) float64 and (N,) bool.
+    """
+    n = pts.shape[0]
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    p1 = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 1, 2)
+    flags, p2 = 0, None
+    if start is not None:
+        p2 = np.ascontiguousarray(start, dtype=np.float32).reshape(-1, 1, 2).copy()
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    new, status, _ = cv2.calcOpticalFlowPyrLK(
+        image1, image2, p1, p2, winSize=KLT_WINDOW, maxLevel=max_level, criteria=KLT_CRITERIA, flags=flags
+    )
+    out = new.reshape(-1, 2).astype(np.float64)
+    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1)
+    return np.where(ok[:, None], out, pts), ok
+
+
+def _make_encoder(settings: TrackerSettings) -> Encoder | None:
+    if settings.method == "klt":
+        return None  # OpenCV works on the gray image itself
     if settings.method == "classical":
         return IntensityEncoder()
     return load_encoder(settings.model_path, threads=settings.num_threads)
@@ -288,7 +351,8 @@ class FeatureTracker:
     Args:
         cameras: camera 0, and camera 1 when ``settings.stereo``.
         settings: tracker settings.
-        encoder: descriptor encoder to use instead of the one ``settings.method`` selects (tests, benchmarks).
+        encoder: descriptor encoder to use instead of the one ``settings.method`` selects (tests, benchmarks);
+            not allowed with method "klt", which tracks the gray image.
         body_R_cam0: rotation camera 0 -> IMU body (VINS ``body_T_cam0[:3, :3]``) for the gyro prediction;
             None = identity.
 
@@ -320,7 +384,10 @@ class FeatureTracker:
                 raise CoreError(
                     f"stereo cameras differ in size: cam0 {c0.width}x{c0.height}, cam1 {c1.width}x{c1.height}"
                 )
-        self.encoder: Encoder = encoder if encoder is not None else _make_encoder(self.settings)
+        if encoder is not None and self.settings.method == "klt":
+            raise CoreError("method 'klt' tracks the gray image with OpenCV; an encoder cannot be given")
+        # None for "klt"; the frame "pyramid" is then the gray image (OpenCV builds its own pyramid).
+        self.encoder: Encoder | None = encoder if encoder is not None else _make_encoder(self.settings)
         self.body_R_cam0 = None if body_R_cam0 is None else np.asarray(body_R_cam0, dtype=np.float64)
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")
@@ -364,7 +431,7 @@ class FeatureTracker:
         """Forget all tracks (ids keep counting up, so an id is never reused)."""
         self._stamp: float | None = None
         self._size: tuple[int, int] | None = None
-        self._pyramid: DescriptorPyramid | None = None
+        self._pyramid: DescriptorPyramid | np.ndarray | None = None
         self._left = _empty_state()
         self._counts = np.zeros(0, np.int64)
         self._right = _empty_state()
@@ -382,7 +449,7 @@ class FeatureTracker:
     # -- helpers ---------------------------------------------------------------------------------------
 
     def _prepare(self, image: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """Return (gray for detection, encoder input)."""
+        """Return (gray for detection, encoder input); KLT's input is the gray image, as in VINS."""
         try:
             gray = to_gray(image)
         except CoreError as err:
@@ -390,21 +457,45 @@ class FeatureTracker:
         if self._clahe is not None:
             gray = self._clahe.apply(gray)
             return gray, gray
-        return gray, image
+        return gray, (gray if self.encoder is None else image)
 
-    def _pyramid_of(self, encoder_input: np.ndarray) -> DescriptorPyramid:
+    def _pyramid_of(self, encoder_input: np.ndarray) -> DescriptorPyramid | np.ndarray:
+        if self.encoder is None:
+            return encoder_input  # klt: the gray image
         return build_pyramid(self.encoder(encoder_input), self.settings.lm.levels)
+
+    def _track_klt(
+        self, img1: np.ndarray, img2: np.ndarray, pts: np.ndarray, size: tuple[int, int],
+        predicted: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """VINS-Fusion's trackImage optical-flow block, call for call."""
+        s = self.settings
+        if predicted is not None:
+            start = np.where(np.isfinite(predicted), predicted, pts)
+            new, status = klt_track(img1, img2, pts, start, KLT_GUIDED_MAX_LEVEL)
+            if int(status.sum()) < s.prediction_min_tracked:
+                new, status = klt_track(img1, img2, pts, None, KLT_MAX_LEVEL)
+        else:
+            new, status = klt_track(img1, img2, pts, None, KLT_MAX_LEVEL)
+        if s.flow_back and status.any():
+            # VINS: reverse from the forward result, starting at the previous position, maxLevel 1.
+            back, back_ok = klt_track(img2, img1, new, pts, KLT_GUIDED_MAX_LEVEL)
+            status &= back_ok & (np.hypot(*(back - pts).T) <= s.flow_back_threshold)
+        status &= _in_border(new, size, s.border)
+        return new, status
 
     def _track_pair(
         self,
-        pyr1: DescriptorPyramid,
-        pyr2: DescriptorPyramid,
+        pyr1: DescriptorPyramid | np.ndarray,
+        pyr2: DescriptorPyramid | np.ndarray,
         pts: np.ndarray,
         size: tuple[int, int],
         predicted: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Forward track (+ flow-back and border checks); returns (new positions, status)."""
         s = self.settings
+        if isinstance(pyr1, np.ndarray) and isinstance(pyr2, np.ndarray):
+            return self._track_klt(pyr1, pyr2, pts, size, predicted)
         lm = s.lm
         if predicted is not None:
             usable = np.isfinite(predicted).all(axis=1)
@@ -591,13 +682,20 @@ class FeatureTracker:
 
     def _stereo(
         self,
-        pyr_left: DescriptorPyramid,
-        pyr_right: DescriptorPyramid,
+        pyr_left: DescriptorPyramid | np.ndarray,
+        pyr_right: DescriptorPyramid | np.ndarray,
         pts: np.ndarray,
         size: tuple[int, int],
     ) -> tuple[np.ndarray, np.ndarray]:
         """Left -> right on the full pyramid, right -> left back-check on the full pyramid (as VINS)."""
         s = self.settings
+        if isinstance(pyr_left, np.ndarray) and isinstance(pyr_right, np.ndarray):
+            right, status = klt_track(pyr_left, pyr_right, pts)
+            status &= _in_border(right, size, s.border)
+            if s.flow_back and status.any():
+                back, back_ok = klt_track(pyr_right, pyr_left, right)  # VINS: maxLevel 3, no initial flow
+                status &= back_ok & (np.hypot(*(back - pts).T) <= s.flow_back_threshold)
+            return right, status
         res = track(pyr_left, pyr_right, pts, None, s.lm)
         right = np.where(np.isfinite(res.flow), pts + res.flow, pts)
         status = res.status & _in_border(right, size, s.border)

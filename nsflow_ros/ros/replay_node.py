@@ -135,7 +135,7 @@ def _parser() -> argparse.ArgumentParser:
         "--config", type=Path, default=None, help="VINS config for --offline (default: EuRoC mono)"
     )
     p.add_argument(
-        "--method", choices=("nsflow", "classical"), default="nsflow", help="tracker for --offline"
+        "--method", choices=("nsflow", "classical", "klt"), default="nsflow", help="tracker for --offline"
     )
     return p
 

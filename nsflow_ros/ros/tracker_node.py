@@ -62,7 +62,11 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "config_file": ("config/euroc/euroc_mono_imu_config.yaml",
                     "VINS-Fusion or VINS-Mono config file (OpenCV YAML); a relative path is looked up in the "
                     "package share directory, then in the working directory"),
-    "method": ("nsflow", "'nsflow' (learned encoder + LM solver) or 'classical' (intensity, same solver)"),
+    "method": (
+        "nsflow",
+        "'nsflow' (learned encoder + LM solver), 'classical' (intensity, same solver) or 'klt' (OpenCV "
+        "calcOpticalFlowPyrLK as VINS-Fusion calls it: 21x21, maxLevel 3, 30 iterations / eps 0.01)",
+    ),
     "model_path": ("", "ONNX encoder for method 'nsflow'; '' = the model shipped in models/"),
     "max_cnt": (-1, "most features per image (VINS max_cnt, >= 1); -1 = from the VINS config"),
     "min_dist": (-1, "minimum distance between features in px (VINS min_dist); -1 = from the VINS config"),

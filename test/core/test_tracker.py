@@ -270,3 +270,41 @@ def test_from_vins_config_takes_the_vins_settings():
     frame = np.zeros((cfg.image_height, cfg.image_width), np.uint8)
     out = tracker.process(0.0, frame, frame)
     assert out.num_cameras == 2 and len(out.cameras[0]) == 0  # black image: nothing to detect
+
+
+def test_klt_method_tracks_a_known_shift_through_the_same_pipeline(pan):
+    tracker = FeatureTracker([syn.camera()], TrackerSettings(method="klt", min_dist=20))
+    assert tracker.encoder is None
+    res = _run(tracker, pan, 6)
+    for k in range(1, len(res)):
+        prev, cur = res[k - 1].cameras[0], res[k].cameras[0]
+        pi, ci = _matches(prev, cur)
+        assert len(pi) >= 0.7 * len(prev), f"frame {k}: only {len(pi)} of {len(prev)} tracks survived"
+        err = np.hypot(*(cur.pixels[ci] - pan.truth(k - 1, k, prev.pixels[pi])).T)
+        assert np.median(err) < 0.15 and err.max() < 1.0, f"frame {k}: errors {np.sort(err)[-5:]}"
+        np.testing.assert_array_equal(cur.track_counts[ci], prev.track_counts[pi] + 1)
+    # min_dist and max_cnt come from the shared detection step
+    assert max(len(f.cameras[0]) for f in res) <= 150
+
+
+def test_klt_flow_back_rejects_occluded_points_and_stereo_works():
+    seq = syn.translating(6)
+    seq.frames[3] = seq.frames[3].copy()
+    seq.frames[3][60:140, 100:190] = syn.base_texture("astronaut")[:80, :90]
+    mono = _run(FeatureTracker([syn.camera()], TrackerSettings(method="klt", min_dist=20)), seq)
+    prev, cur = mono[2].cameras[0], mono[3].cameras[0]
+    pi, ci = _matches(prev, cur)
+    err = np.hypot(*(cur.pixels[ci] - seq.truth(2, 3, prev.pixels[pi])).T)
+    assert err.max() < 1.0, f"a wrong track survived the KLT flow-back: {err.max():.2f} px"
+    seq = syn.translating(4, stereo_disparity=-9.5)
+    settings = TrackerSettings(method="klt", stereo=True, min_dist=20)
+    stereo = FeatureTracker([syn.camera(), syn.camera()], settings)
+    left, right = _run(stereo, seq)[-1].cameras
+    li, ri = _matches(left, right)
+    assert len(ri) >= 0.7 * len(left)
+    assert np.median(np.hypot(*(right.pixels[ri] - (left.pixels[li] + [-9.5, 0.0])).T)) < 0.15
+
+
+def test_klt_method_refuses_an_encoder():
+    with pytest.raises(CoreError, match="klt"):
+        FeatureTracker([syn.camera()], TrackerSettings(method="klt"), encoder=IntensityEncoder())
