@@ -1,0 +1,313 @@
+"""Trackable-region ratio (the paper's Table I and its heat-map figure).
+
+The paper takes every pixel as a keypoint, moves its initial position by 15 px in a random direction,
+lets the solver recover the true correspondence and counts the pixels recovered within 1 / 2 / 3 px.
+Here the pairs are rendered from the held-out photos (:mod:`nsflow_ros.evaluation.pairs`): mild
+geometry (a level-1 homography, a few px) once with no lighting change and once with both frames
+perturbed at full strength (:func:`~nsflow_ros.data.perturb.perturb_pair`). Every pixel at least 10 px
+from the border (every ``stride``-th pixel in quick mode) whose true position stays 10 px inside frame 2
+is a keypoint; the initial flow is the true flow plus exactly 15 px in a uniformly random direction,
+the same for every method. A lost point counts as not recovered.
+
+Each method runs at its deployed 3 levels (the 15 px offset is 3.75 px at the coarsest level). The
+heat map colours each pixel by the threshold it was recovered within (red = easy, blue = not
+recovered), one column per method, as the paper's figure does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nsflow_ros.data.perturb import perturb_pair
+from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
+from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW, LMMethod, PairMethod
+from nsflow_ros.evaluation.pairs import (
+    MARGIN,
+    HomographyPair,
+    inside,
+    random_homography,
+    render_pair,
+    true_flow,
+)
+from nsflow_ros.evaluation.section import HeadlineRow, Section
+
+__all__ = ["THRESHOLDS", "TrackableConfig", "TrackableMap", "make_trackable_pairs", "run", "trackable_map"]
+
+THRESHOLDS = (1.0, 2.0, 3.0)
+CONDITIONS = ("none", "light")
+
+
+@dataclass(frozen=True)
+class TrackableConfig:
+    """Settings of the trackable-region analysis.
+
+    Attributes:
+        width, height: frame size in pixels.
+        stride: keypoint grid step (1 = every pixel, as the paper).
+        photos: held-out photos, one pair per photo and condition.
+        perturbation: length of the initial-flow error in pixels (the paper: 15).
+        chunk: points per solver call (the result does not depend on it). The solver samples all windows
+            with one ``cv2.remap`` whose map has N * window rows, and OpenCV refuses maps of 32767 rows
+            or more, so one call must stay under ~2900 points at window 11.
+    """
+
+    width: int = 320
+    height: int = 240
+    stride: int = 1
+    photos: tuple[str, ...] = HELDOUT_IMAGES
+    perturbation: float = 15.0
+    chunk: int = 2000
+
+    @classmethod
+    def quick(cls) -> TrackableConfig:
+        """Tiny sizes for tests and CI."""
+        return cls(width=160, height=120, stride=6, photos=HELDOUT_IMAGES[:1])
+
+
+@dataclass(frozen=True)
+class TrackableMap:
+    """Per-pixel recovery errors of each method on one pair.
+
+    Attributes:
+        label: the pair ("coffee, light").
+        image1: frame 1, (H, W) uint8.
+        points: (N, 2) keypoints (integer pixel positions as float64).
+        errors: method name -> (N,) endpoint errors, inf where lost.
+        grid_shape: (rows, cols) of the keypoint grid; ``errors[m].reshape`` it after ``grid_index``.
+        grid_index: (N, 2) int (row, col) of each keypoint in the grid.
+    """
+
+    label: str
+    image1: np.ndarray
+    points: np.ndarray
+    errors: dict[str, np.ndarray]
+    grid_shape: tuple[int, int]
+    grid_index: np.ndarray
+
+    def ratios(self) -> dict[str, list[float]]:
+        """Method name -> share of keypoints recovered within each of :data:`THRESHOLDS`."""
+        return {
+            n: [float(np.mean(e < t)) if e.size else float("nan") for t in THRESHOLDS]
+            for n, e in self.errors.items()
+        }
+
+    def grid(self, name: str) -> np.ndarray:
+        """(rows, cols) float map of a method's errors; NaN where no keypoint was evaluated."""
+        out = np.full(self.grid_shape, np.nan)
+        out[self.grid_index[:, 0], self.grid_index[:, 1]] = self.errors[name]
+        return out
+
+
+def make_trackable_pairs(cfg: TrackableConfig, seed: int = 0) -> list[tuple[str, HomographyPair]]:
+    """One mildly warped pair per photo and condition ("none", "light"), labelled.
+
+    Args:
+        cfg: sizes.
+        seed: base seed.
+
+    Returns:
+        [(label, pair)], same geometry for both conditions of a photo.
+    """
+    out = []
+    for k, name in enumerate(cfg.photos):
+        photo = load_photo(name)
+        for cond in CONDITIONS:
+            rng = np.random.default_rng([seed, 7, k])  # same geometry for both conditions
+            p = random_homography(rng, cfg.width, cfg.height, 1.0)
+            f1, f2 = render_pair(photo, rng, cfg.width, cfg.height, p)
+            if cond == "light":
+                f1, f2 = perturb_pair(f1, f2, np.random.default_rng([seed, 8, k]), 1.0)
+            out.append((f"{name}, {cond}", HomographyPair(name, "trackable", 1, f1, f2, p)))
+    return out
+
+
+def _track_chunked(m: PairMethod, pair: HomographyPair, pts: np.ndarray, flow0: np.ndarray, chunk: int):
+    """(flow, status) of many points, ``chunk`` at a time; LM pyramids are built once per image."""
+    flow = np.empty_like(pts)
+    status = np.empty(len(pts), bool)
+    if isinstance(m, LMMethod):
+        pyr1, pyr2 = m.pyramid(pair.image1), m.pyramid(pair.image2)
+    for s in range(0, len(pts), chunk):
+        sl = slice(s, s + chunk)
+        if isinstance(m, LMMethod):
+            res = m.track_pyramids(pyr1, pyr2, pts[sl], flow0[sl])
+        else:
+            res = m.track(pair.image1, pair.image2, pts[sl], flow0[sl])
+        flow[sl], status[sl] = res.flow, res.status
+    return flow, status
+
+
+def trackable_map(
+    methods: list[PairMethod],
+    pair: HomographyPair,
+    rng: np.random.Generator,
+    *,
+    stride: int = 1,
+    perturbation: float = 15.0,
+    chunk: int = 2000,
+    label: str = "",
+) -> TrackableMap:
+    """Every (stride-th) pixel of frame 1 as a keypoint, recovered from a ``perturbation`` px offset.
+
+    Args:
+        methods: the compared methods.
+        pair: the frames and their exact homography.
+        rng: draws the direction of each keypoint's initial error (shared by all methods).
+        stride: grid step in pixels (>= 1).
+        perturbation: initial error length in pixels (>= 0).
+        chunk: points per solver call.
+        label: name of the pair in tables.
+
+    Returns:
+        the :class:`TrackableMap`.
+
+    Raises:
+        EvaluationError: bad stride / perturbation, or frames of different shapes.
+
+    Shape:
+        pair.image1, pair.image2: (H, W) uint8.
+    """
+    if stride < 1:
+        raise EvaluationError(f"stride must be >= 1, got {stride}")
+    if not perturbation >= 0:
+        raise EvaluationError(f"perturbation must be >= 0 px, got {perturbation}")
+    if pair.image1.shape != pair.image2.shape or pair.image1.ndim != 2:
+        raise EvaluationError(
+            f"frames must be (H, W) of one shape, got {pair.image1.shape} and {pair.image2.shape}"
+        )
+    h, w = pair.image1.shape
+    ys = np.arange(MARGIN, h - MARGIN, stride)
+    xs = np.arange(MARGIN, w - MARGIN, stride)
+    gy, gx = np.meshgrid(np.arange(len(ys)), np.arange(len(xs)), indexing="ij")
+    index = np.stack([gy.ravel(), gx.ravel()], 1)
+    pts = np.stack([xs[index[:, 1]], ys[index[:, 0]]], 1).astype(np.float64)
+    gt = true_flow(pts, pair.homography)
+    keep = inside(pts + gt, w, h)
+    pts, gt, index = pts[keep], gt[keep], index[keep]
+    ang = rng.uniform(0.0, 2.0 * np.pi, len(pts))
+    flow0 = gt + perturbation * np.stack([np.cos(ang), np.sin(ang)], 1)
+    errors = {}
+    for m in methods:
+        flow, status = _track_chunked(m, pair, pts, flow0, max(1, chunk))
+        with np.errstate(invalid="ignore"):
+            e = np.linalg.norm(flow - gt, axis=1)
+        errors[m.name] = np.where(status & np.isfinite(e), e, np.inf)
+    return TrackableMap(label, pair.image1, pts, errors, (len(ys), len(xs)), index)
+
+
+def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
+    """Rows = pairs; columns = frame 1 and each method's recovery class per pixel."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+    from matplotlib.patches import Patch
+
+    colours = ["#b2182b", "#ef8a62", "#fddbc7", "#2166ac"]  # <1, <2, <3, not recovered
+    cmap = ListedColormap(colours)
+    cmap.set_bad("#d9d9d9")
+    norm = BoundaryNorm([0, 1, 2, 3, 4], cmap.N)
+    cols = 1 + len(names)
+    fig = new_figure(2.6 * cols, 2.1 * len(maps) + 0.6)
+    axes = np.atleast_2d(fig.subplots(len(maps), cols))
+    for r, tm in enumerate(maps):
+        axes[r, 0].imshow(tm.image1, cmap="gray", vmin=0, vmax=255)
+        axes[r, 0].set_title(f"{tm.label}: frame 1", fontsize=8)
+        ratios = tm.ratios()
+        for c, name in enumerate(names, start=1):
+            err = tm.grid(name)
+            cls = np.where(np.isnan(err), np.nan, np.digitize(np.nan_to_num(err, nan=0.0), THRESHOLDS) + 0.5)
+            axes[r, c].imshow(cls, cmap=cmap, norm=norm, interpolation="nearest")
+            axes[r, c].set_title(f"{name}: @1 {ratios[name][0]:.0%} @3 {ratios[name][2]:.0%}", fontsize=8)
+        for ax in axes[r]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    labels = ["< 1 px", "1-2 px", "2-3 px", "not recovered"]
+    fig.legend(
+        [Patch(color=c) for c in colours], labels, loc="lower center", ncol=4, fontsize=8, frameon=False
+    )
+    fig.suptitle("Trackable regions: recovery from a 15 px initial error, per pixel", fontsize=10)
+    save_figure(fig, path)
+
+
+def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
+    """Trackable-region ratios of every method on the held-out pairs, with the heat map.
+
+    Args:
+        ctx: the evaluation context (methods, quick, out_dir, progress, seed).
+        cfg: settings; ``TrackableConfig.quick()`` in quick mode, else ``TrackableConfig()``.
+
+    Returns:
+        the "trackable" :class:`Section` (``trackable_heatmap.png``, the table, headline rows).
+    """
+    cfg = cfg or (TrackableConfig.quick() if ctx.quick else TrackableConfig())
+    names = [m.name for m in ctx.methods]
+    maps = []
+    pairs = make_trackable_pairs(cfg, ctx.seed)
+    for k, (label, pair) in enumerate(ctx.bar(pairs, desc="trackable", total=len(pairs), unit="pair")):
+        rng = np.random.default_rng([ctx.seed, 9, k])
+        maps.append(
+            trackable_map(
+                ctx.methods, pair, rng, stride=cfg.stride, perturbation=cfg.perturbation, chunk=cfg.chunk,
+                label=label,
+            )
+        )  # fmt: skip
+    fig_path = ctx.out_dir / "trackable_heatmap.png"
+    _heat_map(maps, names, fig_path)
+
+    ratios = {tm.label: tm.ratios() for tm in maps}
+    median = {
+        cond: {
+            n: [float(np.median([ratios[tm.label][n][i] for tm in maps if tm.label.endswith(cond)]))
+                for i in range(len(THRESHOLDS))]
+            for n in names
+        }
+        for cond in CONDITIONS
+    }  # fmt: skip
+    grid = "every pixel" if cfg.stride == 1 else f"every {cfg.stride}th pixel in x and y"
+    lines = [
+        f"{len(maps)} pairs of {cfg.width}x{cfg.height} px (held-out photos {', '.join(cfg.photos)}, a "
+        "mild homography, without and with full-strength illumination perturbation of both frames); "
+        f"{grid} at least {MARGIN} px inside is a keypoint ({sum(len(tm.points) for tm in maps)} in all), "
+        f"its initial flow off by {cfg.perturbation:g} px in a random direction; 3 levels for every method. "
+        "Share of keypoints recovered within 1 / 2 / 3 px (a lost point is not recovered)."
+        + (" **Quick mode: tiny sizes, figures not meaningful.**" if ctx.quick else ""),
+        "",
+        "| pair | points | " + " | ".join(f"{n} @1/@2/@3" for n in names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
+
+    def cells(r: dict[str, list[float]]) -> str:
+        return " | ".join("/".join(f"{100 * v:.1f}" for v in r[n]) for n in names)
+
+    for tm in maps:
+        lines.append(f"| {tm.label} | {len(tm.points)} | {cells(ratios[tm.label])} |")
+    for cond in CONDITIONS:
+        lines.append(f"| **median, {cond}** | | {cells(median[cond])} |")
+    lines += ["", "(percent of keypoints)", "", f"![trackable regions]({fig_path.name})", ""]
+
+    headline = []
+    for cond in CONDITIONS:
+        met = None
+        if NSFLOW in names and CLASSICAL in names:
+            # the paper's claim: a broader trackable region than the LK method on intensity
+            met = bool(median[cond][NSFLOW][0] > median[cond][CLASSICAL][0])
+        headline.append(
+            HeadlineRow(
+                f"trackable region @1 px, {'no lighting change' if cond == 'none' else 'lighting change'}",
+                {n: f"{median[cond][n][0]:.1%}" for n in names},
+                "> LM (intensity)",
+                met,
+            )
+        )
+    data = {
+        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
+        "thresholds_px": list(THRESHOLDS),
+        "ratios": ratios,
+        "median": median,
+        "points": {tm.label: len(tm.points) for tm in maps},
+    }
+    return Section(
+        "trackable", "Trackable-region ratio (paper Table I)", "\n".join(lines), [fig_path], headline, data
+    )
