@@ -1,11 +1,12 @@
 """Descriptor pyramids: what the solver samples.
 
-Each level holds, per descriptor channel c, one C-contiguous float32 (H, W, 3) chunk [D_c, dD_c/dx,
-dD_c/dy]. One ``cv2.remap`` call per chunk fetches a window's descriptors and Jacobian together (the
-solver's inner loop). The layout is a measured necessity: remap on a non-contiguous slice is ~30x slower,
-OpenCV's remap interpolates exactly only up to 4 channels (its generic path for more quantises positions
-to 1/32 px), and building the chunks with ``cv2.merge`` from the planes costs a fraction of concatenating
-and re-slicing a (H, W, 3C) array (4.6 vs 12.7 ms for a 752x480, C=3 pyramid, measured on a loaded machine).
+Each level holds the descriptor map as C-contiguous float32 (H, W, K) chunks of at most 4 channels. One
+``cv2.remap`` call per chunk fetches a window's descriptors (the solver's inner loop); the Jacobian is the
+Scharr derivative of that same sampled patch (see ``nsflow_ros.core.solver``), so no derivative maps are
+stored. The layout is a measured necessity: remap on a non-contiguous slice is ~30x slower, and OpenCV's
+remap interpolates exactly only up to 4 channels (its generic path for more quantises positions to
+1/32 px). Storing [D, Dx, Dy] maps per channel instead, as an earlier version did, cost 5.4 ms per 752x480
+pyramid at d = 4 against 0.5 ms now, and three times the memory.
 
 Coarser levels are made by ``cv2.pyrDown`` of the descriptor map (Gaussian blur + decimation), not by
 running the encoder on a smaller image: it costs ~1 ms instead of a second encoder pass, and the solver's
@@ -60,10 +61,7 @@ def split_channels(level: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def _level(desc: np.ndarray) -> tuple[np.ndarray, ...]:
-    dx, dy = descriptor_gradients(desc)
-    if desc.shape[2] == 1:
-        return (cv2.merge([desc[..., 0], dx[..., 0], dy[..., 0]]),)
-    return tuple(cv2.merge(list(p)) for p in zip(cv2.split(desc), cv2.split(dx), cv2.split(dy), strict=True))
+    return (desc,) if desc.shape[2] <= MAX_CHUNK else split_channels(desc)
 
 
 @dataclass(frozen=True)
@@ -71,8 +69,8 @@ class DescriptorPyramid:
     """A frame's descriptor maps and their derivatives at every pyramid level.
 
     Attributes:
-        levels: level 0 first (full resolution); each a tuple of C float32 chunks (H_l, W_l, 3), chunk c
-            holding [D_c, dD_c/dx, dD_c/dy].
+        levels: level 0 first (full resolution); each a tuple of C-contiguous float32 chunks
+            (H_l, W_l, K) with K <= 4, together the C descriptor channels in order.
         channels: C, the descriptor dimension.
     """
 
@@ -90,8 +88,9 @@ class DescriptorPyramid:
         return len(self.levels)
 
     def level(self, index: int) -> np.ndarray:
-        """Level ``index`` as one (H_l, W_l, 3C) array [D_0, Dx_0, Dy_0, D_1, ...] (a copy)."""
-        return np.concatenate(self.levels[index], axis=2)
+        """Level ``index`` as one (H_l, W_l, C) descriptor map."""
+        chunks = self.levels[index]
+        return chunks[0] if len(chunks) == 1 else np.concatenate(chunks, axis=2)
 
 
 def _check_map(desc: np.ndarray) -> np.ndarray:
@@ -117,7 +116,8 @@ def build_pyramid(desc: np.ndarray, levels: int = 3) -> DescriptorPyramid:
             not built, so the result may have fewer.
 
     Returns:
-        the pyramid, level 0 first.
+        the pyramid, level 0 first. Level 0 shares memory with ``desc`` when that is already a
+        C-contiguous float32 array of at most 4 channels (no copy on the per-frame path).
 
     Raises:
         CoreError: on a wrong shape or dtype, or ``levels < 1``.

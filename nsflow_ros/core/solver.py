@@ -9,8 +9,10 @@ square window and all descriptor channels. One iteration, for every still-active
 4. stop when ||du|| < eps (1 + ||u^(k)||) or ||J^T f||_inf < eps, or after K_max iterations.
 
 Sampling is exact bilinear interpolation with replicated borders. Frame-2 quantities at a candidate are
-fetched by one ``cv2.remap`` call per channel over the pyramid level's [D_c, Dx_c, Dy_c] chunks, and J^T J,
-J^T f and S are reduced from it immediately, so nothing window-sized is kept between iterations.
+fetched by one ``cv2.remap`` call per 4 descriptor channels over a (window + 2)^2 patch; J is the Scharr
+derivative of that patch (equal to sampling the Scharr derivative maps, see :func:`_normal_equations`),
+and J^T J, J^T f and S are reduced from it immediately, so nothing window-sized is kept between
+iterations.
 Points that have stopped leave the active set, so late iterations cost only what is left.
 
 Coarse-to-fine: the solver runs on each pyramid level from the coarsest, scaling the flow by 2 between
@@ -153,6 +155,29 @@ def _sample_numpy(level: np.ndarray, centers: np.ndarray, window: int) -> np.nda
     return horiz[:, :-1] + b * (horiz[:, 1:] - horiz[:, :-1])
 
 
+def _scatter_maps(centers: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps of M square grids of side ``size`` centred on ``centers``, stacked vertically."""
+    m = centers.shape[0]
+    off = _window_offsets(size)
+    c = centers.astype(np.float32)
+    mapx = np.empty((m * size, size), np.float32)
+    mapy = np.empty((m * size, size), np.float32)
+    mapx.reshape(m, size, size)[...] = c[:, 0, None, None] + off[None, None, :]
+    mapy.reshape(m, size, size)[...] = c[:, 1, None, None] + off[None, :, None]
+    return mapx, mapy
+
+
+def _sample_chunk(
+    chunk: np.ndarray, centers: np.ndarray, size: int, maps: tuple[np.ndarray, np.ndarray] | None
+) -> np.ndarray:
+    """Windows of side ``size`` of one chunk of at most 4 channels: (M, size, size, K)."""
+    m = centers.shape[0]
+    if maps is None:
+        return _sample_numpy(chunk, centers, size)
+    out = cv2.remap(chunk, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(m, size, size, chunk.shape[2])
+
+
 def sample_windows(
     level: np.ndarray | tuple[np.ndarray, ...], centers: np.ndarray, window: int
 ) -> np.ndarray:
@@ -175,44 +200,52 @@ def sample_windows(
     ch = sum(c.shape[2] for c in chunks)
     if m == 0:
         return np.zeros((0, window, window, ch), np.float32)
-    if not _remap_is_exact():
-        return _sample_numpy(np.concatenate(chunks, axis=2), centers, window)
-    off = _window_offsets(window)
-    c = centers.astype(np.float32)
-    mapx = np.empty((m * window, window), np.float32)
-    mapy = np.empty((m * window, window), np.float32)
-    mapx.reshape(m, window, window)[...] = c[:, 0, None, None] + off[None, None, :]
-    mapy.reshape(m, window, window)[...] = c[:, 1, None, None] + off[None, :, None]
-    parts = [
-        cv2.remap(chunk, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(
-            m, window, window, chunk.shape[2]
-        )
-        for chunk in chunks
-    ]
+    maps = _scatter_maps(centers, window) if _remap_is_exact() else None
+    parts = [_sample_chunk(chunk, centers, window, maps) for chunk in chunks]
     return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=3)
 
 
-def _template(level: tuple[np.ndarray, ...], pts: np.ndarray, window: int, channels: int) -> np.ndarray:
-    """Frame-1 descriptor windows D1(x), flattened per point: (N, window^2 * C)."""
+def _template(level: tuple[np.ndarray, ...], pts: np.ndarray, window: int) -> list[np.ndarray]:
+    """Frame-1 descriptor windows D1(x) per chunk, flattened per point: [(N, window^2 * K_chunk)]."""
     n = pts.shape[0]
-    return np.ascontiguousarray(sample_windows(level, pts, window)[..., 0::3]).reshape(n, -1)
+    maps = _scatter_maps(pts, window) if _remap_is_exact() else None
+    return [_sample_chunk(chunk, pts, window, maps).reshape(n, -1) for chunk in level]
+
+
+_dot = functools.partial(np.einsum, "ij,ij->i")
 
 
 def _normal_equations(
-    sampled: np.ndarray, template: np.ndarray, channels: int
+    level: tuple[np.ndarray, ...], centers: np.ndarray, template: list[np.ndarray], window: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reduce sampled [D_c, Dx_c, Dy_c]... windows to S, J^T J as (h11, h12, h22) and J^T f per point."""
-    m = sampled.shape[0]
-    # (m, 3, window^2 * C) contiguous: rows D2, Jx, Jy; contiguous rows make the dot products fast.
-    q = np.ascontiguousarray(sampled.reshape(m, -1, channels, 3).transpose(0, 3, 1, 2)).reshape(m, 3, -1)
-    f = q[:, 0]
-    f -= template
-    jx, jy = q[:, 1], q[:, 2]
-    dot = functools.partial(np.einsum, "ij,ij->i")
-    cost = 0.5 * dot(f, f).astype(np.float64)
-    hess = np.stack([dot(jx, jx), dot(jx, jy), dot(jy, jy)], axis=1).astype(np.float64)
-    grad = np.stack([dot(jx, f), dot(jy, f)], axis=1).astype(np.float64)
-    return cost, hess, grad
+    """S, J^T J as (h11, h12, h22) and J^T f per point, with D2 and J sampled at ``centers``.
+
+    J is the normalised Scharr derivative of D2 at x + u. Every pixel of a window shares the centre's
+    sub-pixel offset, and filtering commutes with such a shift, so Scharr applied to a bilinearly
+    sampled (window + 2)^2 patch equals sampling the Scharr derivative maps (to float rounding) wherever
+    the window lies inside the image, border pixels included (remap and the filter both replicate).
+    Beyond the image it is the derivative of the replicated map, 0 across the edge; such points end with
+    status False anyway. One remap per 4 channels thus gives D2 and J together, and the pyramid needs no
+    derivative maps. Sums are additive over channels, so chunks are reduced one at a time.
+    """
+    m = centers.shape[0]
+    size = window + 2
+    maps = _scatter_maps(centers, size) if _remap_is_exact() else None
+    cost = np.zeros(m)
+    hess = np.zeros((m, 3))
+    grad = np.zeros((m, 2))
+    for chunk, tmpl in zip(level, template, strict=True):
+        p = _sample_chunk(chunk, centers, size, maps)
+        # Scharr [-1 0 1] x [3 10 3]; the 1/32 normalisation is applied to the sums below.
+        cx = p[:, :, 2:] - p[:, :, :-2]
+        jx = (3.0 * (cx[:, :-2] + cx[:, 2:]) + 10.0 * cx[:, 1:-1]).reshape(m, -1)
+        cy = p[:, 2:] - p[:, :-2]
+        jy = (3.0 * (cy[:, :, :-2] + cy[:, :, 2:]) + 10.0 * cy[:, :, 1:-1]).reshape(m, -1)
+        f = p[:, 1:-1, 1:-1].reshape(m, -1) - tmpl
+        cost += _dot(f, f)
+        hess += np.stack([_dot(jx, jx), _dot(jx, jy), _dot(jy, jy)], axis=1)
+        grad += np.stack([_dot(jx, f), _dot(jy, f)], axis=1)
+    return 0.5 * cost, hess * (1.0 / 1024.0), grad * (1.0 / 32.0)
 
 
 def _solve_level(
@@ -220,7 +253,6 @@ def _solve_level(
     level2: tuple[np.ndarray, ...],
     pts: np.ndarray,
     u: np.ndarray,
-    channels: int,
     cfg: LMConfig,
     level_index: int,
     iterations: np.ndarray,
@@ -229,8 +261,8 @@ def _solve_level(
     """Run Algorithm 1 on one pyramid level for all points; returns (u, cost, [h11, h12, h22])."""
     n = pts.shape[0]
     win = cfg.window
-    template = _template(level1, pts, win, channels)
-    cost, hess, grad = _normal_equations(sample_windows(level2, pts + u, win), template, channels)
+    template = _template(level1, pts, win)
+    cost, hess, grad = _normal_equations(level2, pts + u, template, win)
     u = u.copy()
     lam = np.full(n, cfg.lambda_init)
     # Working copies restricted to the still-active points; finished points are written back.
@@ -252,7 +284,7 @@ def _solve_level(
             du[:, 1] = -(a11 * g_a[:, 1] - a12 * g_a[:, 0]) / det
         du[~np.isfinite(du)] = 0.0
         cand = u_a + du
-        c_cost, c_hess, c_grad = _normal_equations(sample_windows(level2, p_a + cand, win), t_a, channels)
+        c_cost, c_hess, c_grad = _normal_equations(level2, p_a + cand, t_a, win)
         accept = c_cost < c_a
         step_small = np.hypot(du[:, 0], du[:, 1]) < cfg.eps * (1.0 + np.hypot(u_a[:, 0], u_a[:, 1]))
         grad_small = np.abs(g_a).max(axis=1) < cfg.eps
@@ -277,7 +309,8 @@ def _solve_level(
             u[done], cost[done], hess[done] = u_a[stop], c_a[stop], h_a[stop]
             keep = ~stop
             idx, p_a, u_a, lam_a, c_a, h_a, g_a, t_a = (
-                idx[keep], p_a[keep], u_a[keep], lam_a[keep], c_a[keep], h_a[keep], g_a[keep], t_a[keep]
+                idx[keep], p_a[keep], u_a[keep], lam_a[keep], c_a[keep], h_a[keep], g_a[keep],
+                [t[keep] for t in t_a],
             )
     u[idx], cost[idx], hess[idx] = u_a, c_a, h_a
     return u, cost, hess
@@ -353,7 +386,7 @@ def track(
     for lev in range(nlev - 1, -1, -1):
         s = 2.0**lev
         u, cost, hess = _solve_level(
-            pyr1.levels[lev], pyr2.levels[lev], pts / s, u, ch, cfg, lev, iterations, history
+            pyr1.levels[lev], pyr2.levels[lev], pts / s, u, cfg, lev, iterations, history
         )
         if lev > 0:
             u = u * 2.0

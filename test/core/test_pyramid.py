@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -9,17 +10,22 @@ from nsflow_ros import CoreError, build_pyramid
 from nsflow_ros.core.pyramid import descriptor_gradients, split_channels
 
 
-def test_levels_halve_and_hold_map_and_derivatives():
+def test_levels_halve_and_hold_the_map():
     rng = np.random.default_rng(0)
     desc = rng.random((120, 160, 3), dtype=np.float32)
     pyr = build_pyramid(desc, 3)
     assert pyr.num_levels == 3 and pyr.channels == 3 and pyr.shape == (120, 160)
-    assert [pyr.level(i).shape for i in range(3)] == [(120, 160, 9), (60, 80, 9), (30, 40, 9)]
-    assert all(c.shape[2] == 3 and c.flags.c_contiguous for lev in pyr.levels for c in lev)
-    np.testing.assert_array_equal(pyr.level(0)[..., 0::3], desc)
-    dx, dy = descriptor_gradients(desc)
-    np.testing.assert_array_equal(pyr.level(0)[..., 1::3], dx)
-    np.testing.assert_array_equal(pyr.level(0)[..., 2::3], dy)
+    assert [pyr.level(i).shape for i in range(3)] == [(120, 160, 3), (60, 80, 3), (30, 40, 3)]
+    assert all(c.flags.c_contiguous and c.dtype == np.float32 for lev in pyr.levels for c in lev)
+    np.testing.assert_array_equal(pyr.level(0), desc)
+    np.testing.assert_allclose(pyr.level(1), cv2.pyrDown(desc, borderType=cv2.BORDER_REPLICATE), atol=1e-7)
+
+
+def test_more_than_four_channels_are_chunked_for_remap():
+    desc = np.random.default_rng(1).random((40, 50, 9), dtype=np.float32)
+    pyr = build_pyramid(desc, 2)
+    assert [c.shape[2] for c in pyr.levels[0]] == [4, 4, 1] and pyr.channels == 9
+    np.testing.assert_array_equal(pyr.level(0), desc)
 
 
 def test_gradients_of_a_ramp_are_its_slopes():

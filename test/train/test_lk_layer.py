@@ -117,7 +117,12 @@ def test_forward_matches_numpy_solver(textures32):
     ok = ref.status
     assert ok.mean() > 0.7
     assert np.array_equal(out.status.numpy(), ref.status)
-    assert np.abs(out.flow.numpy()[ok] - ref.flow[ok]).max() < 1e-4
+    diff = np.abs(out.flow.numpy()[ok] - ref.flow[ok])
+    # The NumPy solver filters a sampled patch, torch samples filtered maps: equal up to float32 rounding
+    # (~1e-7 px), which can flip one accept/stop decision and leave a point at another spot inside the
+    # stop tolerance (eps = 1e-2 px steps); a real mismatch would show in the median.
+    assert np.median(diff) < 1e-5
+    assert diff.max() < 1e-3
     assert np.array_equal(out.iterations.numpy()[ok], ref.iterations[ok])
 
 
