@@ -76,7 +76,13 @@ class ConvergenceConfig:
     def quick(cls) -> ConvergenceConfig:
         """Tiny sizes for tests and CI."""
         return cls(
-            width=240, height=180, photos=HELDOUT_IMAGES[:1], per_photo=1, max_points=100, iterations=8
+            width=240,
+            height=180,
+            photos=HELDOUT_IMAGES[:1],
+            per_photo=1,
+            max_points=100,
+            iterations=8,
+            basin_errors=(1.0, 5.0),
         )
 
 
