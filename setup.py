@@ -16,6 +16,7 @@ TOOLS = [
     ("nsflow-bench", "bench", "nsflow_ros.bench:main"),
     ("nsflow-make-sample", "make_sample", "nsflow_ros.data.cli:main"),
     ("nsflow-train", "train", "nsflow_ros.tools:train"),
+    ("nsflow-evaluate", "evaluate", "nsflow_ros.evaluation.cli:main"),
 ]
 
 

@@ -1,0 +1,269 @@
+"""Runs the selected analyses and writes ``report.md`` and ``results.json``.
+
+The report: title, date, the exact command line, the machine (CPUs, load, library versions, git commit),
+the headline table built from every section's :class:`~nsflow_ros.evaluation.section.HeadlineRow` (one
+column per compared method, then the target and whether NSFlow meets it), then each section. An
+analysis that fails with a known error (:class:`~nsflow_ros.errors.NSFlowError`) is reported as failed
+and the others still run, so a long run is never lost to one broken part.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from nsflow_ros.errors import NSFlowError
+from nsflow_ros.evaluation.context import EvalContext, atomic_write
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW
+from nsflow_ros.evaluation.registry import Analysis
+from nsflow_ros.evaluation.section import Section
+
+__all__ = [
+    "RunResult",
+    "command_line",
+    "headline_table",
+    "machine_info",
+    "now",
+    "render_report",
+    "run_analyses",
+    "write_report",
+]
+
+METHOD_COLUMNS = (NSFLOW, CLASSICAL, KLT)
+
+
+@dataclass
+class RunResult:
+    """What a run produced.
+
+    Attributes:
+        sections: the finished sections, in registry order.
+        seconds: analysis key -> wall-clock seconds it took (failed ones included).
+        failures: analysis key -> the error message of an analysis that failed.
+    """
+
+    sections: list[Section] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+    failures: dict[str, str] = field(default_factory=dict)
+
+
+def run_analyses(ctx: EvalContext, analyses: Sequence[Analysis]) -> RunResult:
+    """Run each analysis in turn with a progress bar over them.
+
+    Args:
+        ctx: the evaluation context (``ctx.out_dir`` must exist).
+        analyses: what to run, e.g. :func:`~nsflow_ros.evaluation.registry.select`.
+
+    Returns:
+        the :class:`RunResult`; an analysis raising a :class:`~nsflow_ros.errors.NSFlowError` is recorded
+        in ``failures`` (other exceptions are bugs and propagate).
+    """
+    result = RunResult()
+    for a in ctx.bar(analyses, desc="evaluation", total=len(analyses), unit="analysis"):
+        t0 = time.perf_counter()
+        try:
+            result.sections.append(a.run(ctx))
+        except NSFlowError as err:
+            result.failures[a.key] = str(err)
+        result.seconds[a.key] = time.perf_counter() - t0
+    return result
+
+
+def _git_commit() -> str:
+    root = Path(__file__).resolve().parents[2]
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(root), "describe", "--always", "--dirty", "--abbrev=12"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return "unknown (not a git checkout)"
+    return out.stdout.strip() or "unknown"
+
+
+def machine_info(model: Path | None = None) -> dict[str, Any]:
+    """Where the figures were measured: CPUs, load, Python and library versions, git commit, model file.
+
+    Args:
+        model: the NSFlow encoder file (None: the shipped one).
+
+    Returns:
+        a JSON-serialisable dict.
+    """
+    import cv2
+    import numpy as np
+    import onnxruntime
+
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
+    return {
+        "cpu_count": os.cpu_count(),
+        "load_average_1_5_15": [round(v, 2) for v in load],
+        "processor": platform.processor() or platform.machine(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "opencv": cv2.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "git_commit": _git_commit(),
+        "model": str(model) if model is not None else "shipped (models/nsflow_encoder.onnx)",
+    }
+
+
+def headline_table(sections: Sequence[Section]) -> str:
+    """The headline table: every section's headline rows, one column per method, target, met.
+
+    Args:
+        sections: finished sections.
+
+    Returns:
+        a Markdown table (a sentence when no section has headline rows).
+    """
+    rows = [row for s in sections for row in s.headline]
+    if not rows:
+        return "_No headline figures in this run._"
+    extra = sorted({m for r in rows for m in r.values} - set(METHOD_COLUMNS))
+    cols = [*METHOD_COLUMNS, *extra]
+    lines = ["| metric | " + " | ".join(cols) + " | target | met |", "|---|" + "---|" * (len(cols) + 2)]
+    for r in rows:
+        met = "-" if r.met is None else ("yes" if r.met else "**no**")
+        cells = " | ".join(r.values.get(c, "-") for c in cols)
+        lines.append(f"| {r.metric} | {cells} | {r.target or '-'} | {met} |")
+    return "\n".join(lines)
+
+
+def render_report(
+    result: RunResult, info: dict[str, Any], command: str, started: datetime, quick: bool = False
+) -> str:
+    """The Markdown report.
+
+    Args:
+        result: the sections, timings and failures of the run.
+        info: :func:`machine_info`.
+        command: the exact command line.
+        started: when the run began (local time).
+        quick: quick mode (says so at the top: its figures are not meaningful).
+
+    Returns:
+        the report text.
+    """
+    total = sum(result.seconds.values())
+    lines = [
+        "# NSFlow evaluation report",
+        "",
+        f"- date: {started.strftime('%Y-%m-%d %H:%M %Z').strip()}",
+        f"- command: `{command}`",
+        f"- run time: {total:.0f} s (" + ", ".join(f"{k} {v:.0f} s" for k, v in result.seconds.items()) + ")",
+        f"- machine: {info['cpu_count']} CPUs ({info['processor']}), load average "
+        f"{' / '.join(str(v) for v in info['load_average_1_5_15'])} at the end, {info['platform']}",
+        f"- software: Python {info['python']}, NumPy {info['numpy']}, OpenCV {info['opencv']}, "
+        f"onnxruntime {info['onnxruntime']}; git {info['git_commit']}",
+        f"- NSFlow encoder: {info['model']}",
+        "",
+    ]
+    if quick:
+        lines += ["**Quick mode: tiny sizes for testing; the figures below are not meaningful.**", ""]
+    if result.failures:
+        lines += ["## Failed analyses", ""]
+        lines += [f"- **{k}**: {msg}" for k, msg in result.failures.items()]
+        lines.append("")
+    lines += [
+        "## Headline",
+        "",
+        'Lost points count as infinite error wherever a median is given. "met" says whether NSFlow '
+        "meets the target; the figures decide.",
+        "",
+        headline_table(result.sections),
+        "",
+    ]
+    for s in result.sections:
+        lines += [f"## {s.title}", "", s.markdown.rstrip(), ""]
+    return "\n".join(lines)
+
+
+def _jsonable(obj: Any) -> Any:
+    """Replace non-finite floats (JSON has none) by strings and NumPy scalars by Python numbers."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item) and getattr(obj, "ndim", 1) == 0:
+        obj = obj.item()
+    if hasattr(obj, "tolist"):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_report(
+    out_dir: Path,
+    result: RunResult,
+    info: dict[str, Any],
+    command: str,
+    started: datetime,
+    quick: bool = False,
+) -> tuple[Path, Path]:
+    """Write ``report.md`` and ``results.json`` atomically into ``out_dir``.
+
+    Args:
+        out_dir: the report folder (exists; the sections' PNGs are already in it).
+        result: the run's sections, timings and failures.
+        info: :func:`machine_info`.
+        command: the exact command line.
+        started: when the run began.
+        quick: quick mode.
+
+    Returns:
+        (report path, results path).
+    """
+    out_dir = Path(out_dir)
+    text = render_report(result, info, command, started, quick)
+    results = {
+        "date": started.isoformat(timespec="seconds"),
+        "command": command,
+        "quick": quick,
+        "machine": info,
+        "seconds": result.seconds,
+        "failures": result.failures,
+        "headline": [
+            {"section": s.key, "metric": r.metric, "values": r.values, "target": r.target, "met": r.met}
+            for s in result.sections
+            for r in s.headline
+        ],
+        "sections": {
+            s.key: {"title": s.title, "figures": [Path(f).name for f in s.figures], "data": s.data}
+            for s in result.sections
+        },
+    }
+    report = atomic_write(out_dir / "report.md", lambda p: p.write_text(text, encoding="utf-8"))
+    payload = json.dumps(_jsonable(results), indent=2, allow_nan=False)
+    res = atomic_write(out_dir / "results.json", lambda p: p.write_text(payload + "\n", encoding="utf-8"))
+    return report, res
+
+
+def command_line(argv: Sequence[str] | None) -> str:
+    """The command as typed (program name and arguments, shell-quoted); ``argv`` None = ``sys.argv``."""
+    if argv is None:
+        return shlex.join([Path(sys.argv[0]).name or "nsflow-evaluate", *sys.argv[1:]])
+    return shlex.join(["nsflow-evaluate", *argv])
+
+
+def now() -> datetime:
+    """The local time, with its zone."""
+    return datetime.now().astimezone()
