@@ -36,7 +36,7 @@ from nsflow_ros.core import (
 )
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["main", "make_frames", "paper_encoder_onnx", "run_benchmark"]
+__all__ = ["main", "make_frames", "paper_encoder_onnx", "run_benchmark", "time_encoder"]
 
 WIDTH, HEIGHT = 752, 480
 
@@ -183,10 +183,30 @@ def _opencv_klt(frames: list[np.ndarray], points: int) -> dict[str, Any]:
     }
 
 
-def _encoder_only(encoder: Encoder, size: tuple[int, int], repeats: int) -> dict[str, float]:
+def time_encoder(
+    encoder: Encoder, size: tuple[int, int], repeats: int, warmup: int = 1
+) -> dict[str, float]:
+    """Median and p90 milliseconds of one encoder call on a real-photo frame of ``size``.
+
+    Args:
+        encoder: any encoder (ONNX or intensity).
+        size: (width, height) of the frame.
+        repeats: timed calls.
+        warmup: untimed calls first (onnxruntime allocates its buffers on the first run).
+
+    Returns:
+        ``{"median_ms", "p90_ms"}``.
+    """
+    if repeats < 1 or warmup < 0:
+        raise NSFlowError(f"repeats must be >= 1 and warmup >= 0, got {repeats} and {warmup}")
     frame = make_frames(1, size)[0]
-    encoder(frame)
+    for _ in range(warmup):
+        encoder(frame)
     return _stats([_timed(lambda: encoder(frame))[1] for _ in range(repeats)])
+
+
+def _encoder_only(encoder: Encoder, size: tuple[int, int], repeats: int) -> dict[str, float]:
+    return time_encoder(encoder, size, repeats)
 
 
 def run_benchmark(

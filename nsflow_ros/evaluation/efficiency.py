@@ -1,0 +1,350 @@
+"""Inference efficiency (the paper's Table II) and the whole tracker's per-frame time per method.
+
+* Parameters and FLOPs of the ONNX encoder, counted from its graph (:func:`onnx_complexity`):
+  parameters = elements of every initializer that feeds a ``Conv``, ``Gemm`` or ``MatMul`` node (weights
+  and biases); MACs = for ``Conv``, output elements x (input channels / group) x kernel area; for
+  ``Gemm`` / ``MatMul`` with an initializer operand, output elements x the inner dimension. FLOPs =
+  2 x MACs. Biases, activations, padding, resizes and every other node are not counted (the convention
+  of ``models/README.md``: "2 per multiply-add, convolutions only"). Output sizes come from one
+  onnxruntime run at the requested size with the counted nodes' outputs exposed, so any padding scheme
+  (the shipped model pads with ``Pad(edge)`` nodes) is measured, not assumed.
+* Encoder milliseconds at 320x240 and 752x480 (onnxruntime on the CPU, median and p90 over N runs after
+  warm-up, :func:`nsflow_ros.bench.time_encoder`), with the intensity encoder timed in the same run.
+* The whole :class:`~nsflow_ros.core.tracker.FeatureTracker` per frame (encode, track + flow-back,
+  detection, total) for ``nsflow``, ``classical`` and ``klt`` on frames of the sample sequence.
+
+Reading the ONNX graph needs the ``onnx`` package (in the ``test`` and ``train`` extras).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nsflow_ros.core.encoder import Encoder, IntensityEncoder
+from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
+from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW
+from nsflow_ros.evaluation.section import HeadlineRow, Section
+
+__all__ = [
+    "PAPER_TABLE_II",
+    "ModelComplexity",
+    "onnx_complexity",
+    "run",
+    "time_tracker",
+]
+
+KEY = "efficiency"
+SIZES = ((320, 240), (752, 480))
+PAPER_TABLE_II = {"parameters": 1010, "gflops": 0.27, "cpu_ms_320x240": 5.21, "gpu_ms_320x240": 0.84}
+"""The paper's own Table II row (RGB input, d = 3, their hardware and image size convention)."""
+_COUNTED = ("Conv", "Gemm", "MatMul")
+
+
+@dataclass(frozen=True)
+class ModelComplexity:
+    """Size and cost of an ONNX model at one input size.
+
+    Attributes:
+        parameters: elements of the initializers feeding Conv / Gemm / MatMul nodes.
+        macs: multiply-accumulates of those nodes at ``size``.
+        size: (width, height) of the input.
+        layers: per counted node: name, op type, output shape, MACs.
+    """
+
+    parameters: int
+    macs: int
+    size: tuple[int, int]
+    layers: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def flops(self) -> int:
+        """2 x MACs (one multiply and one add per multiply-accumulate)."""
+        return 2 * self.macs
+
+
+def _import_onnx() -> Any:
+    try:
+        import onnx
+    except ImportError as err:
+        raise EvaluationError(
+            "counting parameters and FLOPs reads the ONNX graph and needs the onnx package: "
+            "pip install 'nsflow_ros[test]'"
+        ) from err
+    return onnx
+
+
+def onnx_complexity(path: str | Path, width: int = 320, height: int = 240) -> ModelComplexity:
+    """Count the parameters and MACs of an ONNX model (see the module docstring for what is counted).
+
+    Args:
+        path: the .onnx file; its first input must be (1, C, H, W) with C fixed.
+        width: input width.
+        height: input height.
+
+    Returns:
+        the counts.
+
+    Raises:
+        EvaluationError: missing file, no onnx package, an input that is not (N, C, H, W) with a fixed C,
+            or a model onnxruntime cannot run.
+    """
+    import onnxruntime as ort
+
+    onnx = _import_onnx()
+    path = Path(path)
+    if not path.is_file():
+        raise EvaluationError(f"ONNX model not found: {path}")
+    if width < 1 or height < 1:
+        raise EvaluationError(f"input size must be positive, got {width}x{height}")
+    try:
+        model = onnx.load(str(path))
+    except Exception as err:  # onnx raises DecodeError and others, no common base class
+        raise EvaluationError(f"cannot read {path} as ONNX: {err}") from err
+    graph = model.graph
+    inits = {t.name: tuple(int(d) for d in t.dims) for t in graph.initializer}
+    counted = [n for n in graph.node if n.op_type in _COUNTED]
+    used = {name for n in counted for name in n.input if name in inits}
+    parameters = int(sum(int(np.prod(inits[name])) for name in used))
+
+    real_inputs = [i for i in graph.input if i.name not in inits]
+    if not real_inputs:
+        raise EvaluationError(f"{path}: the graph has no input")
+    dims = real_inputs[0].type.tensor_type.shape.dim
+    if len(dims) != 4 or not dims[1].dim_value:
+        shape = [d.dim_value or d.dim_param for d in dims]
+        raise EvaluationError(f"{path}: expected an (N, C, H, W) input with a fixed C, got {shape}")
+    channels = int(dims[1].dim_value)
+    # Expose the counted nodes' outputs, so their sizes are measured whatever padding the graph uses.
+    have = {o.name for o in graph.output}
+    for n in counted:
+        if n.output[0] not in have:
+            graph.output.append(onnx.helper.make_tensor_value_info(n.output[0], onnx.TensorProto.FLOAT, None))
+    try:
+        sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        names = [n.output[0] for n in counted]
+        outs = sess.run(names, {real_inputs[0].name: np.zeros((1, channels, height, width), np.float32)})
+    except Exception as err:  # onnxruntime's errors share no public base class
+        raise EvaluationError(f"{path}: onnxruntime cannot run it at {width}x{height}: {err}") from err
+
+    layers: list[dict[str, Any]] = []
+    macs = 0
+    for n, out in zip(counted, outs, strict=True):
+        shape = tuple(int(d) for d in out.shape)
+        if n.op_type == "Conv":
+            w = inits.get(n.input[1])
+            if w is None:
+                raise EvaluationError(f"{path}: Conv {n.name!r} has no initializer weight; cannot count it")
+            # weight (C_out, C_in / group, kh, kw): each output element costs C_in / group * kh * kw MACs
+            node_macs = int(np.prod(shape)) * int(np.prod(w[1:]))
+        else:
+            b = inits.get(n.input[1])
+            if b is None or len(b) != 2:
+                continue  # activation x activation products are not a layer's cost here
+            trans_b = n.op_type == "Gemm" and any(a.name == "transB" and a.i for a in n.attribute)
+            inner = b[1] if trans_b else b[0]
+            node_macs = int(np.prod(shape)) * int(inner)
+        macs += node_macs
+        layers.append({"name": n.name, "op": n.op_type, "output_shape": list(shape), "macs": node_macs})
+    return ModelComplexity(parameters, macs, (width, height), layers)
+
+
+def _stats(samples: list[float]) -> dict[str, float]:
+    arr = np.asarray(samples, dtype=np.float64)
+    return {"median_ms": float(np.median(arr)), "p90_ms": float(np.percentile(arr, 90))}
+
+
+def time_tracker(
+    frames: list[np.ndarray],
+    camera: Any,
+    method: str,
+    *,
+    settings: TrackerSettings | None = None,
+    encoder: Encoder | None = None,
+    dt: float = 0.05,
+) -> dict[str, dict[str, float]]:
+    """Per-frame time of the whole tracker, stage by stage, over a frame sequence.
+
+    Args:
+        frames: images in order (uint8).
+        camera: the tracker's camera model (its size must match the frames).
+        method: tracker method (``nsflow``, ``classical``, ``klt``).
+        settings: tracker settings (``method`` is replaced); None = the defaults.
+        encoder: encoder for the LM methods (None: the tracker loads its own).
+        dt: seconds between frames.
+
+    Returns:
+        stage (encode, track, detect, total) -> median / p90 ms, over every frame but the first (which
+        has nothing to track).
+
+    Raises:
+        EvaluationError: fewer than 2 frames, or the tracker fails.
+    """
+    if len(frames) < 2:
+        raise EvaluationError(f"timing the tracker needs at least 2 frames, got {len(frames)}")
+    try:
+        tracker = FeatureTracker(
+            [camera], replace(settings or TrackerSettings(), method=method),
+            encoder=None if method == "klt" else encoder,
+        )
+        timings = [tracker.process(k * dt, img).timings for k, img in enumerate(frames)]
+    except CoreError as err:
+        raise EvaluationError(f"tracker {method}: {err}") from err
+    stages = ("encode", "track", "detect", "total")
+    return {stage: _stats([t.get(stage, 0.0) for t in timings[1:]]) for stage in stages}
+
+
+def _figure(enc: dict[str, dict[str, dict[str, float]]], trk: dict[str, dict[str, dict[str, float]]],
+            size: tuple[int, int], path: Path) -> Path:
+    fig = new_figure(11, 4.2)
+    ax1, ax2 = fig.subplots(1, 2)
+    labels = list(next(iter(enc.values())))
+    x = np.arange(len(labels))
+    width = 0.8 / len(enc)
+    for k, (name, per) in enumerate(enc.items()):
+        med = [per[s]["median_ms"] for s in labels]
+        err = [per[s]["p90_ms"] - per[s]["median_ms"] for s in labels]
+        ax1.bar(x + (k - (len(enc) - 1) / 2) * width, med, width, yerr=[np.zeros(len(med)), err], capsize=3,
+                label=name)
+    ax1.set_xticks(x, labels)
+    ax1.set_ylabel("ms (median, bar to p90)")
+    ax1.set_title("encoder alone (onnxruntime, CPU)")
+    ax1.legend(fontsize=8)
+    ax1.grid(axis="y", alpha=0.3)
+    names = list(trk)
+    bottom = np.zeros(len(names))
+    for stage in ("encode", "track", "detect"):
+        vals = np.array([trk[m][stage]["median_ms"] for m in names])
+        ax2.bar(names, vals, 0.6, bottom=bottom, label=stage)
+        bottom += vals
+    ax2.set_ylabel("ms per frame (median per stage)")
+    ax2.set_title(f"whole tracker per frame, {size[0]}x{size[1]}")
+    ax2.legend(fontsize=8)
+    ax2.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def run(ctx: EvalContext) -> Section:
+    """The ``efficiency`` section of the report (see the module docstring).
+
+    ``ctx.extra["efficiency"]`` may hold ``repeats`` (encoder runs) and ``frames`` (tracker frames).
+
+    Args:
+        ctx: the evaluation context; NSFlow's encoder is taken from ``ctx.methods`` (or loaded from
+            ``ctx.model``).
+
+    Returns:
+        the section: Table II (with the paper's row), the tracker's per-frame times, a figure.
+
+    Raises:
+        EvaluationError: no ONNX model, no onnx package, or a run that fails.
+    """
+    from nsflow_ros.bench import time_encoder
+    from nsflow_ros.core.encoder import OnnxEncoder, load_encoder
+    from nsflow_ros.evaluation import sequences
+
+    opts = dict(ctx.extra.get(KEY, {}))
+    repeats = int(opts.get("repeats", 3 if ctx.quick else 50))
+    warmup = 1 if ctx.quick else 5
+    n_frames = int(opts.get("frames", 0 if ctx.quick else 40))  # 0: the whole (quick) sequence
+
+    encoder: Encoder | None = None
+    for m in ctx.methods:
+        if m.name == NSFLOW and isinstance(getattr(m, "encoder", None), OnnxEncoder):
+            encoder = m.encoder  # type: ignore[attr-defined]
+    if encoder is None:
+        try:
+            encoder = load_encoder(ctx.model, threads=ctx.threads)
+        except CoreError as err:
+            raise EvaluationError(str(err)) from err
+    model_path = Path(encoder.path)  # type: ignore[attr-defined]
+    counts = {f"{w}x{h}": onnx_complexity(model_path, w, h) for w, h in SIZES}
+
+    encoders: dict[str, Encoder] = {NSFLOW: encoder, "intensity": IntensityEncoder()}
+    enc_times: dict[str, dict[str, dict[str, float]]] = {name: {} for name in encoders}
+    jobs = [(name, size) for size in SIZES for name in encoders]
+    for name, (w, h) in ctx.bar(jobs, desc="efficiency: encoders", unit="size"):
+        try:
+            enc_times[name][f"{w}x{h}"] = time_encoder(encoders[name], (w, h), repeats, warmup)
+        except CoreError as err:
+            raise EvaluationError(f"{name} encoder at {w}x{h}: {err}") from err
+
+    setup = sequences.QUICK if ctx.quick else sequences.FULL
+    source = sequences.load_source(ctx, setup)
+    count = len(source) if n_frames <= 0 else min(n_frames, len(source))
+    frames = [source.image(i) for i in range(count)]
+    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads)
+    kinds = {NSFLOW: "nsflow", CLASSICAL: "classical", KLT: "klt"}
+    tracker_times: dict[str, dict[str, dict[str, float]]] = {}
+    for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
+        enc = encoder if name == NSFLOW else None
+        tracker_times[name] = time_tracker(frames, source.camera, kinds[name], settings=settings, encoder=enc)
+
+    out = Path(ctx.out_dir)
+    fig = _figure(enc_times, tracker_times, source.size, out / f"{KEY}_times.png")
+    c320 = counts["320x240"]
+    size_txt = f"{source.size[0]}x{source.size[1]}"
+
+    def ms(st: dict[str, float]) -> str:
+        return f"{st['median_ms']:.2f} / {st['p90_ms']:.2f}"
+
+    rows = [
+        "| encoder | parameters | GFLOPs 320x240 | GFLOPs 752x480 | CPU ms 320x240 (median / p90) "
+        "| CPU ms 752x480 (median / p90) |",
+        "|---|---|---|---|---|---|",
+        f"| NSFlow ({encoder.name}, d={encoder.channels}) | {c320.parameters:,} | {c320.flops / 1e9:.3f} "
+        f"| {counts['752x480'].flops / 1e9:.3f} | {ms(enc_times[NSFLOW]['320x240'])} "
+        f"| {ms(enc_times[NSFLOW]['752x480'])} |",
+        f"| intensity (classical baseline) | 0 | 0 | 0 | {ms(enc_times['intensity']['320x240'])} "
+        f"| {ms(enc_times['intensity']['752x480'])} |",
+        f"| paper, Table II (RGB, d=3, their CPU) | {PAPER_TABLE_II['parameters']:,} "
+        f"| {PAPER_TABLE_II['gflops']} | - | {PAPER_TABLE_II['cpu_ms_320x240']} | - |",
+    ]
+    trows = [
+        "| method | encode ms | track + flow-back ms | detect ms | total ms (median / p90) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, st in tracker_times.items():
+        trows.append(
+            f"| {name} | {st['encode']['median_ms']:.2f} | {st['track']['median_ms']:.2f} "
+            f"| {st['detect']['median_ms']:.2f} | {ms(st['total'])} |"
+        )
+    threads = "onnxruntime's default" if ctx.threads is None else str(ctx.threads)
+    quick = " Quick mode: few runs on tiny frames, the times are not meaningful." if ctx.quick else ""
+    md = "\n\n".join([
+        f"Encoder `{model_path.name}`; FLOPs = 2 x multiply-adds of the Conv/Gemm/MatMul nodes, counted from "
+        "the ONNX graph (biases, activations and padding not counted); parameters = elements of their "
+        f"initializers. Times: {repeats} runs after {warmup} warm-up, threads {threads}.{quick}",
+        "\n".join(rows),
+        f"Whole `FeatureTracker` per frame on {count - 1} frames of the sample sequence ({size_txt}, max_cnt "
+        f"{setup.max_cnt}, flow-back on; first frame left out), every stage timed inside the tracker:",
+        "\n".join(trows),
+        f"![efficiency]({fig.name})",
+    ])
+    headline = [
+        HeadlineRow("encoder parameters / GFLOPs at 320x240",
+                    {NSFLOW: f"{c320.parameters:,} / {c320.flops / 1e9:.3f}"}),
+        HeadlineRow("encoder CPU ms at 320x240 (median)",
+                    {NSFLOW: f"{enc_times[NSFLOW]['320x240']['median_ms']:.2f}",
+                     CLASSICAL: f"{enc_times['intensity']['320x240']['median_ms']:.2f}"}),
+        HeadlineRow(f"whole tracker ms per frame at {size_txt} (median)",
+                    {name: f"{st['total']['median_ms']:.1f}" for name, st in tracker_times.items()}),
+    ]
+    data = {
+        "model": str(model_path),
+        "complexity": {k: {"parameters": c.parameters, "macs": c.macs, "flops": c.flops, "layers": c.layers}
+                       for k, c in counts.items()},
+        "encoder_ms": enc_times,
+        "tracker_ms": tracker_times,
+        "setup": {"repeats": repeats, "warmup": warmup, "tracker_frames": count, "size": list(source.size),
+                  "threads": ctx.threads, "quick": ctx.quick},
+        "paper_table_ii": PAPER_TABLE_II,
+    }
+    return Section(KEY, "Inference efficiency (Table II) and per-frame time", md, [fig], headline, data)
