@@ -205,8 +205,7 @@ def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
     from matplotlib.patches import Patch
 
     colours = ["#b2182b", "#ef8a62", "#fddbc7", "#2166ac"]  # <1, <2, <3, not recovered
-    cmap = ListedColormap(colours)
-    cmap.set_bad("#d9d9d9")
+    cmap = ListedColormap(colours).with_extremes(bad="#d9d9d9")
     norm = BoundaryNorm([0, 1, 2, 3, 4], cmap.N)
     cols = 1 + len(names)
     fig = new_figure(2.6 * cols, 2.1 * len(maps) + 0.6)

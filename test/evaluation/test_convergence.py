@@ -1,0 +1,70 @@
+"""Convergence curves: LM's recorded history and KLT's re-runs decrease on texture; guards."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from image_pairs import texture, warp_pair
+
+from nsflow_ros.evaluation import convergence as cv
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.methods import default_methods
+from nsflow_ros.evaluation.pairs import HomographyPair, inside, keypoints, true_flow
+
+SHIFT = np.array([[1.0, 0.0, 1.3], [0.0, 1.0, 0.6], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def setup():
+    f1, f2 = warp_pair(texture("astronaut", (240, 180)), SHIFT)
+    pair = HomographyPair("astronaut", "convergence", 1, f1, f2, SHIFT)
+    pts = keypoints(f1, 120, 6.0)
+    gt = true_flow(pts, SHIFT)
+    pts, gt = pts[inside(pts + gt, 240, 180)], gt[inside(pts + gt, 240, 180)]
+    ang = np.random.default_rng(0).uniform(0, 2 * np.pi, len(pts))
+    flow0 = gt + 2.5 * np.stack([np.cos(ang), np.sin(ang)], 1)
+    return default_methods(), pair, pts, flow0
+
+
+def test_curves_start_at_the_initial_error_and_decrease_on_texture(setup):
+    methods, pair, pts, flow0 = setup
+    curves, final = cv.convergence_curves(methods, pair, pts, flow0, iterations=12, levels=1)
+    for m in methods:
+        c = curves[m.name].mean(axis=1)
+        assert curves[m.name].shape == (13, len(pts))
+        assert c[0] == pytest.approx(2.5)
+        assert c[-1] < 0.3 * c[0], (m.name, c)
+        assert c[3] < c[0], (m.name, c)
+        assert np.median(final[m.name]) < 0.2, m.name
+    # LM: once every point has stopped the curve is flat, and its end is the solver's final flow
+    lm = methods[1]
+    res = lm.track_pyramids(lm.pyramid(pair.image1), lm.pyramid(pair.image2), pts, flow0,
+                            config=replace(lm.config, levels=1, max_iterations=12))  # fmt: skip
+    end = np.linalg.norm(res.flow - true_flow(pts, SHIFT), axis=1)
+    np.testing.assert_allclose(curves[lm.name][-1], np.minimum(end, 10.0), atol=1e-9)
+
+
+def test_capture_range_is_a_table_of_final_errors(setup):
+    methods, pair, pts, _ = setup
+    d = np.tile([1.0, 0.0], (len(pts), 1))
+    out = cv.capture_range(methods, pair, pts, d, (1.0, 2.0), levels=3)
+    assert set(out) == {1.0, 2.0}
+    for per in out.values():
+        assert set(per) == {m.name for m in methods}
+        assert all(np.mean(e < 1.0) > 0.8 for e in per.values())
+
+
+def test_guards(setup):
+    methods, pair, pts, flow0 = setup
+    with pytest.raises(EvaluationError, match=r"\(N, 2\)"):
+        cv.convergence_curves(methods, pair, pts, flow0[:-1])
+    with pytest.raises(EvaluationError, match="iterations"):
+        cv.convergence_curves(methods, pair, pts, flow0, iterations=0)
+
+    class Other:
+        name, levels = "other", 1
+
+    with pytest.raises(EvaluationError, match="LM or KLT"):
+        cv.convergence_curves([Other()], pair, pts, flow0, iterations=2)

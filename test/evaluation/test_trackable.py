@@ -1,0 +1,57 @@
+"""Trackable-region ratio: a flat image has none, texture without offset is all, guards."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from image_pairs import texture, warp_pair
+
+from nsflow_ros.evaluation import trackable as tr
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.methods import KLT, default_methods
+from nsflow_ros.evaluation.pairs import HomographyPair
+
+SHIFT = np.array([[1.0, 0.0, 1.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def methods():
+    return default_methods()
+
+
+def test_flat_image_has_no_trackable_region(methods):
+    flat = np.full((60, 80), 128, np.uint8)
+    pair = HomographyPair("flat", "trackable", 1, flat, flat.copy(), SHIFT)
+    tm = tr.trackable_map(methods, pair, np.random.default_rng(0), stride=4)
+    assert len(tm.points) > 20
+    for name, r in tm.ratios().items():
+        assert r[2] < 0.05, (name, r)
+
+
+def test_textured_pair_without_offset_is_recovered_and_maps_to_the_grid(methods):
+    f1, f2 = warp_pair(texture("astronaut", (120, 90)), SHIFT)
+    pair = HomographyPair("astronaut", "trackable", 1, f1, f2, SHIFT)
+    tm = tr.trackable_map(methods, pair, np.random.default_rng(0), stride=5, perturbation=0.0, chunk=17)
+    r = tm.ratios()
+    assert r[KLT][0] > 0.9, r
+    for v in r.values():
+        assert v[0] <= v[1] <= v[2]  # within 1 px implies within 2 and 3
+    grid = tm.grid(KLT)
+    assert grid.shape == tm.grid_shape
+    assert np.isfinite(grid).sum() + np.isinf(grid).sum() == len(tm.points)
+    # the same map does not depend on how the points are chunked
+    again = tr.trackable_map(methods, pair, np.random.default_rng(0), stride=5, perturbation=0.0, chunk=10000)
+    for name in r:
+        np.testing.assert_allclose(again.errors[name], tm.errors[name], rtol=1e-9, atol=1e-9)
+
+
+def test_guards():
+    img = np.zeros((40, 40), np.uint8)
+    pair = HomographyPair("x", "trackable", 1, img, img, np.eye(3))
+    with pytest.raises(EvaluationError, match="stride"):
+        tr.trackable_map([], pair, np.random.default_rng(0), stride=0)
+    with pytest.raises(EvaluationError, match="perturbation"):
+        tr.trackable_map([], pair, np.random.default_rng(0), perturbation=-1.0)
+    bad = HomographyPair("x", "trackable", 1, img, np.zeros((40, 41), np.uint8), np.eye(3))
+    with pytest.raises(EvaluationError, match=r"\(40, 40\) and \(40, 41\)"):
+        tr.trackable_map([], bad, np.random.default_rng(0))
