@@ -216,7 +216,11 @@ _dot = functools.partial(np.einsum, "ij,ij->i")
 
 
 def _normal_equations(
-    level: tuple[np.ndarray, ...], centers: np.ndarray, template: list[np.ndarray], window: int
+    level: tuple[np.ndarray, ...],
+    centers: np.ndarray,
+    template: list[np.ndarray],
+    window: int,
+    below: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """S, J^T J as (h11, h12, h22) and J^T f per point, with D2 and J sampled at ``centers``.
 
@@ -227,25 +231,40 @@ def _normal_equations(
     Beyond the image it is the derivative of the replicated map, 0 across the edge; such points end with
     status False anyway. One remap per 4 channels thus gives D2 and J together, and the pyramid needs no
     derivative maps. Sums are additive over channels, so chunks are reduced one at a time.
+
+    With ``below`` (the current costs), J^T J and J^T f are computed only where S < below, i.e. for the
+    candidates LM will accept, and left 0 elsewhere: the solver discards them for rejected steps, which
+    are about two thirds of all steps with the learned descriptors.
     """
     m = centers.shape[0]
     size = window + 2
     maps = _scatter_maps(centers, size) if _remap_is_exact() else None
-    cost = np.zeros(m)
+    patches = [_sample_chunk(chunk, centers, size, maps) for chunk in level]
+    resid = [p[:, 1:-1, 1:-1].reshape(m, -1) - t for p, t in zip(patches, template, strict=True)]
+    cost = 0.5 * sum(_dot(f, f).astype(np.float64) for f in resid)
     hess = np.zeros((m, 3))
     grad = np.zeros((m, 2))
-    for chunk, tmpl in zip(level, template, strict=True):
-        p = _sample_chunk(chunk, centers, size, maps)
+    rows = None if below is None else np.flatnonzero(cost < below)
+    if rows is not None and rows.size == 0:
+        return cost, hess, grad
+    h_sub = np.zeros((m if rows is None else rows.size, 3))
+    g_sub = np.zeros((h_sub.shape[0], 2))
+    for p, f in zip(patches, resid, strict=True):
+        if rows is not None:
+            p, f = p[rows], f[rows]
+        k = p.shape[0]
         # Scharr [-1 0 1] x [3 10 3]; the 1/32 normalisation is applied to the sums below.
         cx = p[:, :, 2:] - p[:, :, :-2]
-        jx = (3.0 * (cx[:, :-2] + cx[:, 2:]) + 10.0 * cx[:, 1:-1]).reshape(m, -1)
+        jx = (3.0 * (cx[:, :-2] + cx[:, 2:]) + 10.0 * cx[:, 1:-1]).reshape(k, -1)
         cy = p[:, 2:] - p[:, :-2]
-        jy = (3.0 * (cy[:, :, :-2] + cy[:, :, 2:]) + 10.0 * cy[:, :, 1:-1]).reshape(m, -1)
-        f = p[:, 1:-1, 1:-1].reshape(m, -1) - tmpl
-        cost += _dot(f, f)
-        hess += np.stack([_dot(jx, jx), _dot(jx, jy), _dot(jy, jy)], axis=1)
-        grad += np.stack([_dot(jx, f), _dot(jy, f)], axis=1)
-    return 0.5 * cost, hess * (1.0 / 1024.0), grad * (1.0 / 32.0)
+        jy = (3.0 * (cy[:, :, :-2] + cy[:, :, 2:]) + 10.0 * cy[:, :, 1:-1]).reshape(k, -1)
+        h_sub += np.stack([_dot(jx, jx), _dot(jx, jy), _dot(jy, jy)], axis=1)
+        g_sub += np.stack([_dot(jx, f), _dot(jy, f)], axis=1)
+    if rows is None:
+        return cost, h_sub * (1.0 / 1024.0), g_sub * (1.0 / 32.0)
+    hess[rows] = h_sub * (1.0 / 1024.0)
+    grad[rows] = g_sub * (1.0 / 32.0)
+    return cost, hess, grad
 
 
 def _solve_level(
@@ -284,7 +303,7 @@ def _solve_level(
             du[:, 1] = -(a11 * g_a[:, 1] - a12 * g_a[:, 0]) / det
         du[~np.isfinite(du)] = 0.0
         cand = u_a + du
-        c_cost, c_hess, c_grad = _normal_equations(level2, p_a + cand, t_a, win)
+        c_cost, c_hess, c_grad = _normal_equations(level2, p_a + cand, t_a, win, below=c_a)
         accept = c_cost < c_a
         step_small = np.hypot(du[:, 0], du[:, 1]) < cfg.eps * (1.0 + np.hypot(u_a[:, 0], u_a[:, 1]))
         grad_small = np.abs(g_a).max(axis=1) < cfg.eps

@@ -252,3 +252,19 @@ def test_patch_jacobian_beyond_the_image_is_that_of_the_replicated_map():
     far = np.array([[40.5, 10.0], [-9.5, 10.0]])  # whole window right / left of the image
     hess = solver_mod._normal_equations(level, far, solver_mod._template(level, far, 5), 5)[1]
     np.testing.assert_allclose(hess, 0.0, atol=1e-12)
+
+
+def test_jacobian_terms_only_for_candidates_below_the_current_cost():
+    rng = np.random.default_rng(5)
+    desc = cv2.GaussianBlur(rng.random((40, 50, 4), dtype=np.float32), (0, 0), 1.5)
+    level = build_pyramid(desc, 1).levels[0]
+    centers = rng.uniform(8, 30, (12, 2))
+    template = solver_mod._template(level, centers + 0.4, 7)
+    full = solver_mod._normal_equations(level, centers, template, 7)
+    below = np.where(np.arange(12) % 2 == 0, full[0] + 1.0, full[0] - 1e-9)  # even rows "accepted"
+    part = solver_mod._normal_equations(level, centers, template, 7, below=below)
+    np.testing.assert_array_equal(part[0], full[0])
+    even, odd = np.arange(0, 12, 2), np.arange(1, 12, 2)
+    np.testing.assert_allclose(part[1][even], full[1][even], rtol=1e-12)
+    np.testing.assert_allclose(part[2][even], full[2][even], rtol=1e-12)
+    assert not part[1][odd].any() and not part[2][odd].any()
