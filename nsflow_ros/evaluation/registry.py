@@ -1,4 +1,5 @@
-"""The registry of analyses the evaluation command runs, in report order.
+"""The registry of analyses the evaluation command runs, in report order (the issue's headline target,
+the sequences, first).
 
 An :class:`Analysis` names a function ``run(ctx: EvalContext) -> Section``; ``nsflow-evaluate --only`` /
 ``--skip`` select them by key. To add one: write the module with its ``run``, import it here and append
@@ -10,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from nsflow_ros.evaluation import convergence, pairs, trackable
+from nsflow_ros.evaluation import convergence, efficiency, pairs, sequences, trackable
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.section import Section
@@ -34,9 +35,17 @@ class Analysis:
 
 
 ANALYSES: list[Analysis] = [
+    Analysis(
+        sequences.KEY,
+        "front-end metrics per perturbation level on the sample sequence, F-matrix inliers (Table III)",
+        sequences.run,
+    ),
     Analysis("pairs", "tracking error on HPatches-style viewpoint / illumination pairs", pairs.run),
     Analysis("trackable", "trackable-region ratio from a 15 px initial error (paper Table I)", trackable.run),
     Analysis("convergence", "error against iteration from a 5 px initial error", convergence.run),
+    Analysis(
+        efficiency.KEY, "parameters, FLOPs, encoder and whole-tracker milliseconds (Table II)", efficiency.run
+    ),
 ]
 
 
