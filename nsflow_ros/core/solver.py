@@ -53,11 +53,15 @@ class LMConfig:
     The defaults were chosen by measurement on real-texture pairs with known sub-pixel shifts (150 GFTT
     points, intensity descriptors, 3 levels): nu=10 / eps=1e-2 / lambda_init=1e-2 reach a median error of
     0.026 px in 7 iterations per point, where nu=2 / eps=1e-3 reach 0.024 px in 34 (4x the time).
+    K_max = 12 per level (not 30) on the held-out photo pairs at 5 px initial error, 3 levels: the same
+    errors for both modes (NSFlow 0.059 / 0.132 px median clean / perturbed, within 1 px 99.5 / 96.4 %),
+    while the batched loop, which runs until its slowest point stops, made 35 instead of 69 passes. At one
+    level from 5 px, 30 iterations help a little (intensity 0.147 vs 0.172 px median): set it there.
     """
 
     window: int = 11
     levels: int = 3
-    max_iterations: int = 30
+    max_iterations: int = 12
     lambda_init: float = 1e-2
     nu: float = 10.0
     eps: float = 1e-2

@@ -105,7 +105,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     comparisons = []
     for label, strength in (("perturbed", 1.0), ("clean", 0.0)):
         pairs = heldout_pairs(opts.eval_per_image, strength=strength)
-        for config in (LMConfig(), LMConfig(levels=1)):
+        for config in (LMConfig(), LMConfig(levels=1, max_iterations=30)):
             comparisons.append(compare(encoder, pairs, config, label))
     table = format_table(comparisons)
     (out / "eval.md").write_text(table + "\n")
