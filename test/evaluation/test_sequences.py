@@ -93,6 +93,9 @@ def test_quick_run_writes_figures_table_and_computed_headline(quick_section, qui
     ten = res["large"]
     assert targets[0].met == (ten[NSFLOW]["tracks_10_frames"] >= 2 * ten[KLT]["tracks_10_frames"])
     assert targets[2].met == (ten[NSFLOW]["error_median_px"] <= 0.5)
+    verdict = "met" if targets[0].met else "**not met**"
+    assert f"target >= 2x OpenCV KLT: {verdict}" in sec.markdown
+    assert 0 <= res["none"][KLT]["lost_near_border_share"] <= 1
 
 
 def test_every_method_tracks_most_features_with_subpixel_error_unperturbed(quick_section):
