@@ -1,10 +1,13 @@
 """The evaluation suite: the paper's analyses for NSFlow beside the classical baselines.
 
 Only NumPy/OpenCV/onnxruntime (and matplotlib for figures, imported inside functions); no ROS, no torch.
+Every analysis is ``run(ctx: EvalContext) -> Section``; :mod:`~nsflow_ros.evaluation.registry` lists them
+in report order and ``nsflow-evaluate`` (:mod:`~nsflow_ros.evaluation.cli`) runs them into one report.
 """
 
 from __future__ import annotations
 
+from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import (
     CLASSICAL,
@@ -22,6 +25,7 @@ __all__ = [
     "CLASSICAL",
     "KLT",
     "NSFLOW",
+    "EvalContext",
     "EvaluationError",
     "HeadlineRow",
     "KLTMethod",

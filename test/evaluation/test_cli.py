@@ -95,3 +95,15 @@ def test_registry_keys_are_unique_and_listed(capsys):
     assert cli.main(["--list"]) == 0
     listing = capsys.readouterr().out
     assert all(k in listing for k in keys)
+
+
+def test_the_evaluation_command_imports_neither_torch_nor_rclpy():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, nsflow_ros.evaluation.cli, nsflow_ros.evaluation.registry; "
+        "print(sorted(m for m in ('rclpy', 'torch') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

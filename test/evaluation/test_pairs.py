@@ -55,9 +55,10 @@ def test_pairs_are_reproducible_and_subsets_differ_only_as_described():
     assert {p.subset for p in light} == {"illumination"}
     # strongest illumination level: the two frames' brightness statistics no longer match
     top = next(p for p in light if p.level == cfg.levels)
-    assert abs(float(top.image1.mean()) - float(top.image2.mean())) > 1.0 or abs(
-        float(top.image1.std()) - float(top.image2.std())
-    ) > 1.0
+    assert (
+        abs(float(top.image1.mean()) - float(top.image2.mean())) > 1.0
+        or abs(float(top.image1.std()) - float(top.image2.std())) > 1.0
+    )
     with pytest.raises(EvaluationError, match="subset"):
         pr.make_pairs("blur", cfg)
 
