@@ -137,6 +137,10 @@ def _remap_is_exact() -> bool:
     return abs(float(val[0, 0]) - float(mx[0, 0])) < 1e-5
 
 
+_REMAP_MAX_ROWS = 32766
+_REPLICATE = cv2.BORDER_REPLICATE
+
+
 def _window_offsets(window: int) -> np.ndarray:
     r = window // 2
     return np.arange(-r, r + 1, dtype=np.float32)
@@ -178,7 +182,14 @@ def _sample_chunk(
     m = centers.shape[0]
     if maps is None:
         return _sample_numpy(chunk, centers, size)
-    out = cv2.remap(chunk, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    mapx, mapy = maps
+    # cv2.remap refuses maps of SHRT_MAX (32767) rows or more: sample many points in blocks.
+    step = (_REMAP_MAX_ROWS // size) * size
+    parts = [
+        cv2.remap(chunk, mapx[i : i + step], mapy[i : i + step], cv2.INTER_LINEAR, borderMode=_REPLICATE)
+        for i in range(0, mapx.shape[0], step)
+    ]
+    out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
     return out.reshape(m, size, size, chunk.shape[2])
 
 

@@ -268,3 +268,16 @@ def test_jacobian_terms_only_for_candidates_below_the_current_cost():
     np.testing.assert_allclose(part[1][even], full[1][even], rtol=1e-12)
     np.testing.assert_allclose(part[2][even], full[2][even], rtol=1e-12)
     assert not part[1][odd].any() and not part[2][odd].any()
+
+
+def test_many_points_in_one_call():
+    # 3000 windows of side 13 need more map rows than one cv2.remap call accepts (32767)
+    img = texture("astronaut", (160, 120))
+    a, b = warp_pair(img, translation(0.6, -0.4))
+    yy, xx = np.mgrid[20:100:1.6, 20:140:2.0]
+    pts = np.stack([xx.ravel(), yy.ravel()], axis=1)[:3000]
+    assert len(pts) == 3000
+    res = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1, min_eigen=0))
+    ok = res.status
+    assert ok.mean() > 0.9
+    assert np.median(np.hypot(*(res.flow[ok] - [0.6, -0.4]).T)) < 0.1
