@@ -36,7 +36,7 @@ from nsflow_ros.core import (
 )
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["main", "make_frames", "paper_encoder_onnx", "run_benchmark", "time_encoder"]
+__all__ = ["main", "make_frames", "paper_encoder_onnx", "run_benchmark", "time_encoder", "timing_stats"]
 
 WIDTH, HEIGHT = 752, 480
 
@@ -107,8 +107,9 @@ def paper_encoder_onnx(path: Path, c_in: int = 3, d: int = 3, seed: int = 0) -> 
     return path
 
 
-def _stats(samples: list[float]) -> dict[str, float]:
-    arr = np.asarray(samples)
+def timing_stats(samples: list[float]) -> dict[str, float]:
+    """``{"median_ms", "p90_ms"}`` of millisecond samples."""
+    arr = np.asarray(samples, dtype=np.float64)
     return {"median_ms": float(np.median(arr)), "p90_ms": float(np.percentile(arr, 90))}
 
 
@@ -140,10 +141,10 @@ def _pipeline(encoder: Encoder, frames: list[np.ndarray], cfg: LMConfig, points:
         prev_pyr = pyr
     # the first frame has nothing to track; drop it from every series
     return {
-        "encoder": _stats(enc_t[1:]),
-        "solver": _stats(solve_t[1:]),
-        "detection": _stats(det_t[1:]),
-        "total": _stats(total_t[1:]),
+        "encoder": timing_stats(enc_t[1:]),
+        "solver": timing_stats(solve_t[1:]),
+        "detection": timing_stats(det_t[1:]),
+        "total": timing_stats(total_t[1:]),
         "tracked_share": float(np.mean(tracked)),
     }
 
@@ -176,9 +177,9 @@ def _opencv_klt(frames: list[np.ndarray], points: int) -> dict[str, Any]:
             total_t.append(t_klt + t_det)
         prev = gray
     return {
-        "klt": _stats(klt_t),
-        "detection": _stats(det_t),
-        "total": _stats(total_t),
+        "klt": timing_stats(klt_t),
+        "detection": timing_stats(det_t),
+        "total": timing_stats(total_t),
         "tracked_share": float(np.mean(tracked)),
     }
 
@@ -202,11 +203,7 @@ def time_encoder(
     frame = make_frames(1, size)[0]
     for _ in range(warmup):
         encoder(frame)
-    return _stats([_timed(lambda: encoder(frame))[1] for _ in range(repeats)])
-
-
-def _encoder_only(encoder: Encoder, size: tuple[int, int], repeats: int) -> dict[str, float]:
-    return time_encoder(encoder, size, repeats)
+    return timing_stats([_timed(lambda: encoder(frame))[1] for _ in range(repeats)])
 
 
 def run_benchmark(
@@ -249,8 +246,8 @@ def run_benchmark(
         stages: list[tuple[str, Callable[[], Any]]] = [
             ("classical", lambda: _pipeline(IntensityEncoder(), seq, cfg, points)),
             ("opencv_klt", lambda: _opencv_klt(seq, points)),
-            ("encoder_320x240", lambda: _encoder_only(encoder, (320, 240), 30)),
-            ("encoder_752x480", lambda: _encoder_only(encoder, (WIDTH, HEIGHT), 30)),
+            ("encoder_320x240", lambda: time_encoder(encoder, (320, 240), 30)),
+            ("encoder_752x480", lambda: time_encoder(encoder, (WIDTH, HEIGHT), 30)),
         ]
         if trained:
             # random descriptors never converge, so solver figures would only time the iteration limit

@@ -17,7 +17,6 @@ every tracked feature is measured against the exact ground-truth optical flow.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ import numpy as np
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.records import ImageRecord
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.files import atomic_write
 from nsflow_ros.replay import ReplayOptions, replay_records
 from nsflow_ros.vins.draw import draw_tracks
 
@@ -148,15 +148,6 @@ def contact_sheet(
     return np.vstack(rows)
 
 
-def _atomic_write(path: Path, write: Any) -> None:
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _write_png(path: Path, img: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", img)
     if not ok:
@@ -242,13 +233,13 @@ def run_offline(
         error = err  # keep what was processed; report after writing
     finally:
         bar.close()
-    _atomic_write(out / "features.csv", lambda p: p.write_text(CSV_HEADER + "\n" + "\n".join(rows) + "\n"))
+    atomic_write(out / "features.csv", lambda p: p.write_text(CSV_HEADER + "\n" + "\n".join(rows) + "\n"))
     if sheet:
         pick = [sheet[round(i)] for i in np.linspace(0, len(sheet) - 1, min(sheet_frames, len(sheet)))]
         img = contact_sheet([im for _, im in pick], labels=[f"{method} frame {n}" for n, _ in pick])
-        _atomic_write(out / "tracks.png", lambda p: _write_png(p, img))
+        atomic_write(out / "tracks.png", lambda p: _write_png(p, img))
     summary = OfflineSummary(str(opts.path), method, opts.perturb, str(out), stats.figures())
-    _atomic_write(out / "summary.json", lambda p: p.write_text(json.dumps(asdict(summary), indent=2)))
+    atomic_write(out / "summary.json", lambda p: p.write_text(json.dumps(asdict(summary), indent=2)))
     if error is not None:
         raise NSFlowError(
             f"{error} (the {stats.frames} frames before it were processed and written to {out})"

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from nsflow_ros.core.camera import PinholeCamera
 from nsflow_ros.data.errors import DataError
 
 __all__ = [
@@ -138,6 +139,13 @@ class PinholeRadtan:
         return PinholeRadtan(w, h, self.fx * factor, self.fy * factor, (self.cx + 0.5) * factor - 0.5,
                              (self.cy + 0.5) * factor - 0.5, self.k1, self.k2, self.p1, self.p2,
                              self.T_BS, self.name)
+
+    def camera_model(self) -> PinholeCamera:
+        """This camera as the tracker's camodocal ``PINHOLE`` model (same intrinsics and distortion)."""
+        return PinholeCamera(
+            width=self.width, height=self.height, fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy,
+            k1=self.k1, k2=self.k2, p1=self.p1, p2=self.p2, name=self.name,
+        )
 
     # -- distortion -------------------------------------------------------------------------------------
 

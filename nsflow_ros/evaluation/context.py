@@ -7,12 +7,12 @@ the :class:`~nsflow_ros.evaluation.section.Section` that the report writer puts 
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from nsflow_ros import files
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import PairMethod
 
@@ -82,16 +82,10 @@ def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
     Raises:
         EvaluationError: the folder is not writable.
     """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
     try:
-        write(tmp)
-        os.replace(tmp, path)
+        return files.atomic_write(path, write)
     except OSError as err:
         raise EvaluationError(f"cannot write {path}: {err}") from err
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 def new_figure(width: float = 8.0, height: float = 4.5) -> Any:

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from nsflow_ros.bench import time_encoder, timing_stats
 from nsflow_ros.core.encoder import Encoder, IntensityEncoder
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
@@ -155,11 +156,6 @@ def onnx_complexity(path: str | Path, width: int = 320, height: int = 240) -> Mo
     return ModelComplexity(parameters, macs, (width, height), layers)
 
 
-def _stats(samples: list[float]) -> dict[str, float]:
-    arr = np.asarray(samples, dtype=np.float64)
-    return {"median_ms": float(np.median(arr)), "p90_ms": float(np.percentile(arr, 90))}
-
-
 def time_tracker(
     frames: list[np.ndarray],
     camera: Any,
@@ -197,7 +193,7 @@ def time_tracker(
     except CoreError as err:
         raise EvaluationError(f"tracker {method}: {err}") from err
     stages = ("encode", "track", "detect", "total")
-    return {stage: _stats([t.get(stage, 0.0) for t in timings[1:]]) for stage in stages}
+    return {stage: timing_stats([t.get(stage, 0.0) for t in timings[1:]]) for stage in stages}
 
 
 def _figure(enc: dict[str, dict[str, dict[str, float]]], trk: dict[str, dict[str, dict[str, float]]],
@@ -249,7 +245,6 @@ def run(ctx: EvalContext) -> Section:
     Raises:
         EvaluationError: no ONNX model, no onnx package, or a run that fails.
     """
-    from nsflow_ros.bench import time_encoder
     from nsflow_ros.core.encoder import OnnxEncoder, load_encoder
     from nsflow_ros.evaluation import sequences
 

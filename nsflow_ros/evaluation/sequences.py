@@ -51,7 +51,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.camera import PinholeCamera
 from nsflow_ros.core.encoder import Encoder
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
@@ -147,12 +146,8 @@ class FrameSource:
         self.scale = float(scale)
         src = sequence.cameras[0]
         self._cam = src if scale == 1 else src.scaled(scale)
-        c = self._cam
-        self.camera = PinholeCamera(
-            width=c.width, height=c.height, fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy,
-            k1=c.k1, k2=c.k2, p1=c.p1, p2=c.p2, name=c.name,
-        )
-        self.size = (c.width, c.height)
+        self.camera = self._cam.camera_model()
+        self.size = (self._cam.width, self._cam.height)
         self.stamps_ns = np.asarray(sequence.stamps_ns, dtype=np.int64)
         self._renderer: Any = None
         self._images: dict[int, np.ndarray] = {}

@@ -51,3 +51,12 @@ def test_shape_guards_name_expected_and_actual():
         PinholeRadtan(10, 10, 1, 1, 5, 5, T_BS=np.eye(3), name="cam9")
     with pytest.raises(DataError, match="intrinsics"):
         PinholeRadtan.from_dict({"width": 1})
+
+
+def test_camera_model_projects_like_the_data_camera():
+    cam = EUROC_CAM0.scaled(0.5)
+    model = cam.camera_model()
+    pts = np.array([[0.3, -0.2, 2.0], [-1.0, 0.5, 3.0], [0.0, 0.0, 1.0]])
+    uv, valid = cam.project(pts)
+    assert valid.all() and (model.width, model.height, model.name) == (cam.width, cam.height, cam.name)
+    np.testing.assert_allclose(model.project(pts), uv, atol=1e-9)
