@@ -127,3 +127,77 @@ def test_default_model_missing_is_a_clear_error(monkeypatch):
 def test_threads_must_be_positive(tmp_path):
     with pytest.raises(EncoderError, match="threads"):
         load_encoder(conv_encoder(tmp_path / "m.onnx"), threads=0)
+
+
+def _graph_model(path, nodes, inits, c_in=1, d=2):
+    graph = helper.make_graph(
+        nodes,
+        "g",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, c_in, "H", "W"])],
+        [helper.make_tensor_value_info("descriptors", TensorProto.FLOAT, [1, d, "H", "W"])],
+        initializer=inits,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, path)
+    return path
+
+
+def _conv(name, src, dst, c_in, c_out, k, rng, dilation=1):
+    from onnx import numpy_helper
+
+    w = numpy_helper.from_array(rng.normal(0, 0.5, (c_out, c_in, k, k)).astype(np.float32), f"{name}_w")
+    pad = dilation * (k - 1) // 2
+    node = helper.make_node(
+        "Conv", [src, f"{name}_w"], [dst], pads=[pad] * 4, dilations=[dilation, dilation]
+    )
+    return node, w
+
+
+def test_shipped_model_tiled_equals_whole_frame():
+    tiled = load_encoder(threads=1, tile_rows=16)
+    whole = load_encoder(threads=1, tile_rows=0)
+    assert tiled.tiled and tiled.halo == 2  # two 3x3 convolutions
+    assert not whole.tiled
+    img = _image(150, 200, color=True, seed=3)
+    a, b = tiled(img), whole(img)
+    assert a.shape == (150, 200, 4) and a.flags.c_contiguous
+    np.testing.assert_array_equal(a, b)
+    # the default strip height (about 64k pixels) on a frame that needs several strips
+    np.testing.assert_array_equal(load_encoder(threads=1)(_image(400, 320)), whole(_image(400, 320)))
+
+
+def test_halo_is_measured_from_the_model(tmp_path):
+    rng = np.random.default_rng(0)
+    n1, w1 = _conv("a", "image", "h", 1, 3, 5, rng)
+    n2, w2 = _conv("b", "h", "descriptors", 3, 2, 3, rng, dilation=3)
+    enc = load_encoder(_graph_model(tmp_path / "m.onnx", [n1, n2], [w1, w2]), threads=1, tile_rows=7)
+    assert enc.halo == 2 + 3
+    img = _image(60, 40, seed=1)
+    np.testing.assert_allclose(enc(img), load_encoder(enc.path, threads=1, tile_rows=0)(img), atol=1e-6)
+
+
+def test_a_model_that_looks_at_the_whole_image_is_not_tiled(tmp_path):
+    rng = np.random.default_rng(0)
+    conv, w = _conv("a", "image", "h", 1, 2, 3, rng)
+    nodes = [
+        conv,
+        helper.make_node("ReduceMean", ["h"], ["m"], axes=[2, 3], keepdims=1),
+        helper.make_node("Sub", ["h", "m"], ["descriptors"]),
+    ]
+    enc = load_encoder(_graph_model(tmp_path / "g.onnx", nodes, [w]), threads=1, tile_rows=8)
+    assert not enc.tiled and enc.halo is None
+    img = _image(64, 48, seed=2)
+    out = enc(img)
+    np.testing.assert_allclose(out.mean(axis=(0, 1)), 0.0, atol=1e-5)  # centred over the whole frame
+
+
+def test_single_channel_models_keep_their_channel_axis(tmp_path):
+    path = conv_encoder(tmp_path / "m.onnx", c_in=1, d=1)
+    out = load_encoder(path, threads=1, tile_rows=5)(_image(30, 20))
+    assert out.shape == (30, 20, 1) and out.flags.c_contiguous
+
+
+def test_tile_rows_must_not_be_negative(tmp_path):
+    with pytest.raises(EncoderError, match="tile_rows"):
+        load_encoder(conv_encoder(tmp_path / "m.onnx"), tile_rows=-1)
