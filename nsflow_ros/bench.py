@@ -220,7 +220,7 @@ def run_benchmark(
         points: GFTT corners per frame.
         model: ONNX encoder path; None = the shipped model, or the paper architecture with random weights
             when no model is shipped yet (the result says which).
-        threads: onnxruntime intra-op threads and OpenCV threads.
+        threads: encoder threads and OpenCV threads.
         progress: print a line per stage to stderr.
 
     Returns:

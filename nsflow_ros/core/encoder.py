@@ -9,28 +9,32 @@ Two kinds share one interface (callable on an image, with ``channels`` and ``nam
 ONNX contract (checked at load time): one float32 input of shape (1, c_in, H, W) with c_in 1 (gray) or
 3 (RGB), values in [0, 1]; one float32 output of shape (1, d, H, W). Height and width may be dynamic.
 
-Speed (measured at 752x480, 2 threads, the shipped d=4 model; ``nsflow-bench`` times it):
+Speed (752x480, 2 threads, the shipped d=4 model, in the tracking pipeline; ``nsflow-bench`` times it):
 
 * Strips. A fully convolutional encoder is run on horizontal strips of about ``TILE_PIXELS`` pixels,
   each with ``halo`` extra rows above and below (its receptive-field radius), and only the strip's own
   rows are kept. Every kept pixel sees exactly the inputs it sees in a whole-frame run, so the result
   is the same (tested bit for bit on the shipped model), while the 8- and 16-channel intermediate maps
-  of one strip stay in cache: 9.1 -> 7.8 ms per frame in the tracking pipeline. The halo is measured
-  at load time, model-agnostically: flip one row of a random image and see which output rows change.
-  A model whose output depends on far-away rows (pooling over the image, normalisation, attention) is
-  run whole-frame; so is one whose tiled and whole runs of a second random image disagree.
-* No spinning. onnxruntime's worker threads busy-wait after a run by default; on a 2-core robot computer
-  that steals the CPU from the solver that runs next (solver 10.8 -> 8.6 ms per frame in the pipeline).
+  of one strip stay in cache. The halo is measured at load time, model-agnostically: flip one row of a
+  random image and see which output rows change. A model whose output depends on far-away rows
+  (pooling over the image, normalisation, attention) is run whole-frame; so is one whose tiled and
+  whole runs of a second random image disagree.
+* One single-threaded session per thread, each taking every n-th strip, instead of one session with n
+  intra-op threads: onnxruntime wakes its pool for every operator, and between frames (while the solver
+  runs) the pool sleeps, so in the pipeline a 2-thread session cost 10.6-12.6 ms per frame where two
+  1-thread sessions on strips cost 9.0-9.9 ms (interleaved A/B runs). Sessions never spin: busy-waiting
+  workers steal the cores from the solver that runs next (solver 10.8 -> 8.6 ms per frame).
 * The (1, d, H, W) output becomes (H, W, d) with ``cv2.merge`` (0.13 ms) instead of a NumPy transpose
-  copy (1.0 ms).
+  copy (1.0 ms), inside each strip's worker.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -48,12 +52,12 @@ __all__ = [
 
 DEFAULT_MODEL = "models/nsflow_encoder.onnx"
 
-# Pixels per strip of a tiled run. In the tracking pipeline at 752x480 (2 threads, no spinning) 120-row
-# strips were fastest: 7.8 ms against 9.1 whole-frame, 8.3 at 88 rows and 8.9 at 240. At 320x240 one
-# strip (the whole frame) is best, which this size also gives.
-TILE_PIXELS = 90_000
+# Pixels per strip of a tiled run. In the tracking pipeline at 752x480 with 2 workers, 80-row strips
+# (60k px) beat 40 and 120 rows (9.0 against 10.1 and 9.5 ms, interleaved runs on a noisy 2-core VM).
+TILE_PIXELS = 60_000
 # Receptive-field radii from this many rows on count as "not local" (the shipped model's is 2).
 _MAX_HALO = 32
+
 
 @runtime_checkable
 class Encoder(Protocol):
@@ -104,15 +108,24 @@ class IntensityEncoder:
         return (gray.astype(np.float32) * (1.0 / 255.0))[..., None]
 
 
+def _to_hwc(planes: np.ndarray) -> np.ndarray:
+    """(d, h, w) -> C-contiguous (h, w, d); cv2.merge interleaves in one pass but drops a lone channel."""
+    out = cv2.merge(list(planes))
+    return out if out.ndim == 3 else out[..., None]
+
+
 class OnnxEncoder:
     """The NSFlow encoder exported to ONNX, run with onnxruntime on the CPU.
 
     Args:
         path: the .onnx file.
-        threads: intra-op threads (None = onnxruntime's default, all cores).
-        tile_rows: rows per strip of a tiled run (see the module docstring); None = about
-            ``TILE_PIXELS`` pixels per strip, 0 = always run the whole frame at once. Tiling applies
-            only to graphs that pass the locality check at load time (``tiled`` says whether it does).
+        threads: CPU threads (None = the cores this process may use). A model that tiles (see the
+            module docstring) runs one single-threaded onnxruntime session per thread, each encoding
+            every ``threads``-th strip; any other model runs one session with that many intra-op
+            threads.
+        tile_rows: rows per strip of a tiled run; None = about ``TILE_PIXELS`` pixels per strip,
+            0 = always run the whole frame at once. Tiling applies only to models that pass the
+            locality check at load time (``tiled`` says whether this one does).
 
     Raises:
         EncoderError: when the file is missing, is not a loadable model, or its signature is not
@@ -122,32 +135,46 @@ class OnnxEncoder:
     def __init__(
         self, path: str | os.PathLike[str], threads: int | None = None, tile_rows: int | None = None
     ) -> None:
-        import onnxruntime as ort  # heavy import; only when an ONNX model is used
-
         self.path = Path(path)
         if not self.path.is_file():
             raise EncoderError(f"encoder model not found: {self.path}")
+        if threads is not None and threads < 1:
+            raise EncoderError(f"threads must be >= 1, got {threads}")
         if tile_rows is not None and tile_rows < 0:
             raise EncoderError(f"tile_rows must be >= 0 or None, got {tile_rows}")
+        self.threads = threads or _usable_cores()
+        self._tile_rows = tile_rows
+        self._sessions = [self._new_session(1)]
+        self._pool: ThreadPoolExecutor | None = None
+        self._check_signature()
+        self.halo: int | None = None if tile_rows == 0 else self._local_halo()
+        if self.threads > 1:
+            if self.halo is None:
+                self._sessions = [self._new_session(self.threads)]
+            else:
+                self._sessions += [self._new_session(1) for _ in range(self.threads - 1)]
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="nsflow-encoder")
+
+    def _new_session(self, threads: int) -> Any:
+        import onnxruntime as ort  # heavy import; only when an ONNX model is used
+
         opts = ort.SessionOptions()
         # Busy-waiting workers would compete with the solver for the robot's few cores.
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         # EXTENDED beat ALL and BASIC here: the NCHWc layout rewrite of ALL costs more than it saves
         # on this 1k-parameter net (752x480 gray, 2 threads: 8.4 ms vs 14.2 (ALL) and 9.6 (BASIC)).
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
-        if threads is not None:
-            if threads < 1:
-                raise EncoderError(f"threads must be >= 1, got {threads}")
-            opts.intra_op_num_threads = threads
-            opts.inter_op_num_threads = 1
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
         try:
-            self._session = ort.InferenceSession(
-                str(self.path), sess_options=opts, providers=["CPUExecutionProvider"]
-            )
+            return ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as err:  # onnxruntime raises several unrelated types for a bad file
             raise EncoderError(f"cannot load encoder model {self.path}: {err}") from err
-        inputs = self._session.get_inputs()
-        outputs = self._session.get_outputs()
+
+    def _check_signature(self) -> None:
+        session = self._sessions[0]
+        inputs = session.get_inputs()
+        outputs = session.get_outputs()
         expected = "one input (1, 1|3, H, W) float32 and one output (1, d, H, W) float32"
         found = (
             f"inputs {[(i.name, i.shape, i.type) for i in inputs]}, "
@@ -168,11 +195,9 @@ class OnnxEncoder:
         self._input = inp.name
         self.input_channels = int(inp.shape[1])
         self.channels = int(out.shape[1])
-        meta = self._session.get_modelmeta().custom_metadata_map
+        meta = session.get_modelmeta().custom_metadata_map
         self.name = meta.get("name", self.path.stem)
         self.metadata = dict(meta)
-        self._tile_rows = tile_rows
-        self.halo: int | None = None if tile_rows == 0 else self._local_halo()
 
     @property
     def tiled(self) -> bool:
@@ -199,25 +224,34 @@ class OnnxEncoder:
         # Cross-check on another random image cut into strips of a few rows.
         rows = 2 * halo + 3
         x = rng.random((1, self.input_channels, 3 * rows + 1, 16), dtype=np.float32)
-        if not np.allclose(self._run(x), self._run_tiled(x, halo, rows), rtol=0.0, atol=1e-5):
+        whole = _to_hwc(self._run(x)[0])
+        if not np.allclose(whole, self._run_tiled(x, halo, rows), rtol=0.0, atol=1e-5):
             return None
         return halo
 
-    def _run(self, x: np.ndarray) -> np.ndarray:
-        (out,) = self._session.run(None, {self._input: x})
+    def _run(self, x: np.ndarray, worker: int = 0) -> np.ndarray:
+        (out,) = self._sessions[worker].run(None, {self._input: x})
         return out
 
     def _run_tiled(self, x: np.ndarray, halo: int, rows: int) -> np.ndarray:
-        h = x.shape[2]
-        out: np.ndarray | None = None
-        for r0 in range(0, h, rows):
-            r1 = min(r0 + rows, h)
-            a, b = max(r0 - halo, 0), min(r1 + halo, h)
-            part = self._run(np.ascontiguousarray(x[:, :, a:b]))
-            if out is None:
-                out = np.empty((1, part.shape[1], h, x.shape[3]), np.float32)
-            out[:, :, r0:r1] = part[:, :, r0 - a : r1 - a]
-        assert out is not None
+        """Encode (1, c, H, W) in strips of ``rows`` rows with ``halo`` rows of context: (H, W, d)."""
+        h, w = x.shape[2:]
+        out = np.empty((h, w, self.channels), np.float32)
+        starts = range(0, h, rows)
+
+        def strips(worker: int) -> None:
+            for r0 in starts[worker :: len(self._sessions)]:
+                r1 = min(r0 + rows, h)
+                a, b = max(r0 - halo, 0), min(r1 + halo, h)
+                part = self._run(np.ascontiguousarray(x[:, :, a:b]), worker)
+                out[r0:r1] = _to_hwc(part[0, :, r0 - a : r1 - a])
+
+        if self._pool is None:
+            strips(0)
+        else:
+            # onnxruntime releases the GIL, so the workers' strips run in parallel.
+            for job in [self._pool.submit(strips, k) for k in range(len(self._sessions))]:
+                job.result()
         return out
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
@@ -239,12 +273,19 @@ class OnnxEncoder:
             x = cv2.cvtColor(image, cv2.COLOR_BGR2RGB).transpose(2, 0, 1)[None].astype(np.float32)
         x *= 1.0 / 255.0
         h, w = x.shape[2:]
-        rows = self._tile_rows or max(1, math.ceil(TILE_PIXELS / w))
         halo = self.halo
-        out = self._run(x) if halo is None or rows >= h else self._run_tiled(x, halo, rows)
-        # cv2.merge interleaves the planes in one fast pass; it drops a single channel's axis.
-        desc = cv2.merge(list(out[0]))
-        return desc if desc.ndim == 3 else desc[..., None]
+        if halo is None:
+            return _to_hwc(self._run(x)[0])
+        # Strips of about TILE_PIXELS, and at least one per worker.
+        rows = self._tile_rows or max(1, min(math.ceil(TILE_PIXELS / w), math.ceil(h / self.threads)))
+        return self._run_tiled(x, halo, rows)
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def load_encoder(
@@ -254,7 +295,7 @@ def load_encoder(
 
     Args:
         path: an .onnx file, or None for ``models/nsflow_encoder.onnx`` of the install or checkout.
-        threads: onnxruntime intra-op threads (None = all cores).
+        threads: CPU threads (None = all usable cores); see :class:`OnnxEncoder`.
         tile_rows: rows per strip (None = automatic, 0 = whole frame); see :class:`OnnxEncoder`.
 
     Returns:

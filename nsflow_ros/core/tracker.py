@@ -91,7 +91,7 @@ class TrackerSettings:
             arguments: 21x21, maxLevel 3, criteria COUNT|EPS 30 / 0.01; ``lm`` is then unused, the rest of
             the pipeline is the same).
         model_path: ONNX encoder for "nsflow"; None means the shipped ``models/nsflow_encoder.onnx``.
-        num_threads: onnxruntime threads; None = onnxruntime's default.
+        num_threads: encoder threads; None = all usable cores.
         max_cnt: VINS ``max_cnt``, the number of features kept per frame.
         min_dist: VINS ``min_dist``, the minimum distance between features in pixels.
         quality: GFTT quality level (VINS: 0.01).

@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--skip", type=_keys, default=[], metavar="KEY[,KEY]", help="leave these analyses out"
     )
     parser.add_argument("--seed", type=int, default=0, help="base seed of every random choice (default 0)")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: its own)")
+    parser.add_argument("--threads", type=int, default=None, help="encoder threads (default: all cores)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--list", action="store_true", help="list the analyses and exit")
     return parser

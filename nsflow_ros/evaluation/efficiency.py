@@ -315,7 +315,7 @@ def run(ctx: EvalContext) -> Section:
             f"| {name} | {st['encode']['median_ms']:.2f} | {st['track']['median_ms']:.2f} "
             f"| {st['detect']['median_ms']:.2f} | {ms(st['total'])} |"
         )
-    threads = "onnxruntime's default" if ctx.threads is None else str(ctx.threads)
+    threads = "all usable cores" if ctx.threads is None else str(ctx.threads)
     quick = " Quick mode: few runs on tiny frames, the times are not meaningful." if ctx.quick else ""
     md = "\n\n".join([
         f"Encoder `{model_path.name}`; FLOPs = 2 x multiply-adds of the Conv/Gemm/MatMul nodes, counted from "

@@ -84,7 +84,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "restart_topic": ("/feature_tracker/restart", "topic of the std_msgs/Bool restart (VINS-Mono layout)"),
     "image_track_topic": ("image_track", "topic of the debug image"),
     "use_imu_prediction": (False, "predict feature positions from the gyro (needs imu_topic in the config)"),
-    "num_threads": (0, "CPU threads for the encoder; 0 = let onnxruntime decide"),
+    "num_threads": (0, "CPU threads for the encoder; 0 = all usable cores"),
 }
 
 

@@ -154,17 +154,20 @@ def _conv(name, src, dst, c_in, c_out, k, rng, dilation=1):
     return node, w
 
 
-def test_shipped_model_tiled_equals_whole_frame():
-    tiled = load_encoder(threads=1, tile_rows=16)
-    whole = load_encoder(threads=1, tile_rows=0)
+@pytest.mark.parametrize("threads", [1, 2])
+def test_shipped_model_tiled_equals_whole_frame(threads):
+    tiled = load_encoder(threads=threads, tile_rows=16)
+    whole = load_encoder(threads=threads, tile_rows=0)
     assert tiled.tiled and tiled.halo == 2  # two 3x3 convolutions
     assert not whole.tiled
     img = _image(150, 200, color=True, seed=3)
     a, b = tiled(img), whole(img)
     assert a.shape == (150, 200, 4) and a.flags.c_contiguous
     np.testing.assert_array_equal(a, b)
-    # the default strip height (about 64k pixels) on a frame that needs several strips
-    np.testing.assert_array_equal(load_encoder(threads=1)(_image(400, 320)), whole(_image(400, 320)))
+    # the default strip height on a frame that needs several strips, and frames of other sizes
+    auto = load_encoder(threads=threads)
+    for h, w in ((400, 320), (480, 752), (7, 9)):
+        np.testing.assert_array_equal(auto(_image(h, w)), whole(_image(h, w)))
 
 
 def test_halo_is_measured_from_the_model(tmp_path):
