@@ -134,6 +134,8 @@ def _lm_solve(
     cost, hess, grad = _normal_equations(level2, pts + u0, template, c, win)
     u = u0
     lam = torch.full((n,), cfg.lambda_init, dtype=torch.float64, device=pts.device)
+    if cfg.lambda_scale > 0:  # per-point lambda^(0) from J^T J, as in the NumPy solver
+        lam = torch.maximum(lam, cfg.lambda_scale * torch.maximum(hess[:, 0], hess[:, 2]).detach())
     iterations = torch.zeros(n, dtype=torch.int64, device=pts.device)
     idx = torch.arange(n, device=pts.device)
     for _ in range(cfg.max_iterations):

@@ -53,8 +53,11 @@ class TrainConfig:
     seed: int = 0
     lr: float = 1e-3
     mode: BackwardMode = BackwardMode.IMPLICIT
+    # lambda_scale=0: the fixed lambda^(0) the shipped model was trained with (models/README.md)
     lm: LMConfig = field(
-        default_factory=lambda: LMConfig(levels=1, max_iterations=30, eps=1e-3, min_eigen=0.0)
+        default_factory=lambda: LMConfig(
+            levels=1, max_iterations=30, eps=1e-3, min_eigen=0.0, lambda_scale=0.0
+        )
     )
     pair: PairConfig = field(default_factory=PairConfig)
     huber_delta: float = 1.0

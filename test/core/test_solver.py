@@ -90,7 +90,9 @@ def test_every_iteration_follows_accept_reject_rule():
     yy, xx = np.mgrid[0:64, 0:64].astype(np.float32)
     blob = lambda cx, cy: np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 2.0**2))  # noqa: E731
     d1, d2 = blob(32, 32)[..., None], blob(34.5, 31.0)[..., None]
-    cfg = LMConfig(levels=1, lambda_init=1e-6, nu=3.0, eps=1e-6, max_iterations=40, min_eigen=0)
+    # a tiny fixed lambda^(0) (no scaling with J^T J), so that the first steps are pure Gauss-Newton
+    cfg = LMConfig(levels=1, lambda_init=1e-6, lambda_scale=0, nu=3.0, eps=1e-6, max_iterations=40,
+                   min_eigen=0)
     pts = np.array([[32.0, 32.0], [31.0, 33.0], [33.0, 31.5]])
     res = track(d1, d2, pts, flow0=np.array([[0.2, 0.1], [0.0, 0.0], [-0.3, 0.4]]), config=cfg, record=True)
     prev_flow = np.array([[0.2, 0.1], [0.0, 0.0], [-0.3, 0.4]])
@@ -114,6 +116,23 @@ def test_every_iteration_follows_accept_reject_rule():
     assert rejected > 0, "the case was built to force uphill steps"
     # the blob's sampled derivatives are approximations, so the fixed point is within ~1e-3 px of the shift
     np.testing.assert_allclose(res.flow, np.tile([2.5, -1.0], (3, 1)), atol=5e-3)
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.1, 3.0])
+def test_initial_damping_scales_with_the_hessian(textures, scale):
+    a, b = warp_pair(textures["coffee"], translation(1.2, -0.7))
+    pts = detect_corners(a, 40, min_distance=10)
+    cfg = LMConfig(levels=1, lambda_scale=scale, max_iterations=1)
+    res = track(ENC(a), ENC(b), pts, config=cfg, record=True)
+    level = build_pyramid(ENC(a), 1).levels[0]
+    terms = solver_mod._normal_equations(
+        build_pyramid(ENC(b), 1).levels[0], pts, solver_mod._template(level, pts, cfg.window), cfg.window
+    )
+    lam0 = np.maximum(cfg.lambda_init, scale * np.maximum(terms[:, 1], terms[:, 3]))
+    if scale == 3.0:
+        assert (lam0 > cfg.lambda_init).all()  # the floor is not what is being tested
+    (rec,) = res.history
+    np.testing.assert_allclose(rec.lam, np.where(rec.accepted, lam0 / cfg.nu, lam0 * cfg.nu), rtol=1e-9)
 
 
 def test_stops_at_k_max_and_on_tolerance():
@@ -233,7 +252,8 @@ def test_patch_scharr_jacobian_equals_sampled_derivative_maps(channels):
     centers = np.concatenate([rng.uniform([3, 3], [46, 36], (10, 2)), edge])
     level = build_pyramid(desc, 1).levels[0]
     template = solver_mod._template(level, centers, 5)
-    cost, hess, _ = solver_mod._normal_equations(level, centers, template, 5)
+    terms = solver_mod._normal_equations(level, centers, template, 5)
+    cost, hess = terms[:, 0], terms[:, 1:4]
     dx, dy = descriptor_gradients(desc)
     jx = sample_windows(dx, centers, 5).reshape(len(centers), -1).astype(np.float64)
     jy = sample_windows(dy, centers, 5).reshape(len(centers), -1).astype(np.float64)
@@ -242,7 +262,7 @@ def test_patch_scharr_jacobian_equals_sampled_derivative_maps(channels):
     expect = np.stack([(jx * jx).sum(1), (jx * jy).sum(1), (jy * jy).sum(1)], axis=1)
     np.testing.assert_allclose(hess, expect, rtol=1e-5, atol=1e-9)
     shifted = [t + 0.1 for t in template]
-    _, _, g = solver_mod._normal_equations(level, centers, shifted, 5)
+    g = solver_mod._normal_equations(level, centers, shifted, 5)[:, 4:]
     np.testing.assert_allclose(g, -0.1 * np.stack([jx.sum(1), jy.sum(1)], axis=1), rtol=1e-4, atol=1e-7)
 
 
@@ -250,7 +270,7 @@ def test_patch_jacobian_beyond_the_image_is_that_of_the_replicated_map():
     desc = np.tile(np.linspace(0, 1, 30, dtype=np.float32), (20, 1))[..., None]  # ramp along x
     level = build_pyramid(desc, 1).levels[0]
     far = np.array([[40.5, 10.0], [-9.5, 10.0]])  # whole window right / left of the image
-    hess = solver_mod._normal_equations(level, far, solver_mod._template(level, far, 5), 5)[1]
+    hess = solver_mod._normal_equations(level, far, solver_mod._template(level, far, 5), 5)[:, 1:4]
     np.testing.assert_allclose(hess, 0.0, atol=1e-12)
 
 
@@ -261,17 +281,16 @@ def test_jacobian_terms_only_for_candidates_below_the_current_cost():
     centers = rng.uniform(8, 30, (12, 2))
     template = solver_mod._template(level, centers + 0.4, 7)
     full = solver_mod._normal_equations(level, centers, template, 7)
-    below = np.where(np.arange(12) % 2 == 0, full[0] + 1.0, full[0] - 1e-9)  # even rows "accepted"
+    below = np.where(np.arange(12) % 2 == 0, full[:, 0] + 1.0, full[:, 0] - 1e-9)  # even rows "accepted"
     part = solver_mod._normal_equations(level, centers, template, 7, below=below)
-    np.testing.assert_array_equal(part[0], full[0])
+    np.testing.assert_array_equal(part[:, 0], full[:, 0])
     even, odd = np.arange(0, 12, 2), np.arange(1, 12, 2)
-    np.testing.assert_allclose(part[1][even], full[1][even], rtol=1e-12)
-    np.testing.assert_allclose(part[2][even], full[2][even], rtol=1e-12)
-    assert not part[1][odd].any() and not part[2][odd].any()
+    np.testing.assert_allclose(part[even, 1:], full[even, 1:], rtol=1e-12)
+    assert not part[odd, 1:].any()
 
 
 def test_many_points_in_one_call():
-    # 3000 windows of side 13 need more map rows than one cv2.remap call accepts (32767)
+    # 3000 windows of side 13 need more map columns than one cv2.remap call accepts (32767)
     img = texture("astronaut", (160, 120))
     a, b = warp_pair(img, translation(0.6, -0.4))
     yy, xx = np.mgrid[20:100:1.6, 20:140:2.0]

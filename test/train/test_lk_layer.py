@@ -13,7 +13,8 @@ from nsflow_ros.train.lk_layer import optimality_condition  # noqa: E402
 from nsflow_ros.train.ops import sample_windows, scharr_gradients  # noqa: E402
 
 SHIFT = np.array([0.6, -0.4])
-TIGHT = LMConfig(levels=1, max_iterations=200, eps=1e-10, min_eigen=0.0)
+# lambda_scale=0 as in training (TrainConfig.lm); the starts below reach F = 0 with that damping.
+TIGHT = LMConfig(levels=1, max_iterations=200, eps=1e-10, min_eigen=0.0, lambda_scale=0.0)
 
 
 def _smooth_map(h: int, w: int, shift: np.ndarray) -> np.ndarray:
@@ -103,9 +104,10 @@ def test_unrolled_forward_equals_implicit_forward():
     assert torch.equal(a.iterations, b.iterations)
 
 
-def test_forward_matches_numpy_solver(textures32):
+@pytest.mark.parametrize("lambda_scale", [0.0, 0.1])
+def test_forward_matches_numpy_solver(textures32, lambda_scale):
     img1, img2, pts, flow0 = textures32
-    cfg = LMConfig(levels=1)
+    cfg = LMConfig(levels=1, lambda_scale=lambda_scale)
     ref = track(img1[..., None], img2[..., None], pts, flow0, cfg)
     out = lk_track(
         torch.from_numpy(img1)[None],
