@@ -9,6 +9,21 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 
+def graph_encoder(path: Path, nodes: list, initializers: list, c_in: int = 1, d: int = 3) -> Path:
+    """Write any graph from ``image`` (1, c_in, H, W) to ``descriptors`` (1, d, H, W), dynamic H and W."""
+    graph = helper.make_graph(
+        nodes,
+        "graph_encoder",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, c_in, "H", "W"])],
+        [helper.make_tensor_value_info("descriptors", TensorProto.FLOAT, [1, d, "H", "W"])],
+        initializer=initializers,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, path)
+    return path
+
+
 def conv_encoder(path: Path, c_in: int = 1, d: int = 3, seed: int = 0, opset: int = 17) -> Path:
     """Write a 3x3 conv + sigmoid encoder (1, c_in, H, W) -> (1, d, H, W) with dynamic H and W."""
     rng = np.random.default_rng(seed)

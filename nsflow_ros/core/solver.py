@@ -167,9 +167,12 @@ _REPLICATE = cv2.BORDER_REPLICATE
 _LINEAR = cv2.INTER_LINEAR
 
 
+@functools.cache
 def _window_offsets(window: int) -> np.ndarray:
     r = window // 2
-    return np.arange(-r, r + 1, dtype=np.float32)
+    out = np.arange(-r, r + 1, dtype=np.float32)
+    out.flags.writeable = False
+    return out
 
 
 def _sample_numpy(level: np.ndarray, centers: np.ndarray, window: int) -> np.ndarray:
@@ -292,35 +295,32 @@ def _normal_equations(
     maps = _scatter_maps(centers, size) if _remap_is_exact() else None
     patches = [_sample_chunk(chunk, centers, size, maps) for chunk in level]
     resid = [p[1:-1, :, 1:-1] - t for p, t in zip(patches, template, strict=True)]
-    cost = 0.5 * sum(np.einsum(_SUM, f, f).astype(np.float64) for f in resid)
     sums = np.zeros((m, 6))
-    sums[:, 0] = cost
+    cost = sums[:, 0]
+    for f in resid:
+        cost += np.einsum(_SUM, f, f)
+    cost *= 0.5
     rows = None if below is None else np.flatnonzero(cost < below)
     if rows is not None and rows.size == 0:
         return sums
+    part = rows is not None and rows.size < m
+    terms = np.zeros((rows.size, 5)) if part else sums[:, 1:]
     for p, f in zip(patches, resid, strict=True):
-        if rows is not None and rows.size < m:
+        if part:
             p, f = p[:, rows], f[:, rows]
         size_, k, _, ch = p.shape
         flat = p.reshape(size_, k * size_, ch) if ch > 1 else p.reshape(size_, k * size_)
         # Unnormalised Scharr ([-3 0 3; -10 0 10; -3 0 3]); the 1/32 is applied to the sums below.
         jx = cv2.Scharr(flat, cv2.CV_32F, 1, 0).reshape(p.shape)[1:-1, :, 1:-1]
         jy = cv2.Scharr(flat, cv2.CV_32F, 0, 1).reshape(p.shape)[1:-1, :, 1:-1]
-        part = np.stack(
-            [
-                np.einsum(_SUM, jx, jx),
-                np.einsum(_SUM, jx, jy),
-                np.einsum(_SUM, jy, jy),
-                np.einsum(_SUM, jx, f),
-                np.einsum(_SUM, jy, f),
-            ],
-            axis=1,
-        )
-        if rows is None or rows.size == m:
-            sums[:, 1:] += part
-        else:
-            sums[rows, 1:] += part
-    sums[:, 1:] *= _SCHARR_NORM
+        terms[:, 0] += np.einsum(_SUM, jx, jx)
+        terms[:, 1] += np.einsum(_SUM, jx, jy)
+        terms[:, 2] += np.einsum(_SUM, jy, jy)
+        terms[:, 3] += np.einsum(_SUM, jx, f)
+        terms[:, 4] += np.einsum(_SUM, jy, f)
+    terms *= _SCHARR_NORM
+    if part:
+        sums[rows, 1:] = terms
     return sums
 
 
@@ -352,39 +352,43 @@ def _solve_level(
     idx = np.arange(n)
     p_a, s_a, lam_a, t_a = pts, state.copy(), lam.copy(), template
     scale = 2.0**level_index
-    for _ in range(cfg.max_iterations):
-        if idx.size == 0:
-            break
-        # Closed-form solve of the 2x2 system (H + lambda I) du = -J^T f.
-        h11, h12, h22, g1, g2 = s_a[:, 3], s_a[:, 4], s_a[:, 5], s_a[:, 6], s_a[:, 7]
-        a11 = h11 + lam_a
-        a22 = h22 + lam_a
-        det = a11 * a22 - h12 * h12
-        with np.errstate(divide="ignore", invalid="ignore"):
+    passes = 0
+    # A degenerate 2x2 system gives a non-finite step, which is zeroed.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        while passes < cfg.max_iterations and idx.size:
+            passes += 1
+            # Closed-form solve of the 2x2 system (H + lambda I) du = -J^T f.
+            h11, h12, h22, g1, g2 = s_a[:, 3], s_a[:, 4], s_a[:, 5], s_a[:, 6], s_a[:, 7]
+            a11 = h11 + lam_a
+            a22 = h22 + lam_a
+            det = a11 * a22 - h12 * h12
             du = np.stack([h12 * g2 - a22 * g1, h12 * g1 - a11 * g2], axis=1) / det[:, None]
-        du[~np.isfinite(du)] = 0.0
-        cand = np.empty_like(s_a)
-        cand[:, _U] = s_a[:, _U] + du
-        cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below=s_a[:, _COST])
-        accept = cand[:, _COST] < s_a[:, _COST]
-        step_small = np.hypot(du[:, 0], du[:, 1]) < cfg.eps * (1.0 + np.hypot(s_a[:, 0], s_a[:, 1]))
-        stop = step_small | (np.abs(s_a[:, _GRAD]).max(axis=1) < cfg.eps)
-        s_a = np.where(accept[:, None], cand, s_a)
-        lam_a = np.where(accept, lam_a / cfg.nu, lam_a * cfg.nu)
-        iterations[idx] += 1
-        if history is not None:
-            state[idx], lam[idx] = s_a, lam_a
-            was_active = np.zeros(n, bool)
-            was_active[idx] = True
-            accepted = np.zeros(n, bool)
-            accepted[idx[accept]] = True
-            flow, cost = state[:, _U] * scale, state[:, _COST].copy()
-            history.append(IterationRecord(level_index, flow, lam.copy(), cost, accepted, was_active))
-        if stop.any():
-            state[idx[stop]] = s_a[stop]
-            keep = ~stop
-            idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], _take(t_a, keep)
+            du[~np.isfinite(du)] = 0.0
+            cand = np.empty_like(s_a)
+            cand[:, _U] = s_a[:, _U] + du
+            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below=s_a[:, _COST])
+            accept = cand[:, _COST] < s_a[:, _COST]
+            step_small = np.hypot(du[:, 0], du[:, 1]) < cfg.eps * (1.0 + np.hypot(s_a[:, 0], s_a[:, 1]))
+            stop = step_small | (np.abs(s_a[:, _GRAD]).max(axis=1) < cfg.eps)
+            s_a = np.where(accept[:, None], cand, s_a)
+            lam_a = np.where(accept, lam_a / cfg.nu, lam_a * cfg.nu)
+            if history is not None:
+                state[idx], lam[idx] = s_a, lam_a
+                was_active = np.zeros(n, bool)
+                was_active[idx] = True
+                accepted = np.zeros(n, bool)
+                accepted[idx[accept]] = True
+                flow, cost = state[:, _U] * scale, state[:, _COST].copy()
+                history.append(IterationRecord(level_index, flow, lam.copy(), cost, accepted, was_active))
+            if stop.any():
+                # A point's iteration count is the number of passes it took part in.
+                done = idx[stop]
+                state[done] = s_a[stop]
+                iterations[done] += passes
+                keep = ~stop
+                idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], _take(t_a, keep)
     state[idx] = s_a
+    iterations[idx] += passes
     return state
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import onnx
 import pytest
 from onnx import TensorProto, helper
-from onnx_models import conv_encoder, reference_conv
+from onnx_models import conv_encoder, graph_encoder, reference_conv
 
 import nsflow_ros.resources as resources
 from nsflow_ros import EncoderError, IntensityEncoder, OnnxEncoder, load_encoder
@@ -129,20 +129,6 @@ def test_threads_must_be_positive(tmp_path):
         load_encoder(conv_encoder(tmp_path / "m.onnx"), threads=0)
 
 
-def _graph_model(path, nodes, inits, c_in=1, d=2):
-    graph = helper.make_graph(
-        nodes,
-        "g",
-        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, c_in, "H", "W"])],
-        [helper.make_tensor_value_info("descriptors", TensorProto.FLOAT, [1, d, "H", "W"])],
-        initializer=inits,
-    )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    onnx.save(model, path)
-    return path
-
-
 def _conv(name, src, dst, c_in, c_out, k, rng, dilation=1):
     from onnx import numpy_helper
 
@@ -174,7 +160,7 @@ def test_halo_is_measured_from_the_model(tmp_path):
     rng = np.random.default_rng(0)
     n1, w1 = _conv("a", "image", "h", 1, 3, 5, rng)
     n2, w2 = _conv("b", "h", "descriptors", 3, 2, 3, rng, dilation=3)
-    enc = load_encoder(_graph_model(tmp_path / "m.onnx", [n1, n2], [w1, w2]), threads=1, tile_rows=7)
+    enc = load_encoder(graph_encoder(tmp_path / "m.onnx", [n1, n2], [w1, w2], d=2), threads=1, tile_rows=7)
     assert enc.halo == 2 + 3
     img = _image(60, 40, seed=1)
     np.testing.assert_allclose(enc(img), load_encoder(enc.path, threads=1, tile_rows=0)(img), atol=1e-6)
@@ -188,7 +174,7 @@ def test_a_model_that_looks_at_the_whole_image_is_not_tiled(tmp_path):
         helper.make_node("ReduceMean", ["h"], ["m"], axes=[2, 3], keepdims=1),
         helper.make_node("Sub", ["h", "m"], ["descriptors"]),
     ]
-    enc = load_encoder(_graph_model(tmp_path / "g.onnx", nodes, [w]), threads=1, tile_rows=8)
+    enc = load_encoder(graph_encoder(tmp_path / "g.onnx", nodes, [w], d=2), threads=1, tile_rows=8)
     assert not enc.tiled and enc.halo is None
     img = _image(64, 48, seed=2)
     out = enc(img)
