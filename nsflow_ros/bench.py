@@ -3,9 +3,10 @@
 ``nsflow-bench`` (or ``ros2 run nsflow_ros bench``) times, per frame of a 752x480 real-texture sequence
 with 150 GFTT points: the encoder, the LM solver (pyramid build + tracking), GFTT detection and the total;
 and in the same run OpenCV's ``calcOpticalFlowPyrLK`` (21x21, 3 levels) plus GFTT, as VINS-Fusion runs
-them. It also times the encoder alone at 320x240 and 752x480 (the paper's Table II sizes) and the
-classical (intensity) mode through the same solver. Medians and 90th percentiles in milliseconds; with
-``--json`` the figures are printed as one JSON object.
+them, and the classical (intensity) mode through the same solver. The methods take turns frame by frame,
+so a drifting machine load hits them alike. It also times the encoder alone at 320x240 and 752x480 (the
+paper's Table II sizes). Medians and 90th percentiles in milliseconds; with ``--json`` the figures are
+printed as one JSON object.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.core import (
     Encoder,
     IntensityEncoder,
@@ -119,69 +121,76 @@ def _timed(fn: Callable[[], Any]) -> tuple[Any, float]:
     return out, (time.perf_counter() - t0) * 1e3
 
 
-def _pipeline(encoder: Encoder, frames: list[np.ndarray], cfg: LMConfig, points: int) -> dict[str, Any]:
-    """Time encoder / solver / detection per frame, tracking each frame's corners into the next."""
-    enc_t, solve_t, det_t, total_t, tracked = [], [], [], [], []
-    prev_pyr = None
-    pts = np.zeros((0, 2))
-    for frame in frames:
+class _Pipeline:
+    """One mode of the project's front-end: encoder, pyramid + LM solver, GFTT, one frame per ``step``."""
+
+    def __init__(self, encoder: Encoder, cfg: LMConfig, points: int) -> None:
+        self.encoder, self.cfg, self.points = encoder, cfg, points
+        self.prev_pyr: Any = None
+        self.pts = np.zeros((0, 2))
+        self.times: dict[str, list[float]] = {"encoder": [], "solver": [], "detection": [], "total": []}
+        self.tracked: list[float] = []
+
+    def step(self, frame: np.ndarray) -> None:
         gray = to_gray(frame)
-        desc, t_enc = _timed(lambda f=frame: encoder(f))
+        desc, t_enc = _timed(lambda: self.encoder(frame))
         t0 = time.perf_counter()
-        pyr = build_pyramid(desc, cfg.levels)
-        if prev_pyr is not None:
-            res = track(prev_pyr, pyr, pts, config=cfg)
-            tracked.append(float(res.status.mean()) if len(pts) else 0.0)
+        pyr = build_pyramid(desc, self.cfg.levels)
+        if self.prev_pyr is not None:
+            res = track(self.prev_pyr, pyr, self.pts, config=self.cfg)
+            self.tracked.append(float(res.status.mean()) if len(self.pts) else 0.0)
         t_solve = (time.perf_counter() - t0) * 1e3
-        pts, t_det = _timed(lambda g=gray: detect_corners(g, points, min_distance=30))
-        enc_t.append(t_enc)
-        solve_t.append(t_solve)
-        det_t.append(t_det)
-        total_t.append(t_enc + t_solve + t_det)
-        prev_pyr = pyr
-    # the first frame has nothing to track; drop it from every series
-    return {
-        "encoder": timing_stats(enc_t[1:]),
-        "solver": timing_stats(solve_t[1:]),
-        "detection": timing_stats(det_t[1:]),
-        "total": timing_stats(total_t[1:]),
-        "tracked_share": float(np.mean(tracked)),
-    }
+        self.pts, t_det = _timed(lambda: detect_corners(gray, self.points, min_distance=30))
+        first = self.prev_pyr is None
+        self.prev_pyr = pyr
+        if first:  # the first frame has nothing to track
+            return
+        for key, val in zip(self.times, (t_enc, t_solve, t_det, t_enc + t_solve + t_det), strict=True):
+            self.times[key].append(val)
+
+    def figures(self) -> dict[str, Any]:
+        out: dict[str, Any] = {k: timing_stats(v) for k, v in self.times.items()}
+        out["tracked_share"] = float(np.mean(self.tracked))
+        return out
 
 
-def _opencv_klt(frames: list[np.ndarray], points: int) -> dict[str, Any]:
-    klt_t, det_t, total_t, tracked = [], [], [], []
-    prev = None
-    pts = np.zeros((0, 1, 2), np.float32)
-    for frame in frames:
+class _OpenCVKLT:
+    """VINS-Fusion's front-end calls: calcOpticalFlowPyrLK (21x21, 3 levels) and GFTT, one frame per step."""
+
+    def __init__(self, points: int) -> None:
+        self.points = points
+        self.prev: np.ndarray | None = None
+        self.pts = np.zeros((0, 1, 2), np.float32)
+        self.times: dict[str, list[float]] = {"klt": [], "detection": [], "total": []}
+        self.tracked: list[float] = []
+
+    def step(self, frame: np.ndarray) -> None:
         gray = to_gray(frame)
         t_klt = 0.0
-        if prev is not None and len(pts):
+        if self.prev is not None and len(self.pts):
             (_, st, _), t_klt = _timed(
-                lambda g=gray, p=prev, q=pts: cv2.calcOpticalFlowPyrLK(
-                    p,
-                    g,
-                    q,
+                lambda: cv2.calcOpticalFlowPyrLK(
+                    self.prev,
+                    gray,
+                    self.pts,
                     None,
                     winSize=(21, 21),
                     maxLevel=2,
                     criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
                 )
             )
-            tracked.append(float(st.mean()))
-        found, t_det = _timed(lambda g=gray: cv2.goodFeaturesToTrack(g, points, 0.01, 30))
-        pts = found.astype(np.float32) if found is not None else np.zeros((0, 1, 2), np.float32)
-        if prev is not None:
-            klt_t.append(t_klt)
-            det_t.append(t_det)
-            total_t.append(t_klt + t_det)
-        prev = gray
-    return {
-        "klt": timing_stats(klt_t),
-        "detection": timing_stats(det_t),
-        "total": timing_stats(total_t),
-        "tracked_share": float(np.mean(tracked)),
-    }
+            self.tracked.append(float(st.mean()))
+        found, t_det = _timed(lambda: cv2.goodFeaturesToTrack(gray, self.points, 0.01, 30))
+        self.pts = found.astype(np.float32) if found is not None else np.zeros((0, 1, 2), np.float32)
+        if self.prev is not None:
+            for key, val in zip(self.times, (t_klt, t_det, t_klt + t_det), strict=True):
+                self.times[key].append(val)
+        self.prev = gray
+
+    def figures(self) -> dict[str, Any]:
+        out: dict[str, Any] = {k: timing_stats(v) for k, v in self.times.items()}
+        out["tracked_share"] = float(np.mean(self.tracked))
+        return out
 
 
 def time_encoder(
@@ -243,15 +252,12 @@ def run_benchmark(
             model_desc = "paper architecture, random weights (no shipped model found)"
             trained = False
         cfg = LMConfig()
-        stages: list[tuple[str, Callable[[], Any]]] = [
-            ("classical", lambda: _pipeline(IntensityEncoder(), seq, cfg, points)),
-            ("opencv_klt", lambda: _opencv_klt(seq, points)),
-            ("encoder_320x240", lambda: time_encoder(encoder, (320, 240), 30)),
-            ("encoder_752x480", lambda: time_encoder(encoder, (WIDTH, HEIGHT), 30)),
-        ]
+        methods: dict[str, _Pipeline | _OpenCVKLT] = {}
         if trained:
             # random descriptors never converge, so solver figures would only time the iteration limit
-            stages.insert(0, ("nsflow", lambda: _pipeline(encoder, seq, cfg, points)))
+            methods["nsflow"] = _Pipeline(encoder, cfg, points)
+        methods["classical"] = _Pipeline(IntensityEncoder(), cfg, points)
+        methods["opencv_klt"] = _OpenCVKLT(points)
         out: dict[str, Any] = {
             "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "threads": threads},
             "setup": {
@@ -261,12 +267,23 @@ def run_benchmark(
                 "model": model_desc,
                 "descriptor_channels": encoder.channels,
                 "solver": cfg.__dict__,
+                "interleaved": True,
             },
         }
-        for name, fn in stages:
+        # Frame by frame, every method in turn: on a shared machine the load drifts over seconds, and
+        # interleaving exposes all methods to the same drift, so their ratios hold even when it is noisy.
+        if progress:
+            names = ", ".join(methods)
+            print(f"[bench] {names} interleaved over {frames} frames ...", file=sys.stderr, flush=True)
+        for frame in seq:
+            for method in methods.values():
+                method.step(frame)
+        for name, method in methods.items():
+            out[name] = method.figures()
+        for name, size in (("encoder_320x240", (320, 240)), ("encoder_752x480", (WIDTH, HEIGHT))):
             if progress:
                 print(f"[bench] {name} ...", file=sys.stderr, flush=True)
-            out[name] = fn()
+            out[name] = time_encoder(encoder, size, 30)
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -288,7 +305,8 @@ def format_table(res: dict[str, Any]) -> str:
     lines = [
         f"nsflow_ros benchmark: {s['frames']} frames {s['size'][0]}x{s['size'][1]}, "
         f"{s['points']} GFTT points, "
-        f"{res['machine']['cpu_count']} cores, {res['machine']['threads']} threads",
+        f"{res['machine']['cpu_count']} cores, {res['machine']['threads']} threads, methods interleaved"
+        + (", large buffers kept on the heap" if res["machine"].get("keep_large_buffers") else ""),
         f"encoder: {s['model']} (d={s['descriptor_channels']})",
         "",
         f"{'stage':34s} {'median ms':>10s} {'p90 ms':>10s}",
@@ -325,6 +343,12 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime / OpenCV threads (default 2)")
     parser.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     parser.add_argument(
+        "--system-malloc",
+        action="store_true",
+        help="leave glibc's malloc settings alone (default: keep large buffers on the heap, as the tracker "
+        "node does; see nsflow_ros.allocator)",
+    )
+    parser.add_argument(
         "--node-frames",
         type=int,
         default=0,
@@ -332,6 +356,7 @@ def main(args: list[str] | None = None) -> int:
         "320x240 frames, mono and stereo; 10000 takes several minutes (default 0 = skip)",
     )
     opts = parser.parse_args(args)
+    heap = False if opts.system_malloc else keep_large_buffers()
     try:
         res = run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json)
         if opts.node_frames > 0:
@@ -344,6 +369,7 @@ def main(args: list[str] | None = None) -> int:
     except NSFlowError as err:
         print(f"nsflow-bench: {err}", file=sys.stderr)
         return 1
+    res["machine"]["keep_large_buffers"] = heap
     if opts.json:
         print(json.dumps(res, indent=2))
         return 0

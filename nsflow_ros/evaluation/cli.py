@@ -14,6 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
@@ -67,6 +68,7 @@ def main(args: list[str] | None = None) -> int:
         for a in ANALYSES:
             print(f"{a.key:12s} {a.title}")
         return 0
+    keep_large_buffers()  # as the tracker node does, so that per-frame times compare
     started = now()
     try:
         analyses = select(opts.only, opts.skip)

@@ -158,7 +158,10 @@ def main(args: list[str] | None = None) -> int:
             parse_remaps(opts.remap),
         )
         if opts.offline is not None:
+            from nsflow_ros.allocator import keep_large_buffers
             from nsflow_ros.offline import run_offline
+
+            keep_large_buffers()  # the tracker runs in this process
 
             summary = run_offline(
                 ropts, opts.offline, config=opts.config, method=opts.method, progress=not opts.no_progress

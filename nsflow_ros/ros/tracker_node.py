@@ -35,6 +35,7 @@ from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy, qos_pr
 from sensor_msgs.msg import ChannelFloat32, Image, Imu, PointCloud
 from std_msgs.msg import Bool
 
+from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import GyroBuffer
 from nsflow_ros.core.tracker import FeatureTracker, FrameFeatures
@@ -332,6 +333,7 @@ class TrackerNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``ros2 run nsflow_ros tracker``; returns the exit code (1 on a start-up error)."""
+    keep_large_buffers()  # per-frame buffers stay on the heap (nsflow_ros.allocator)
     rclpy.init(args=args)
     node: TrackerNode | None = None
     code = 0
