@@ -56,6 +56,7 @@ __all__ = [
     "PinholeCamera",
     "camera_from_dict",
     "load_camera",
+    "radtan_distort",
 ]
 
 _CAMODOCAL_ITERATIONS = 8  # PinholeCamera / CataCamera::liftProjective, "recursive distortion model"
@@ -120,6 +121,30 @@ def _radtan_apply(
         return x, y
     dx, dy = _radtan_offset(x, y, *coeffs)
     return x + dx, y + dy
+
+
+def radtan_distort(points: ArrayLike, coeffs: ArrayLike) -> Float64Array:
+    """Apply radial-tangential distortion (OpenCV / camodocal order k1, k2, p1, p2) on the normalised plane.
+
+    Args:
+        points: undistorted normalised coordinates (x/z, y/z).
+        coeffs: (k1, k2, p1, p2).
+
+    Returns:
+        the distorted normalised coordinates.
+
+    Shape:
+        points: (N, 2) -> (N, 2) float64.
+
+    Raises:
+        CameraError: ``points`` is not (N, 2) or ``coeffs`` does not hold four numbers.
+    """
+    p = _as_points(points, 2, "points")
+    c = np.asarray(coeffs, dtype=np.float64).ravel()
+    if c.shape != (4,):
+        raise CameraError(f"radtan coefficients must be (k1, k2, p1, p2), got shape {c.shape}")
+    x, y = _radtan_apply(p[:, 0], p[:, 1], (float(c[0]), float(c[1]), float(c[2]), float(c[3])))
+    return np.stack([x, y], axis=1)
 
 
 def _check_real(

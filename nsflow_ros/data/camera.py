@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from nsflow_ros.core.camera import PinholeCamera
+from nsflow_ros.core.camera import PinholeCamera, radtan_distort
 from nsflow_ros.data.errors import DataError
 
 __all__ = [
@@ -150,16 +150,11 @@ class PinholeRadtan:
     # -- distortion -------------------------------------------------------------------------------------
 
     def distort(self, xn: np.ndarray) -> np.ndarray:
-        """Apply the distortion to normalised coordinates.
+        """Apply the distortion to normalised coordinates (the tracker's camodocal formula).
 
         Shape: (N, 2) -> (N, 2), float64.
         """
-        x, y = xn[:, 0], xn[:, 1]
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
-        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
-        return np.stack([xd, yd], axis=1)
+        return radtan_distort(xn, self.dist)
 
     def undistort_normalized(self, xd: np.ndarray, iterations: int = 20, tol: float = 1e-13) -> np.ndarray:
         """Invert :meth:`distort` by Newton's method (exact to ~1e-13, unlike a fixed-point loop).

@@ -417,3 +417,19 @@ def test_camera_file_unreadable(tmp_path: Path) -> None:
     path = write_pinhole(tmp_path, GOOD)
     with pytest.raises(CameraError, match="model_type is PINHOLE, expected MEI"):
         MeiCamera.from_yaml(path)
+
+
+def test_radtan_distort_matches_opencv_and_checks_its_input():
+    from nsflow_ros.core.camera import CameraError, radtan_distort
+
+    rng = np.random.default_rng(4)
+    xn = rng.uniform(-0.6, 0.6, (50, 2))
+    coeffs = np.array([-0.28, 0.07, 2e-4, -1.8e-5])
+    pts3 = np.c_[xn, np.ones(len(xn))]
+    ref, _ = cv2.projectPoints(pts3, np.zeros(3), np.zeros(3), np.eye(3), coeffs)
+    np.testing.assert_allclose(radtan_distort(xn, coeffs), ref.reshape(-1, 2), atol=1e-12)
+    np.testing.assert_array_equal(radtan_distort(xn, np.zeros(4)), xn)
+    with pytest.raises(CameraError, match=r"\(N, 2\)"):
+        radtan_distort(np.zeros((3, 3)), coeffs)
+    with pytest.raises(CameraError, match="k1, k2, p1, p2"):
+        radtan_distort(xn, coeffs[:3])
