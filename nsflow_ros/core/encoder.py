@@ -153,7 +153,8 @@ class OnnxEncoder:
                 self._sessions = [self._new_session(self.threads)]
             else:
                 self._sessions += [self._new_session(1) for _ in range(self.threads - 1)]
-                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="nsflow-encoder")
+                # the calling thread encodes its own share of strips; the pool runs the others
+                self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="nsflow-encoder")
 
     def _new_session(self, threads: int) -> Any:
         import onnxruntime as ort  # heavy import; only when an ONNX model is used
@@ -246,12 +247,12 @@ class OnnxEncoder:
                 part = self._run(np.ascontiguousarray(x[:, :, a:b]), worker)
                 out[r0:r1] = _to_hwc(part[0, :, r0 - a : r1 - a])
 
-        if self._pool is None:
-            strips(0)
-        else:
-            # onnxruntime releases the GIL, so the workers' strips run in parallel.
-            for job in [self._pool.submit(strips, k) for k in range(len(self._sessions))]:
-                job.result()
+        # onnxruntime releases the GIL, so the workers' strips run in parallel with the caller's.
+        pool = self._pool
+        jobs = [] if pool is None else [pool.submit(strips, k) for k in range(1, len(self._sessions))]
+        strips(0)
+        for job in jobs:
+            job.result()
         return out
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
