@@ -54,7 +54,12 @@ class LMConfig:
         eps: tolerance of both stop tests, ||du|| < eps (1 + ||u||) and ||J^T f||_inf < eps.
         min_eigen: smallest eigenvalue of J^T J divided by the number of window elements (window^2 * C)
             below which a point's window counts as degenerate (flat, saturated) and its status is False.
-            With descriptors in [0, 1] this is a mean squared gradient of 1e-4 per pixel.
+            With descriptors in [0, 1] this is a mean squared gradient of 1e-5 per pixel. 1e-4, the
+            earlier default, rejected good points on low-contrast real textures in intensity mode: 30 %
+            of correctly tracked GFTT corners in the tracker, and on held-out photo pairs the classical
+            mode kept 93.5 % of points within 1 px against 98.9 % at 1e-5 (NSFlow: 99.4 % either way).
+            Flat and saturated windows (eigenvalue ~0) are caught at either value. OpenCV's LK default
+            (1e-4 on its scaled gradients) corresponds to about 1.6e-6 here.
         lambda_scale: tau of the per-point initial damping lambda^(0) = max(lambda_init,
             tau * max(diag J^T J)) at the start of each level (Madsen, Nielsen and Tingleff's
             initialisation); 0 = lambda_init for every point.
@@ -85,7 +90,7 @@ class LMConfig:
     lambda_init: float = 1e-2
     nu: float = 10.0
     eps: float = 1e-2
-    min_eigen: float = 1e-4
+    min_eigen: float = 1e-5
     lambda_scale: float = 0.1
 
     def __post_init__(self) -> None:

@@ -104,9 +104,8 @@ class TrackerSettings:
         stereo: track camera 0 into camera 1 (needs two cameras and an image pair per frame).
         lm: the solver's settings. Four levels by default: VINS calls OpenCV LK with maxLevel 3, i.e.
             four pyramid levels, and the capture range matters for stereo disparity and fast motion.
-            ``min_eigen`` is 1e-5 instead of the solver's 1e-4: on real textures at 320x240, 1e-4 rejected
-            about 30 % of correctly tracked GFTT corners (survival per frame 0.59 -> 0.86 at 1e-5).
-            OpenCV's own default (1e-4 on its scaled gradients) corresponds to about 1.6e-6 here.
+            ``min_eigen`` is the solver's 1e-5: on real textures at 320x240, 1e-4 rejected about 30 %
+            of correctly tracked GFTT corners (survival per frame 0.59 -> 0.86 at 1e-5).
         use_imu_prediction: use gyro samples given to :meth:`FeatureTracker.process` to predict the flow.
         prediction_min_tracked: with a prediction, retry on the full pyramid when fewer points survive
             the single-level solve (VINS: 10).
@@ -125,7 +124,7 @@ class TrackerSettings:
     border: int = 1
     equalize: bool = False
     stereo: bool = False
-    lm: LMConfig = field(default_factory=lambda: LMConfig(levels=4, min_eigen=1e-5))
+    lm: LMConfig = field(default_factory=lambda: LMConfig(levels=4))
     use_imu_prediction: bool = False
     prediction_min_tracked: int = 10
 
