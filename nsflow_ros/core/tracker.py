@@ -10,9 +10,10 @@ optical-flow calls replaced by the NSFlow descriptor LM solver (:func:`nsflow_ro
 3. border check: the rounded position must lie at least 1 px inside the image;
 4. optional fundamental-matrix RANSAC on a virtual 460 px pinhole (VINS-Mono's ``rejectWithF``; VINS-Fusion
    leaves it commented out, so it is off by default);
-5. every surviving track's count grows by 1; the mask keeps the longest tracks first, each blocking a disc
-   of radius ``min_dist``; GFTT tops the set up to ``max_cnt`` on the raw gray image, new points get fresh
-   ids and count 1;
+5. every surviving track's count grows by 1; the mask (starting from VINS-Mono's fisheye mask when the
+   config sets ``fisheye: 1``) keeps the longest tracks first, each blocking a disc of radius
+   ``min_dist``; GFTT tops the set up to ``max_cnt`` on the raw gray image, new points get fresh ids
+   and count 1;
 6. undistorted normalised points from the camera model; velocity = change of the undistorted point over
    dt for ids seen in the previous frame, 0 for new ids;
 7. stereo: left -> right tracking with the full pyramid, a right -> left back-check (0.5 px) and the border
@@ -33,9 +34,11 @@ Nothing here imports rclpy or torch: the ROS node and the offline replayer/demo 
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -53,6 +56,7 @@ if TYPE_CHECKING:  # the core does not depend on the VINS layer at run time
     from nsflow_ros.vins.config import VinsConfig
 
 __all__ = [
+    "FISHEYE_MASK_NAME",
     "KLT_CRITERIA",
     "KLT_GUIDED_MAX_LEVEL",
     "KLT_MAX_LEVEL",
@@ -62,7 +66,9 @@ __all__ = [
     "FeatureTracker",
     "FrameFeatures",
     "TrackerSettings",
+    "find_fisheye_mask",
     "klt_track",
+    "load_mask",
     "reject_with_fundamental",
 ]
 
@@ -333,6 +339,55 @@ def _make_encoder(settings: TrackerSettings) -> Encoder | None:
     return load_encoder(settings.model_path, threads=settings.num_threads)
 
 
+FISHEYE_MASK_NAME = "fisheye_mask.jpg"
+
+
+def find_fisheye_mask(config_path: str | os.PathLike[str]) -> Path:
+    """Where VINS-Mono keeps the fisheye mask for a config: ``fisheye_mask.jpg`` in the config's folder or
+    its parent (VINS-Mono: ``config/fisheye_mask.jpg`` beside ``config/<dataset>/<name>.yaml``).
+
+    Raises:
+        CoreError: naming the places looked at when neither exists.
+    """
+    folder = Path(config_path).parent
+    candidates = [folder / FISHEYE_MASK_NAME, folder.parent / FISHEYE_MASK_NAME]
+    for cand in candidates:
+        if cand.is_file():
+            return cand
+    looked = ", ".join(str(c) for c in candidates)
+    raise CoreError(
+        f"{config_path}: fisheye is 1 but no fisheye mask was found (looked at {looked}); "
+        "give its path (tracker parameter fisheye_mask) or set fisheye: 0"
+    )
+
+
+def load_mask(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a mask image as uint8 0 / 255 (gray > 127 counts as usable: VINS-Mono's masks are JPEGs).
+
+    Raises:
+        CoreError: when the file is missing or not an image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CoreError(f"mask image not found: {path}")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise CoreError(f"cannot read mask image {path}")
+    return np.where(img > 127, 255, 0).astype(np.uint8)
+
+
+def _check_mask(mask: np.ndarray, camera: CameraModel) -> np.ndarray:
+    if not isinstance(mask, np.ndarray) or mask.ndim != 2:
+        got = f"shape {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
+        raise CoreError(f"mask must be a 2-D uint8 array, got {got}")
+    if mask.shape != (camera.height, camera.width):
+        h, w = mask.shape
+        raise CoreError(f"mask is {w}x{h} but camera 0 ({camera.name}) is {camera.width}x{camera.height}")
+    if mask.dtype != np.uint8:
+        raise CoreError(f"mask must be uint8 (0 / 255), got dtype {mask.dtype}")
+    return np.where(mask > 127, 255, 0).astype(np.uint8)
+
+
 @dataclass
 class _CameraState:
     ids: np.ndarray
@@ -354,9 +409,12 @@ class FeatureTracker:
             not allowed with method "klt", which tracks the gray image.
         body_R_cam0: rotation camera 0 -> IMU body (VINS ``body_T_cam0[:3, :3]``) for the gyro prediction;
             None = identity.
+        mask: camera 0's static mask, VINS-Mono's fisheye mask: uint8 (H, W) of the camera's size,
+            255 where features may be, 0 elsewhere. Tracked points on 0 are dropped and no corner is
+            detected there (VINS-Mono ``setMask``, on the frames that detect). None = the whole image.
 
     Raises:
-        CoreError: on inconsistent settings (stereo without a second camera, ...).
+        CoreError: on inconsistent settings (stereo without a second camera, a mask of the wrong size, ...).
         EncoderError: when the "nsflow" model cannot be loaded.
     """
 
@@ -367,6 +425,7 @@ class FeatureTracker:
         *,
         encoder: Encoder | None = None,
         body_R_cam0: np.ndarray | None = None,
+        mask: np.ndarray | None = None,
     ) -> None:
         self.settings = settings or TrackerSettings()
         self.cameras = tuple(cameras)
@@ -391,26 +450,37 @@ class FeatureTracker:
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")
         self._clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8)) if self.settings.equalize else None
+        self.mask = None if mask is None else _check_mask(mask, self.cameras[0])
         self._next_id = 0
         self.reset()
 
     @classmethod
     def from_vins_config(
-        cls, config: VinsConfig, overrides: Mapping[str, Any] | None = None, **kwargs: Any
+        cls,
+        config: VinsConfig,
+        overrides: Mapping[str, Any] | None = None,
+        *,
+        fisheye_mask: str | os.PathLike[str] | None = None,
+        **kwargs: Any,
     ) -> FeatureTracker:
         """Build a tracker from a :class:`nsflow_ros.vins.config.VinsConfig`.
 
         The config supplies the cameras, ``body_T_cam0`` and the VINS settings (max_cnt, min_dist,
-        F_threshold, flow_back, equalize, stereo when num_of_cam == 2); ``overrides`` replaces any
+        F_threshold, flow_back, equalize, stereo when num_of_cam == 2, fisheye); ``overrides`` replaces any
         :class:`TrackerSettings` field (plus ``window`` / ``levels``) afterwards.
 
         Args:
             config: the VINS config.
             overrides: settings to replace, e.g. ``{"method": "classical", "max_cnt": 200}``.
+            fisheye_mask: the mask image for a config with ``fisheye: 1``; None = look for it where
+                VINS-Mono keeps it (:func:`find_fisheye_mask`). Ignored when the config's fisheye is 0.
             **kwargs: passed to the constructor (``encoder``).
 
         Returns:
             the tracker.
+
+        Raises:
+            CoreError: when ``fisheye: 1`` and no usable mask is found.
         """
         base = TrackerSettings(
             max_cnt=int(config.max_cnt),
@@ -422,6 +492,9 @@ class FeatureTracker:
         )
         settings = base.with_overrides(overrides or {})
         body_r = np.asarray(config.body_T_cam[0], dtype=np.float64)[:3, :3] if config.body_T_cam else None
+        if config.fisheye:
+            path = Path(fisheye_mask) if fisheye_mask is not None else find_fisheye_mask(config.path)
+            kwargs["mask"] = load_mask(path)
         return cls(list(config.cameras), settings, body_R_cam0=body_r, **kwargs)
 
     # -- state -----------------------------------------------------------------------------------------
@@ -530,9 +603,12 @@ class FeatureTracker:
     def _set_mask(
         self, pts: np.ndarray, counts: np.ndarray, size: tuple[int, int]
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Keep the longest tracks first, each blocking a disc of radius min_dist; returns (keep, mask)."""
+        """Keep the longest tracks first, each blocking a disc of radius min_dist; returns (keep, mask).
+
+        Starts from the static (fisheye) mask, so tracks on its zeros are dropped as well.
+        """
         w, h = size
-        mask = np.full((h, w), 255, np.uint8)
+        mask = np.full((h, w), 255, np.uint8) if self.mask is None else self.mask.copy()
         order = np.argsort(-counts, kind="stable")
         radius = round(self.settings.min_dist)
         keep: list[int] = []

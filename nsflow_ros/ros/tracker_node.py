@@ -86,6 +86,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "image_track_topic": ("image_track", "topic of the debug image"),
     "use_imu_prediction": (False, "predict feature positions from the gyro (needs imu_topic in the config)"),
     "num_threads": (0, "CPU threads for the encoder; 0 = all usable cores"),
+    "fisheye_mask": ("", "mask image for a config with fisheye: 1 (255 = usable); '' = fisheye_mask.jpg in "
+                         "the config's folder or its parent, where VINS-Mono keeps it"),
 }
 
 
@@ -161,7 +163,8 @@ class TrackerNode(Node):
         }
         self.config: VinsConfig = cfg
         self.layout = layout
-        self.tracker = FeatureTracker.from_vins_config(cfg, overrides)
+        mask_path = str(p["fisheye_mask"]) or None
+        self.tracker = FeatureTracker.from_vins_config(cfg, overrides, fisheye_mask=mask_path)
 
         self.stats: Counter[str] = Counter()
         self.latencies_ms: deque[float] = deque(maxlen=2000)

@@ -311,3 +311,66 @@ def test_klt_flow_back_rejects_occluded_points_and_stereo_works():
 def test_klt_method_refuses_an_encoder():
     with pytest.raises(CoreError, match="klt"):
         FeatureTracker([syn.camera()], TrackerSettings(method="klt"), encoder=IntensityEncoder())
+
+
+def _circle_mask(cam, radius):
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.circle(mask, (cam.width // 2, cam.height // 2), radius, 255, -1)
+    return mask
+
+
+def test_fisheye_mask_keeps_tracks_and_new_corners_inside(pan):
+    cam = syn.camera()
+    mask = _circle_mask(cam, 90)
+    plain = _run(FeatureTracker([cam], _classical()), pan, 6)
+    masked = _run(FeatureTracker([cam], _classical(), mask=mask), pan, 6)
+
+    def inside(frame):
+        px = np.rint(frame.cameras[0].pixels).astype(int)
+        return mask[px[:, 1], px[:, 0]] == 255
+
+    assert not all(inside(f).all() for f in plain), "without the mask some features lie outside the circle"
+    for frame in masked:
+        assert len(frame.cameras[0]) > 10 and inside(frame).all()
+    # tracks survive from frame to frame inside the mask
+    pi, _ = _matches(masked[-2].cameras[0], masked[-1].cameras[0])
+    assert len(pi) >= 0.5 * len(masked[-2].cameras[0])
+
+
+def test_mask_must_match_camera_0():
+    cam = syn.camera()
+    with pytest.raises(CoreError, match=r"mask is 10x20 but camera 0"):
+        FeatureTracker([cam], _classical(), mask=np.zeros((20, 10), np.uint8))
+    with pytest.raises(CoreError, match="uint8"):
+        FeatureTracker([cam], _classical(), mask=np.zeros((cam.height, cam.width), np.float32))
+    with pytest.raises(CoreError, match="2-D"):
+        FeatureTracker([cam], _classical(), mask=np.zeros((cam.height, cam.width, 3), np.uint8))
+
+
+def test_fisheye_config_finds_the_mask_where_vins_mono_keeps_it(tmp_path):
+    from nsflow_ros.vins.config import load_vins_config
+
+    folder = tmp_path / "euroc"
+    folder.mkdir()
+    src = ROOT / "config/euroc"
+    for name in ("cam0_pinhole.yaml", "cam1_pinhole.yaml"):
+        (folder / name).write_text((src / name).read_text())
+    text = (src / "euroc_mono_imu_config.yaml").read_text() + "\nfisheye: 1\n"
+    (folder / "cfg.yaml").write_text(text)
+    cfg = load_vins_config(folder / "cfg.yaml")
+    assert cfg.fisheye
+    with pytest.raises(CoreError, match=r"fisheye is 1 but no fisheye mask was found \(looked at .*euroc"):
+        FeatureTracker.from_vins_config(cfg, {"method": "classical"})
+    # VINS-Mono keeps config/fisheye_mask.jpg beside config/<dataset>/; JPEG noise is thresholded away
+    mask = _circle_mask(cfg.cameras[0], 200)
+    cv2.imwrite(str(tmp_path / "fisheye_mask.jpg"), mask)
+    tracker = FeatureTracker.from_vins_config(cfg, {"method": "classical"})
+    assert tracker.mask is not None and set(np.unique(tracker.mask)) == {0, 255}
+    assert (tracker.mask == mask).mean() > 0.999
+    # an explicit path wins; a missing one is named
+    with pytest.raises(CoreError, match=r"mask image not found: .*nope\.png"):
+        FeatureTracker.from_vins_config(cfg, {"method": "classical"}, fisheye_mask=tmp_path / "nope.png")
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"not an image")
+    with pytest.raises(CoreError, match="cannot read mask image"):
+        FeatureTracker.from_vins_config(cfg, {"method": "classical"}, fisheye_mask=bad)

@@ -9,6 +9,7 @@ import time
 import uuid
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import rclpy
@@ -301,3 +302,23 @@ def test_main_exits_1_on_a_missing_config(tmp_path):
     )
     assert out.returncode == 1
     assert "not found" in out.stderr
+
+
+def test_fisheye_mask_parameter_limits_the_features(tmp_path, prefix, pan):
+    config = write_config(tmp_path, prefix)
+    config.write_text(config.read_text() + "fisheye: 1\n")
+    cam = syn.camera()
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    mask[:, : cam.width // 2] = 255  # left half only
+    path = tmp_path / "half.png"
+    cv2.imwrite(str(path), mask)
+    h = Harness(config, prefix, fisheye_mask=str(path))
+    try:
+        for k in range(3):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+        for msg in h.clouds:
+            pts, ch = _cloud_arrays(msg)
+            uv = np.array([row[1][3:5] for v in decode_fusion(pts, ch).values() for row in v])
+            assert len(uv) > 10 and np.all(np.rint(uv[:, 0]) < cam.width // 2)
+    finally:
+        h.close()

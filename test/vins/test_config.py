@@ -479,6 +479,7 @@ def test_tracker_params_file() -> None:
         "feature_topic",
         "use_imu_prediction",
         "num_threads",
+        "fisheye_mask",
     }
     assert (EUROC.parents[1] / params["config_file"]).is_file()  # relative to the share directory
     assert params["method"] in ("nsflow", "classical")
