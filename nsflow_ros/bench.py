@@ -2,11 +2,11 @@
 
 ``nsflow-bench`` (or ``ros2 run nsflow_ros bench``) times, per frame of a 752x480 real-texture sequence
 with 150 GFTT points: the encoder, the LM solver (pyramid build + tracking), GFTT detection and the total;
-and in the same run OpenCV's ``calcOpticalFlowPyrLK`` (21x21, 3 levels) plus GFTT, as VINS-Fusion runs
-them, and the classical (intensity) mode through the same solver. The methods take turns frame by frame,
-so a drifting machine load hits them alike. It also times the encoder alone at 320x240 and 752x480 (the
-paper's Table II sizes). Medians and 90th percentiles in milliseconds; with ``--json`` the figures are
-printed as one JSON object.
+and in the same run OpenCV's ``calcOpticalFlowPyrLK`` (VINS-Fusion's 21x21 window and criteria, 3 levels
+like the solver) plus GFTT, and the classical (intensity) mode through the same solver. The methods take
+turns frame by frame, so a drifting machine load hits them alike. It also times the encoder alone at
+320x240 and 752x480 (the paper's Table II sizes). Medians and 90th percentiles in milliseconds; with
+``--json`` the figures are printed as one JSON object.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from nsflow_ros.core import (
     to_gray,
     track,
 )
+from nsflow_ros.core.tracker import KLT_CRITERIA, KLT_WINDOW
 from nsflow_ros.errors import NSFlowError
 
 __all__ = ["main", "make_frames", "paper_encoder_onnx", "run_benchmark", "time_encoder", "timing_stats"]
@@ -121,15 +122,31 @@ def _timed(fn: Callable[[], Any]) -> tuple[Any, float]:
     return out, (time.perf_counter() - t0) * 1e3
 
 
-class _Pipeline:
+class _Method:
+    """Per-frame timings (milliseconds, one list per stage) and tracked shares of one benchmarked method."""
+
+    def __init__(self, stages: tuple[str, ...]) -> None:
+        self.times: dict[str, list[float]] = {stage: [] for stage in stages}
+        self.tracked: list[float] = []
+
+    def _record(self, *values: float) -> None:
+        for key, val in zip(self.times, values, strict=True):
+            self.times[key].append(val)
+
+    def figures(self) -> dict[str, Any]:
+        out: dict[str, Any] = {k: timing_stats(v) for k, v in self.times.items()}
+        out["tracked_share"] = float(np.mean(self.tracked))
+        return out
+
+
+class _Pipeline(_Method):
     """One mode of the project's front-end: encoder, pyramid + LM solver, GFTT, one frame per ``step``."""
 
     def __init__(self, encoder: Encoder, cfg: LMConfig, points: int) -> None:
+        super().__init__(("encoder", "solver", "detection", "total"))
         self.encoder, self.cfg, self.points = encoder, cfg, points
         self.prev_pyr: Any = None
         self.pts = np.zeros((0, 2))
-        self.times: dict[str, list[float]] = {"encoder": [], "solver": [], "detection": [], "total": []}
-        self.tracked: list[float] = []
 
     def step(self, frame: np.ndarray) -> None:
         gray = to_gray(frame)
@@ -143,26 +160,21 @@ class _Pipeline:
         self.pts, t_det = _timed(lambda: detect_corners(gray, self.points, min_distance=30))
         first = self.prev_pyr is None
         self.prev_pyr = pyr
-        if first:  # the first frame has nothing to track
-            return
-        for key, val in zip(self.times, (t_enc, t_solve, t_det, t_enc + t_solve + t_det), strict=True):
-            self.times[key].append(val)
-
-    def figures(self) -> dict[str, Any]:
-        out: dict[str, Any] = {k: timing_stats(v) for k, v in self.times.items()}
-        out["tracked_share"] = float(np.mean(self.tracked))
-        return out
+        if not first:  # the first frame has nothing to track
+            self._record(t_enc, t_solve, t_det, t_enc + t_solve + t_det)
 
 
-class _OpenCVKLT:
-    """VINS-Fusion's front-end calls: calcOpticalFlowPyrLK (21x21, 3 levels) and GFTT, one frame per step."""
+class _OpenCVKLT(_Method):
+    """OpenCV's calcOpticalFlowPyrLK with VINS-Fusion's window and criteria, and GFTT, one frame per step.
+
+    Three pyramid levels (maxLevel 2; VINS-Fusion uses 4), like the solver figures it is compared with.
+    """
 
     def __init__(self, points: int) -> None:
+        super().__init__(("klt", "detection", "total"))
         self.points = points
         self.prev: np.ndarray | None = None
         self.pts = np.zeros((0, 1, 2), np.float32)
-        self.times: dict[str, list[float]] = {"klt": [], "detection": [], "total": []}
-        self.tracked: list[float] = []
 
     def step(self, frame: np.ndarray) -> None:
         gray = to_gray(frame)
@@ -170,27 +182,15 @@ class _OpenCVKLT:
         if self.prev is not None and len(self.pts):
             (_, st, _), t_klt = _timed(
                 lambda: cv2.calcOpticalFlowPyrLK(
-                    self.prev,
-                    gray,
-                    self.pts,
-                    None,
-                    winSize=(21, 21),
-                    maxLevel=2,
-                    criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+                    self.prev, gray, self.pts, None, winSize=KLT_WINDOW, maxLevel=2, criteria=KLT_CRITERIA
                 )
             )
             self.tracked.append(float(st.mean()))
         found, t_det = _timed(lambda: cv2.goodFeaturesToTrack(gray, self.points, 0.01, 30))
         self.pts = found.astype(np.float32) if found is not None else np.zeros((0, 1, 2), np.float32)
         if self.prev is not None:
-            for key, val in zip(self.times, (t_klt, t_det, t_klt + t_det), strict=True):
-                self.times[key].append(val)
+            self._record(t_klt, t_det, t_klt + t_det)
         self.prev = gray
-
-    def figures(self) -> dict[str, Any]:
-        out: dict[str, Any] = {k: timing_stats(v) for k, v in self.times.items()}
-        out["tracked_share"] = float(np.mean(self.tracked))
-        return out
 
 
 def time_encoder(

@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.files import atomic_write
+from nsflow_ros.stamps import stamp_to_ns
 
 __all__ = ["main", "run_demo"]
 
@@ -35,19 +37,20 @@ class _Collector:
 
     def __init__(self, ctx: Any, feature_topic: str) -> None:
         from rclpy.node import Node
-        from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import Image, PointCloud
+
+        from nsflow_ros.ros.tracker_node import FEATURE_QOS
 
         self.node = Node("nsflow_demo", context=ctx)
         self.frames: dict[int, dict[int, np.ndarray]] = {}
         self.debug: dict[int, Any] = {}
         self.lock = threading.Lock()
-        reliable = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
-        self.node.create_subscription(PointCloud, feature_topic, self._on_features, reliable)
+        self.node.create_subscription(PointCloud, feature_topic, self._on_features, FEATURE_QOS)
         self.node.create_subscription(Image, "/image_track", self._on_debug, qos_profile_sensor_data)
 
     def _on_features(self, msg: Any) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_to_ns(msg.header.stamp)
         ch = msg.channels
         ids, cam = np.asarray(ch[0].values), np.asarray(ch[1].values)
         uv = np.stack([np.asarray(ch[2].values), np.asarray(ch[3].values)], axis=1)
@@ -56,7 +59,7 @@ class _Collector:
             self.frames[stamp] = {int(i): p for i, p in zip(ids[left], uv[left], strict=True)}
 
     def _on_debug(self, msg: Any) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_to_ns(msg.header.stamp)
         with self.lock:
             self.debug[stamp] = msg
 
@@ -151,7 +154,7 @@ def run_demo(
 
     from nsflow_ros.core.encoder import DEFAULT_MODEL
     from nsflow_ros.data.sample import make_sample_sequence
-    from nsflow_ros.offline import contact_sheet
+    from nsflow_ros.offline import _write_png, contact_sheet
     from nsflow_ros.resources import ResourceError, share_file
     from nsflow_ros.ros.image_conv import image_to_numpy
 
@@ -194,11 +197,10 @@ def run_demo(
         "notes": notes,
         "results": results,
     }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write(out_dir / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
     if sheet:
-        import cv2
-
-        cv2.imwrite(str(out_dir / "tracks.png"), contact_sheet(sheet, cols=len(methods), labels=labels))
+        img = contact_sheet(sheet, cols=len(methods), labels=labels)
+        atomic_write(out_dir / "tracks.png", lambda p: _write_png(p, img))
     return summary
 
 

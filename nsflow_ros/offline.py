@@ -158,10 +158,10 @@ def _write_png(path: Path, img: np.ndarray) -> None:
 def _sample_of(path: Path) -> Any:
     """The SampleSequence a path belongs to, or None."""
     from nsflow_ros.data.errors import DataError
-    from nsflow_ros.data.sample import SampleSequence
+    from nsflow_ros.data.sample import SampleSequence, _is_sample
 
     for cand in (path, *path.parents[:3]):
-        if (cand / "done").is_file() and (cand / "sequence.json").is_file():
+        if _is_sample(cand):
             try:
                 return SampleSequence.load(cand)
             except DataError:
@@ -206,7 +206,6 @@ def run_offline(
     out.mkdir(parents=True, exist_ok=True)
     cfg = load_vins_config(config or share_file("config/euroc/euroc_mono_imu_config.yaml"))
     tracker = FeatureTracker.from_vins_config(cfg, {"method": method, "stereo": False, **(overrides or {})})
-    topic0 = (opts.remap or {}).get(cfg.image0_topic, cfg.image0_topic)
     stats = TrackStats(_sample_of(Path(opts.path)))
     rows: list[str] = []
     sheet: list[tuple[int, np.ndarray]] = []
@@ -214,7 +213,7 @@ def run_offline(
     bar = tqdm(desc=f"offline {method}", unit="frame", disable=not progress)
     try:
         for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
-            if not isinstance(rec, ImageRecord) or rec.topic != topic0:
+            if not isinstance(rec, ImageRecord):
                 continue
             gray = rec.gray()
             feats = tracker.process(rec.stamp_ns * 1e-9, gray)

@@ -7,12 +7,12 @@ yields, so the stream itself (and its reproducibility from a seed) is tested wit
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from nsflow_ros.data.messages import record_to_cdr
-from nsflow_ros.data.perturb import IlluminationPerturber
-from nsflow_ros.data.records import ImageRecord, ImuRecord, RawMessage, Record
+from nsflow_ros.data.perturb import IlluminationPerturber, perturb_records
+from nsflow_ros.data.records import RawMessage, Record
 from nsflow_ros.data.sources import SensorSource
 from nsflow_ros.errors import NSFlowError
 
@@ -76,13 +76,13 @@ def replay_stream(opts: ReplayOptions) -> Iterator[RawMessage]:
     Raises:
         DataError: from the source (missing path or topic, damaged bag after the last good message).
     """
-    source = SensorSource(opts.path, topics=opts.topics, start=opts.start, duration=opts.duration)
+    source = _source(opts)
     remap = dict(opts.remap or {})
     if opts.perturb == "none":
         for msg in source.raw_messages():
             yield RawMessage(remap.get(msg.topic, msg.topic), msg.msgtype, msg.stamp_ns, msg.cdr)
         return
-    for rec in replay_records(opts):
+    for rec in _records(source, remap, opts):
         msgtype, cdr = record_to_cdr(rec)
         yield RawMessage(rec.topic, msgtype, rec.stamp_ns, cdr)
 
@@ -93,13 +93,18 @@ def replay_records(opts: ReplayOptions) -> Iterator[Record]:
     Raises:
         DataError: from the source.
     """
-    source = SensorSource(opts.path, topics=opts.topics, start=opts.start, duration=opts.duration)
-    remap = dict(opts.remap or {})
+    yield from _records(_source(opts), dict(opts.remap or {}), opts)
+
+
+def _source(opts: ReplayOptions) -> SensorSource:
+    return SensorSource(opts.path, topics=opts.topics, start=opts.start, duration=opts.duration)
+
+
+def _records(source: SensorSource, remap: Mapping[str, str], opts: ReplayOptions) -> Iterator[Record]:
+    """The source's records, perturbed unless ``opts.perturb`` is ``none``, on their remapped topics."""
     perturber = None if opts.perturb == "none" else IlluminationPerturber(opts.perturb, seed=opts.seed)
-    for rec in source.records():
-        topic = remap.get(rec.topic, rec.topic)
-        if isinstance(rec, ImageRecord):
-            image = rec.image if perturber is None else perturber(rec.image, rec.stamp_ns * 1e-9)
-            yield ImageRecord(topic, rec.stamp_ns, image, rec.encoding, rec.frame_id)
-        else:
-            yield ImuRecord(topic, rec.stamp_ns, rec.gyro, rec.accel, rec.frame_id)
+    records: Iterator[Record] = source.records()
+    if perturber is not None:
+        records = perturb_records(records, perturber)
+    for rec in records:
+        yield replace(rec, topic=remap.get(rec.topic, rec.topic))

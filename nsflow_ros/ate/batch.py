@@ -46,7 +46,7 @@ import numpy as np
 
 from nsflow_ros.ate.errors import ATEError
 from nsflow_ros.ate.formats import read_trajectory, resolve_trajectory_path
-from nsflow_ros.ate.metrics import APEResult, ErrorStats, evaluate_ape
+from nsflow_ros.ate.metrics import STAT_KEYS, APEResult, ErrorStats, evaluate_ape
 from nsflow_ros.ate.trajectory import Trajectory
 
 __all__ = [
@@ -536,7 +536,7 @@ def runs_csv(result: BatchResult, digits: int = 6) -> str:
     """
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    keys = ("rmse", "mean", "median", "std", "min", "max")
+    keys = STAT_KEYS[:-1]  # all but n, which is written as an integer
     writer.writerow(
         ["sequence", "level", "method", "rep", "status", *keys, "n", "coverage", "reason", "estimate"]
     )

@@ -24,7 +24,6 @@ from nsflow_ros.ate.align import ALIGN_METHODS
 from nsflow_ros.ate.batch import (
     FAIL_POLICIES,
     FailureCriteria,
-    batch_markdown,
     score_batch,
     write_batch_tables,
 )
@@ -302,7 +301,7 @@ def _run_batch(ns: argparse.Namespace) -> int:
             runs.append(item)
         print(json.dumps({"files": {k: str(v) for k, v in files.items()}, "runs": runs}))
         return 0
-    print(batch_markdown(result, digits=ns.digits), end="")
+    print(files["markdown"].read_text(encoding="utf-8"), end="")  # the table just written
     print(f"\nwrote {', '.join(str(p) for p in files.values())}")
     return 0
 

@@ -106,9 +106,8 @@ def _radtan_remove(
     """camodocal's fixed-point undistortion: u <- d - offset(u), started from u = d - offset(d)."""
     if not any(coeffs):  # camodocal's m_noDistortion shortcut
         return xd.copy(), yd.copy()
-    dx, dy = _radtan_offset(xd, yd, *coeffs)
-    x, y = xd - dx, yd - dy
-    for _ in range(iterations - 1):
+    x, y = xd, yd
+    for _ in range(iterations):
         dx, dy = _radtan_offset(x, y, *coeffs)
         x, y = xd - dx, yd - dy
     return x, y

@@ -94,6 +94,7 @@ class IntensityEncoder:
 
     name = "classical"
     channels = 1
+    input_channels = 1
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """Encode an image.

@@ -63,11 +63,6 @@ def _check_samples(samples: np.ndarray) -> np.ndarray:
     return arr
 
 
-def _rate_at(samples: np.ndarray, t: float) -> np.ndarray:
-    # Linear interpolation, holding the end values outside the covered interval.
-    return np.array([np.interp(t, samples[:, 0], samples[:, k]) for k in (1, 2, 3)])
-
-
 def integrate_gyro(samples: np.ndarray, t0: float, t1: float) -> np.ndarray:
     """Integrate gyro samples from t0 to t1 into the body rotation R_{b(t0) b(t1)}.
 
@@ -96,7 +91,8 @@ def integrate_gyro(samples: np.ndarray, t0: float, t1: float) -> np.ndarray:
         raise CoreError(f"integration interval goes backwards: t0={t0} > t1={t1}")
     inner = arr[(arr[:, 0] > t0) & (arr[:, 0] < t1), 0]
     times = np.concatenate([[t0], inner, [t1]])
-    rates = np.stack([_rate_at(arr, t) for t in times])
+    # linear interpolation, holding the end values outside the covered interval
+    rates = np.stack([np.interp(times, arr[:, 0], arr[:, k]) for k in (1, 2, 3)], axis=1)
     rot = np.eye(3)
     for k in range(times.size - 1):
         dt = times[k + 1] - times[k]

@@ -69,11 +69,12 @@ def _read_text(path: Path) -> str:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as err:
         raise OpenCVYamlError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from err
-    first = text.lstrip("\ufeff").split("\n", 1)[0].strip()
+    text = text.lstrip("\ufeff")
+    first = text.split("\n", 1)[0].strip()
     if not first.startswith(_HEADER):
         shown = first if len(first) <= 40 else first[:37] + "..."
         raise OpenCVYamlError(f"{path}: first line must be '%YAML:1.0' (OpenCV FileStorage), got {shown!r}")
-    return text.lstrip("\ufeff")
+    return text
 
 
 def _convert(node: cv2.FileNode, where: str, path: Path) -> Any:

@@ -66,7 +66,7 @@ def _level(desc: np.ndarray) -> tuple[np.ndarray, ...]:
 
 @dataclass(frozen=True)
 class DescriptorPyramid:
-    """A frame's descriptor maps and their derivatives at every pyramid level.
+    """A frame's descriptor maps at every pyramid level (the solver derives J from sampled patches).
 
     Attributes:
         levels: level 0 first (full resolution); each a tuple of C-contiguous float32 chunks

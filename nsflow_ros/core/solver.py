@@ -252,16 +252,19 @@ def sample_windows(
     ch = sum(c.shape[2] for c in chunks)
     if m == 0:
         return np.zeros((0, window, window, ch), np.float32)
-    maps = _scatter_maps(centers, window) if _remap_is_exact() else None
-    parts = [_sample_chunk(chunk, centers, window, maps) for chunk in chunks]
+    parts = _sample_level(chunks, centers, window)
     out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=3)
     return np.ascontiguousarray(out.transpose(1, 0, 2, 3))
 
 
-def _template(level: tuple[np.ndarray, ...], pts: np.ndarray, window: int) -> list[np.ndarray]:
-    """Frame-1 descriptor windows D1(x) per chunk, in the solver's layout: [(window, N, window, K)]."""
-    maps = _scatter_maps(pts, window) if _remap_is_exact() else None
-    return [_sample_chunk(chunk, pts, window, maps) for chunk in level]
+def _sample_level(level: tuple[np.ndarray, ...], centers: np.ndarray, size: int) -> list[np.ndarray]:
+    """Windows of side ``size`` at ``centers`` per chunk, in the solver's layout: [(size, M, size, K)].
+
+    One set of remap maps serves every chunk. The solver uses it for the frame-1 template D1(x) and for
+    the (window + 2)^2 frame-2 patches.
+    """
+    maps = _scatter_maps(centers, size) if _remap_is_exact() else None
+    return [_sample_chunk(chunk, centers, size, maps) for chunk in level]
 
 
 def _take(template: list[np.ndarray], rows: np.ndarray) -> list[np.ndarray]:
@@ -297,8 +300,7 @@ def _normal_equations(
     """
     m = centers.shape[0]
     size = window + 2
-    maps = _scatter_maps(centers, size) if _remap_is_exact() else None
-    patches = [_sample_chunk(chunk, centers, size, maps) for chunk in level]
+    patches = _sample_level(level, centers, size)
     resid = [p[1:-1, :, 1:-1] - t for p, t in zip(patches, template, strict=True)]
     sums = np.zeros((m, 6))
     cost = sums[:, 0]
@@ -346,7 +348,7 @@ def _solve_level(
     """Run Algorithm 1 on one pyramid level for all points; returns the final (N, 8) LM state."""
     n = pts.shape[0]
     win = cfg.window
-    template = _template(level1, pts, win)
+    template = _sample_level(level1, pts, win)
     state = np.empty((n, 8))
     state[:, _U] = u
     state[:, _TERMS] = _normal_equations(level2, pts + u, template, win)

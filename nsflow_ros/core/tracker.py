@@ -502,7 +502,6 @@ class FeatureTracker:
     def reset(self) -> None:
         """Forget all tracks (ids keep counting up, so an id is never reused)."""
         self._stamp: float | None = None
-        self._size: tuple[int, int] | None = None
         self._pyramid: DescriptorPyramid | np.ndarray | None = None
         self._left = _empty_state()
         self._counts = np.zeros(0, np.int64)
@@ -529,7 +528,9 @@ class FeatureTracker:
         if self._clahe is not None:
             gray = self._clahe.apply(gray)
             return gray, gray
-        return gray, (gray if self.encoder is None else image)
+        # encoders of gray input (and KLT) get the gray image already made, not the BGR one again
+        gray_input = self.encoder is None or getattr(self.encoder, "input_channels", 3) == 1
+        return gray, (gray if gray_input else image)
 
     def _pyramid_of(self, encoder_input: np.ndarray) -> DescriptorPyramid | np.ndarray:
         if self.encoder is None:
@@ -585,11 +586,30 @@ class FeatureTracker:
             # level the LM solver's gradient stop test accepts that start almost as is, and occluded points
             # tracked 15-50 px off passed the check; from the coarse levels they are caught (6 of 6, with
             # no correct track lost, on the occlusion test).
-            back = track(pyr2, pyr1, new, pts - new, lm)
-            returned = np.hypot(*(new + back.flow - pts).T) <= s.flow_back_threshold
-            status &= back.status & returned
+            status = self._flow_back(pyr2, pyr1, new, pts, status, guided=True)
         status &= _in_border(new, size, s.border)
         return new, status
+
+    def _flow_back(
+        self,
+        pyr2: DescriptorPyramid,
+        pyr1: DescriptorPyramid,
+        new: np.ndarray,
+        pts: np.ndarray,
+        status: np.ndarray,
+        *,
+        guided: bool,
+    ) -> np.ndarray:
+        """``status``, cleared where tracking ``new`` back from frame 2 misses ``pts`` by more than the
+        threshold; the reverse solve starts at ``pts`` when ``guided``, else at ``new``. Only live points
+        are re-tracked: the others are dropped anyway, and lost points are the batched solver's slowest."""
+        idx = np.flatnonzero(status)
+        start, target = new[idx], pts[idx]
+        back = track(pyr2, pyr1, start, target - start if guided else None, self.settings.lm)
+        returned = np.hypot(*(start + back.flow - target).T) <= self.settings.flow_back_threshold
+        out = status.copy()
+        out[idx] = back.status & returned
+        return out
 
     def _predict(self, gyro: np.ndarray | None, stamp: float) -> np.ndarray | None:
         if not self.settings.use_imu_prediction or gyro is None:
@@ -623,7 +643,12 @@ class FeatureTracker:
         for name, img in (("image0", image0), ("image1", image1)):
             if img is None:
                 continue
-            if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim not in (2, 3):
+            if (
+                not isinstance(img, np.ndarray)
+                or img.dtype != np.uint8
+                or img.ndim not in (2, 3)
+                or (img.ndim == 3 and img.shape[2] not in (1, 3))
+            ):
                 got = f"{img.dtype} {img.shape}" if isinstance(img, np.ndarray) else type(img).__name__
                 raise CoreError(f"{name} must be a uint8 (H, W) or (H, W, 3) array, got {got}")
         h, w = image0.shape[:2]
@@ -747,7 +772,6 @@ class FeatureTracker:
 
         # Commit the new state only now, so an exception above leaves the tracker as it was.
         self._stamp = float(stamp)
-        self._size = size
         self._pyramid = pyr0
         self._left = _CameraState(ids, pts, un0)
         self._counts = counts
@@ -775,7 +799,5 @@ class FeatureTracker:
         right = np.where(np.isfinite(res.flow), pts + res.flow, pts)
         status = res.status & _in_border(right, size, s.border)
         if s.flow_back and status.any():
-            back = track(pyr_right, pyr_left, right, None, s.lm)
-            returned = np.hypot(*(right + back.flow - pts).T) <= s.flow_back_threshold
-            status &= back.status & returned
+            status = self._flow_back(pyr_right, pyr_left, right, pts, status, guided=False)
         return right, status

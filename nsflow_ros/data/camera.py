@@ -94,11 +94,6 @@ class PinholeRadtan:
     # -- parameters -------------------------------------------------------------------------------------
 
     @property
-    def K(self) -> np.ndarray:  # noqa: N802 - the conventional name
-        """3x3 projection matrix."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
     def dist(self) -> np.ndarray:
         """Distortion coefficients ``[k1, k2, p1, p2]`` in OpenCV's order."""
         return np.array([self.k1, self.k2, self.p1, self.p2])

@@ -15,6 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
+from nsflow_ros.stamps import stamp_to_ns
 
 __all__ = [
     "COMPRESSED_IMAGE",
@@ -87,10 +88,6 @@ def _header(store: Any, stamp_ns: int, frame_id: str, seq: int) -> Any:
     if is_ros1(store):
         return Header(seq=int(seq), stamp=stamp, frame_id=frame_id)
     return Header(stamp=stamp, frame_id=frame_id)
-
-
-def _stamp_ns(header: Any) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str | None = None,
@@ -261,9 +258,9 @@ def message_to_record(topic: str, msgtype: str, msg: Any) -> Record:
     """
     if msgtype in (IMAGE, COMPRESSED_IMAGE):
         img, enc = _image_from_msg(msg, msgtype, topic)
-        return ImageRecord(topic, _stamp_ns(msg.header), img, enc, str(msg.header.frame_id))
+        return ImageRecord(topic, stamp_to_ns(msg.header.stamp), img, enc, str(msg.header.frame_id))
     if msgtype == IMU:
         av, la = msg.angular_velocity, msg.linear_acceleration
-        return ImuRecord(topic, _stamp_ns(msg.header), np.array([av.x, av.y, av.z], dtype=np.float64),
+        return ImuRecord(topic, stamp_to_ns(msg.header.stamp), np.array([av.x, av.y, av.z], dtype=np.float64),
                          np.array([la.x, la.y, la.z], dtype=np.float64), str(msg.header.frame_id))
     raise DataError(f"topic {topic} has type {msgtype}; expected {IMAGE}, {COMPRESSED_IMAGE} or {IMU}")

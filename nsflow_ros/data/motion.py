@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from nsflow_ros.ate.rotation import quaternion_to_matrix
 from nsflow_ros.data.camera import PinholeRadtan
 from nsflow_ros.data.errors import DataError
 
@@ -321,11 +322,4 @@ def rotation_to_quaternion(R: Any) -> np.ndarray:
 
 def quaternion_to_rotation(q: Any) -> np.ndarray:
     """Unit quaternions ``(w, x, y, z)`` to rotation matrices. Shape: (N, 4) or (4,) -> (N, 3, 3)."""
-    Q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    Q = Q / np.linalg.norm(Q, axis=1, keepdims=True)
-    w, x, y, z = Q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+    return quaternion_to_matrix(np.asarray(q, dtype=np.float64).reshape(-1, 4))

@@ -64,8 +64,8 @@ def _ros1_fields(blob: bytes) -> dict[str, bytes]:
     return fields
 
 
-def _ros1_record(bio: BinaryIO) -> tuple[dict[str, bytes], bytes] | None:
-    """Next (header fields, data) of a ROS 1 record, None at a clean end of file."""
+def _ros1_head(bio: BinaryIO) -> tuple[dict[str, bytes], int] | None:
+    """Next (header fields, data length) of a ROS 1 record, None at a clean end of file."""
     head = bio.read(4)
     if not head:
         return None
@@ -74,6 +74,15 @@ def _ros1_record(bio: BinaryIO) -> tuple[dict[str, bytes], bytes] | None:
     (hlen,) = struct.unpack("<I", head)
     header = _ros1_fields(_read(bio, hlen))
     (dlen,) = struct.unpack("<I", _read(bio, 4))
+    return header, dlen
+
+
+def _ros1_record(bio: BinaryIO) -> tuple[dict[str, bytes], bytes] | None:
+    """Next (header fields, data) of a ROS 1 record, None at a clean end of file."""
+    head = _ros1_head(bio)
+    if head is None:
+        return None
+    header, dlen = head
     return header, _read(bio, dlen)
 
 
@@ -90,15 +99,11 @@ def salvage_ros1(path: Path) -> Iterator[SalvagedMessage]:
             if f.read(len(_ROS1_MAGIC)) != _ROS1_MAGIC:
                 raise DataError(f"{path} is not a ROS 1 bag v2.0 (bad magic)")
             while True:
-                head = f.read(4)
-                if not head:
+                head = _ros1_head(f)
+                if head is None:
                     return
-                if len(head) < 4:
-                    raise _End("file ends inside a record length")
-                (hlen,) = struct.unpack("<I", head)
-                header = _ros1_fields(_read(f, hlen))
-                (dlen,) = struct.unpack("<I", _read(f, 4))
-                data = f.read(dlen)
+                header, dlen = head
+                data = f.read(dlen)  # lenient: a cut record is handled below
                 op = header.get("op", b"\x00")[:1]
                 whole = len(data) == dlen
                 if op == b"\x05" and (whole or header.get("compression", b"none") == b"none"):

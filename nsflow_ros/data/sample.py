@@ -50,7 +50,13 @@ from nsflow_ros.data.motion import (
     synthesize_imu,
 )
 from nsflow_ros.data.scene import Rendered, Renderer, Scene, flow_between, ray_depth
-from nsflow_ros.data.writers import ASL_GROUNDTRUTH_HEADER, AslWriter, BagWriter, groundtruth_row
+from nsflow_ros.data.writers import (
+    ASL_GROUNDTRUTH_HEADER,
+    AslWriter,
+    BagWriter,
+    _temp_sibling,
+    groundtruth_row,
+)
 
 __all__ = [
     "FORMATS",
@@ -308,7 +314,7 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
     if root.exists() and not empty_dir and not _is_sample(root) and not overwrite:
         raise DataError(f"{root} exists and is not a sample sequence; choose another folder or overwrite it")
 
-    tmp = root.with_name(f".{root.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    tmp = _temp_sibling(root)
     tmp.mkdir(parents=True)
     try:
         _generate(tmp, params, key, fmts, n_frames, progress, workers)

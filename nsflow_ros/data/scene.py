@@ -669,9 +669,10 @@ def flow_between(scene: Scene, cam_i: PinholeRadtan, T_w_ci: Any, cam_j: Pinhole
         raise DataError(f"poses: expected shape (4, 4), got {Ti.shape} and {Tj.shape}")
     xn = cam_i.pixels_to_normalized(uv)
     rays_i = np.vstack([xn.T, np.ones((1, xn.shape[0]))])
-    t, surf = scene.cast(Ti[:3, 3], Ti[:3, :3] @ rays_i)
+    dirs_i = Ti[:3, :3] @ rays_i
+    t, surf = scene.cast(Ti[:3, 3], dirs_i)
     ok = (surf >= 0) & cam_i.in_image(uv)
-    Xw = Ti[:3, 3:4] + (Ti[:3, :3] @ rays_i) * np.where(ok, t, 1.0)
+    Xw = Ti[:3, 3:4] + dirs_i * np.where(ok, t, 1.0)
     Xj = (Tj[:3, :3].T @ (Xw - Tj[:3, 3:4])).T
     uv_j, valid = cam_j.project(Xj)
     visible = ok & valid & cam_j.in_image(uv_j)

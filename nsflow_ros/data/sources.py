@@ -136,20 +136,6 @@ class SensorSource:
 
     # -- public -----------------------------------------------------------------------------------------
 
-    def available_topics(self) -> dict[str, str]:
-        """All topics of the source and their message types (ROS 2 names, e.g. ``sensor_msgs/msg/Imu``).
-
-        Raises:
-            DataError: when the source cannot be opened.
-        """
-        if self.kind == "asl":
-            return dict(self._asl_topics())
-        reader = self._open_reader()
-        try:
-            return {c.topic: c.msgtype for c in reader.connections}
-        finally:
-            reader.close()
-
     def __iter__(self) -> Iterator[Record]:
         return self.records()
 

@@ -25,9 +25,10 @@ from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW, KLTMethod, LMMethod, PairMethod
+from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW, KLTMethod, LMMethod, PairMethod, PairResult
 from nsflow_ros.evaluation.pairs import (
     HomographyPair,
+    endpoint_errors,
     inside,
     keypoints,
     random_homography,
@@ -36,10 +37,13 @@ from nsflow_ros.evaluation.pairs import (
 )
 from nsflow_ros.evaluation.section import HeadlineRow, Section
 
-__all__ = ["ConvergenceConfig", "convergence_curves", "run"]
+__all__ = ["ConvergenceConfig", "convergence_curves", "encode_pair", "run"]
 
 CONDITIONS = ("none", "light")
 REPORT_AT = (0, 1, 2, 3, 5, 10, 20, 30)
+
+DescriptorMaps = dict[str, tuple[np.ndarray, np.ndarray]]
+"""LM method name -> the descriptor maps of a pair's two frames (:func:`encode_pair`)."""
 
 
 @dataclass(frozen=True)
@@ -92,6 +96,12 @@ def _clipped(flow: np.ndarray, gt: np.ndarray, ceiling: float) -> np.ndarray:
     return np.minimum(np.where(np.isfinite(e), e, ceiling), ceiling)
 
 
+def encode_pair(methods: list[PairMethod], pair: HomographyPair) -> DescriptorMaps:
+    """Each LM method's descriptor maps of the pair's two frames, encoded once for every depth and run."""
+    lm = [m for m in methods if isinstance(m, LMMethod)]
+    return {m.name: (m.encode(pair.image1), m.encode(pair.image2)) for m in lm}
+
+
 def convergence_curves(
     methods: list[PairMethod],
     pair: HomographyPair,
@@ -101,6 +111,7 @@ def convergence_curves(
     iterations: int = 30,
     levels: int = 1,
     ceiling: float = 10.0,
+    maps: DescriptorMaps | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Per-point error after each iteration k = 0..K, for every method.
 
@@ -112,6 +123,7 @@ def convergence_curves(
         iterations: K.
         levels: pyramid levels every method uses here.
         ceiling: clip errors (and non-finite flows) to this, pixels.
+        maps: the LM methods' descriptor maps of the pair (:func:`encode_pair`); None = encode here.
 
     Returns:
         (curves, final): ``curves[name]`` is (K + 1, N) clipped errors, row k after k iterations;
@@ -127,29 +139,29 @@ def convergence_curves(
     if iterations < 1 or levels < 1:
         raise EvaluationError(f"iterations and levels must be >= 1, got {iterations} and {levels}")
     gt = true_flow(pts, pair.homography)
+    if maps is None:
+        maps = encode_pair(methods, pair)
     curves, final = {}, {}
     for m in methods:
         rows = [_clipped(f0, gt, ceiling)]
         if isinstance(m, LMMethod):
             cfg = replace(m.config, levels=levels, max_iterations=iterations)
-            res = m.track_pyramids(
-                m.pyramid(pair.image1), m.pyramid(pair.image2), pts, f0, record=True, config=cfg
-            )
+            d1, d2 = maps[m.name]
+            res = m.track_pyramids(m.pyramid_of(d1), m.pyramid_of(d2), pts, f0, record=True, config=cfg)
             flows = [rec.flow for rec in res.history]
             flows += [res.flow] * (iterations - len(flows))  # every point had stopped: flows stay
             rows += [_clipped(f, gt, ceiling) for f in flows[:iterations]]
             flow, status = res.flow, res.status
         elif isinstance(m, KLTMethod):
+            klt = _at_levels(m, levels)
             for k in range(1, iterations + 1):
-                res = KLTMethod(levels, m.window, k, m.eps).track(pair.image1, pair.image2, pts, f0)
+                res = klt.with_iterations(k).track(pair.image1, pair.image2, pts, f0)
                 rows.append(_clipped(res.flow, gt, ceiling))
             flow, status = res.flow, res.status
         else:
             raise EvaluationError(f"convergence needs an LM or KLT method, got {type(m).__name__} {m.name!r}")
         curves[m.name] = np.stack(rows)
-        with np.errstate(invalid="ignore"):
-            e = np.linalg.norm(flow - gt, axis=1)
-        final[m.name] = np.where(status & np.isfinite(e), e, np.inf)
+        final[m.name] = endpoint_errors(PairResult(flow, status), gt)
     return curves, final
 
 
@@ -164,7 +176,7 @@ def _at_levels(m: PairMethod, levels: int) -> PairMethod:
 
 def capture_range(
     methods: list[PairMethod], pair: HomographyPair, points: np.ndarray, direction: np.ndarray,
-    errors: tuple[float, ...], levels: int,
+    errors: tuple[float, ...], levels: int, *, maps: DescriptorMaps | None = None,
 ) -> dict[float, dict[str, np.ndarray]]:  # fmt: skip
     """Final errors (inf where lost) from initial errors of each length along fixed unit directions.
 
@@ -175,19 +187,27 @@ def capture_range(
         direction: (N, 2) unit vectors of the initial errors.
         errors: initial error lengths in pixels.
         levels: pyramid levels every method uses.
+        maps: the LM methods' descriptor maps of the pair (:func:`encode_pair`); None = encode here.
 
     Returns:
         ``{initial error: {method name: (N,) final errors}}``.
     """
     gt = true_flow(points, pair.homography)
+    if maps is None:
+        maps = encode_pair(methods, pair)
+    at = [_at_levels(m, levels) for m in methods]
+    pyramids = {m.name: tuple(m.pyramid_of(d) for d in maps[m.name]) for m in at if isinstance(m, LMMethod)}
     out: dict[float, dict[str, np.ndarray]] = {}
     for err in errors:
         out[err] = {}
-        for m in methods:
-            res = _at_levels(m, levels).track(pair.image1, pair.image2, points, gt + err * direction)
-            with np.errstate(invalid="ignore"):
-                e = np.linalg.norm(res.flow - gt, axis=1)
-            out[err][m.name] = np.where(res.status & np.isfinite(e), e, np.inf)
+        flow0 = gt + err * direction
+        for m in at:
+            if isinstance(m, LMMethod):
+                tr = m.track_pyramids(*pyramids[m.name], points, flow0)
+                res = PairResult(tr.flow, tr.status)
+            else:
+                res = m.track(pair.image1, pair.image2, points, flow0)
+            out[err][m.name] = endpoint_errors(res, gt)
     return out
 
 
@@ -200,8 +220,10 @@ def _condition(cond: str) -> str:
     return "no lighting change" if cond == "none" else "lighting change"
 
 
-def _pairs(cfg: ConvergenceConfig, seed: int) -> list[tuple[str, HomographyPair, np.ndarray, np.ndarray]]:
-    """(condition, pair, points, flow0) for every photo, pair index and condition."""
+def _pairs(
+    cfg: ConvergenceConfig, seed: int
+) -> list[tuple[str, HomographyPair, np.ndarray, np.ndarray, np.ndarray]]:
+    """(condition, pair, points, true flow, flow0) for every photo, pair index and condition."""
     out = []
     for k, name in enumerate(cfg.photos):
         photo = load_photo(name)
@@ -219,7 +241,7 @@ def _pairs(cfg: ConvergenceConfig, seed: int) -> list[tuple[str, HomographyPair,
                 pts, gt = pts[keep], gt[keep]
                 ang = np.random.default_rng([seed, 13, k, i]).uniform(0.0, 2.0 * np.pi, len(pts))
                 flow0 = gt + cfg.init_error * np.stack([np.cos(ang), np.sin(ang)], 1)
-                out.append((cond, pair, pts, flow0))
+                out.append((cond, pair, pts, gt, flow0))
     return out
 
 
@@ -262,17 +284,20 @@ def run(ctx: EvalContext, cfg: ConvergenceConfig | None = None) -> Section:
     finals: dict[str, dict[str, list[np.ndarray]]] = {c: {n: [] for n in names} for c in CONDITIONS}
     level_set = sorted({cfg.levels, *(m.levels for m in ctx.methods)})
     basin: dict[tuple[str, int, float], dict[str, list[np.ndarray]]] = {}
-    for cond, pair, pts, flow0 in ctx.bar(items, desc="convergence", unit="pair"):
+    for cond, pair, pts, gt, flow0 in ctx.bar(items, desc="convergence", unit="pair"):
+        maps = encode_pair(ctx.methods, pair)
         cv, fin = convergence_curves(
-            ctx.methods, pair, pts, flow0, iterations=cfg.iterations, levels=cfg.levels, ceiling=cfg.ceiling
-        )
+            ctx.methods, pair, pts, flow0, iterations=cfg.iterations, levels=cfg.levels, ceiling=cfg.ceiling,
+            maps=maps,
+        )  # fmt: skip
         for n in names:
             curves[cond][n].append(cv[n])
             finals[cond][n].append(fin[n])
-        off = flow0 - true_flow(pts, pair.homography)
+        off = flow0 - gt
         direction = off / np.maximum(np.linalg.norm(off, axis=1, keepdims=True), 1e-12)
         for lev in level_set:
-            for err, per in capture_range(ctx.methods, pair, pts, direction, cfg.basin_errors, lev).items():
+            basins = capture_range(ctx.methods, pair, pts, direction, cfg.basin_errors, lev, maps=maps)
+            for err, per in basins.items():
                 for n, e in per.items():
                     basin.setdefault((cond, lev, err), {}).setdefault(n, []).append(e)
     within1 = {

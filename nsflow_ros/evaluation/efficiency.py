@@ -30,7 +30,7 @@ from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
 from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW
+from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW
 from nsflow_ros.evaluation.section import HeadlineRow, Section
 
 __all__ = [
@@ -279,7 +279,7 @@ def run(ctx: EvalContext) -> Section:
     count = len(source) if n_frames <= 0 else min(n_frames, len(source))
     frames = [source.image(i) for i in range(count)]
     settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads)
-    kinds = {NSFLOW: "nsflow", CLASSICAL: "classical", KLT: "klt"}
+    kinds = sequences.TRACKER_METHODS
     tracker_times: dict[str, dict[str, dict[str, float]]] = {}
     for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
         enc = encoder if name == NSFLOW else None

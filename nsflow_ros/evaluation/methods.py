@@ -90,12 +90,23 @@ class LMMethod:
     def levels(self) -> int:
         return self.config.levels
 
-    def pyramid(self, image: np.ndarray) -> DescriptorPyramid:
-        """The descriptor pyramid of an image (cache it when one image is tracked many times)."""
+    def encode(self, image: np.ndarray) -> np.ndarray:
+        """The full-resolution descriptor map of an image (cache it to build pyramids of several depths)."""
         try:
-            return build_pyramid(self.encoder(image), self.config.levels)
+            return self.encoder(image)
         except CoreError as err:
             raise EvaluationError(f"{self.name}: {err}") from err
+
+    def pyramid_of(self, desc: np.ndarray, levels: int | None = None) -> DescriptorPyramid:
+        """The pyramid of a descriptor map from :meth:`encode`, ``levels`` deep (None = the config's)."""
+        try:
+            return build_pyramid(desc, self.config.levels if levels is None else levels)
+        except CoreError as err:
+            raise EvaluationError(f"{self.name}: {err}") from err
+
+    def pyramid(self, image: np.ndarray) -> DescriptorPyramid:
+        """The descriptor pyramid of an image (cache it when one image is tracked many times)."""
+        return self.pyramid_of(self.encode(image))
 
     def track_pyramids(
         self,

@@ -24,10 +24,11 @@ from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW, LMMethod, PairMethod
+from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW, LMMethod, PairMethod, PairResult
 from nsflow_ros.evaluation.pairs import (
     MARGIN,
     HomographyPair,
+    endpoint_errors,
     inside,
     random_homography,
     render_pair,
@@ -193,9 +194,7 @@ def trackable_map(
     errors = {}
     for m in methods:
         flow, status = _track_chunked(m, pair, pts, flow0, max(1, chunk))
-        with np.errstate(invalid="ignore"):
-            e = np.linalg.norm(flow - gt, axis=1)
-        errors[m.name] = np.where(status & np.isfinite(e), e, np.inf)
+        errors[m.name] = endpoint_errors(PairResult(flow, status), gt)
     return TrackableMap(label, pair.image1, pts, errors, (len(ys), len(xs)), index)
 
 

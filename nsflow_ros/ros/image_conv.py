@@ -92,7 +92,7 @@ def image_to_numpy(msg: Any) -> np.ndarray:
         return (values >> 8).astype(np.uint8)  # the 8 most significant bits, as a mono16 -> mono8 shift
     img = rows.reshape(h, w, ch) if ch > 1 else rows.reshape(h, w)
     if enc in ("mono8", "8UC1", "bgr8"):
-        return np.ascontiguousarray(img).copy()
+        return np.array(img, order="C")
     code = {"rgb8": cv2.COLOR_RGB2BGR, "bgra8": cv2.COLOR_BGRA2BGR, "rgba8": cv2.COLOR_RGBA2BGR}[enc]
     return cv2.cvtColor(np.ascontiguousarray(img), code)
 

@@ -42,7 +42,6 @@ def publish_stream(
     clock: bool = True,
     progress: bool = True,
     total_s: float | None = None,
-    should_stop: Any = None,
     publishers: dict[str, Any] | None = None,
 ) -> int:
     """Publish a message stream from ``node``, paced by the messages' stamps.
@@ -54,7 +53,6 @@ def publish_stream(
         clock: publish rosgraph_msgs/Clock with each message's time.
         progress: show a progress bar (seconds of data replayed).
         total_s: length of the stream in seconds, for the progress bar.
-        should_stop: optional callable; replay stops early when it returns True.
         publishers: topic -> publisher, reused and filled across calls (None: new ones per call).
 
     Returns:
@@ -73,8 +71,6 @@ def publish_stream(
     count = 0
     try:
         for msg in stream:
-            if should_stop is not None and should_stop():
-                break
             if msg.topic not in pubs:
                 qos = qos_profile_sensor_data if msg.msgtype.endswith("Image") else reliable
                 pubs[msg.topic] = node.create_publisher(message_class(msg.msgtype), msg.topic, qos)

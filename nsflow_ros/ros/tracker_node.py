@@ -41,7 +41,8 @@ from nsflow_ros.core.imu import GyroBuffer
 from nsflow_ros.core.tracker import FeatureTracker, FrameFeatures
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.ros.image_conv import ImageDecodeError, image_to_numpy, numpy_to_image_fields
-from nsflow_ros.vins.config import VinsConfig, apply_overrides, load_vins_config
+from nsflow_ros.stamps import stamp_to_ns, stamp_to_s
+from nsflow_ros.vins.config import OVERRIDABLE_KEYS, VinsConfig, apply_overrides, load_vins_config
 from nsflow_ros.vins.draw import draw_tracks
 from nsflow_ros.vins.errors import ConfigError
 from nsflow_ros.vins.messages import LAYOUTS, FeatureCloud, encode
@@ -117,14 +118,6 @@ def resolve_config_path(value: str) -> Path:
     raise ConfigError(f"VINS config {value!r} not found (looked at {', '.join(str(c) for c in candidates)})")
 
 
-def _stamp_s(stamp: Any) -> float:
-    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
-
-
-def _stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
 class TrackerNode(Node):
     """The nsflow_tracker node.
 
@@ -143,9 +136,7 @@ class TrackerNode(Node):
         p = {name: self.get_parameter(name).value for name in PARAMETERS}
 
         cfg = load_vins_config(resolve_config_path(str(p["config_file"])))
-        cfg = apply_overrides(cfg, {k: p[k] for k in
-                                    ("max_cnt", "min_dist", "F_threshold", "flow_back", "show_track", "freq",
-                                     "equalize")})
+        cfg = apply_overrides(cfg, {k: p[k] for k in OVERRIDABLE_KEYS})
         layout = str(p["output_layout"]) or cfg.dialect
         if layout not in LAYOUTS:
             raise ConfigError(f"parameter output_layout must be one of {LAYOUTS} or '', got {layout!r}")
@@ -211,7 +202,7 @@ class TrackerNode(Node):
 
     def _on_imu(self, msg: Imu) -> None:
         w = msg.angular_velocity
-        self._gyro.add(_stamp_s(msg.header.stamp), (w.x, w.y, w.z))  # type: ignore[union-attr]
+        self._gyro.add(stamp_to_s(msg.header.stamp), (w.x, w.y, w.z))  # type: ignore[union-attr]
 
     def _on_image(self, cam: int, msg: Image) -> None:
         t_recv = time.perf_counter()
@@ -224,7 +215,7 @@ class TrackerNode(Node):
         if not self.tracker.settings.stereo:
             self._frame(msg.header, img, None, t_recv)
             return
-        key = _stamp_ns(msg.header.stamp)
+        key = stamp_to_ns(msg.header.stamp)
         other = self._pending[1 - cam].pop(key, None)
         if other is None:
             pending = self._pending[cam]
@@ -265,7 +256,7 @@ class TrackerNode(Node):
         return False
 
     def _frame(self, header: Any, img0: np.ndarray, img1: np.ndarray | None, t_recv: float) -> None:
-        stamp = _stamp_s(header.stamp)
+        stamp = stamp_to_s(header.stamp)
         last = self.tracker.last_stamp
         if last is not None and stamp == last:
             self._bad("duplicate_stamp", f"stamp {stamp:.9f} repeats the previous frame's")

@@ -8,8 +8,8 @@ full-resolution photo. A frame-1 point x moves to P(x), so the ground-truth flow
 Illumination perturbation (the paper's absolute and relative intensity changes driven by random
 variables, plus local shading, gamma and sensor noise) is applied to each frame independently, so the
 brightness-constancy assumption of classical LK is broken between the two frames. The project's shared
-``nsflow_ros.data.perturb.perturb_pair`` is used when it is importable (the shipped model was trained
-and evaluated with it); :func:`perturb_illumination` here is the stand-alone equivalent.
+``nsflow_ros.data.perturb.perturb_pair`` is used (the shipped model was trained and evaluated with it);
+:func:`perturb_illumination` here is a stand-alone alternative for single frames (pairs do not use it).
 
 Source images are split once and for all (in the torch-free :mod:`nsflow_ros.data.photos`, shared with
 the evaluation suite): :data:`TRAIN_IMAGES` for training, :data:`HELDOUT_IMAGES` (coffee, chelsea,
@@ -24,7 +24,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from nsflow_ros.core.detector import detect_corners
 from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, TRAIN_IMAGES, load_photo
 from nsflow_ros.train.errors import TrainError
 
@@ -180,13 +182,9 @@ def perturb_illumination(image: np.ndarray, rng: np.random.Generator, strength: 
 def _perturb_pair(
     img1: np.ndarray, img2: np.ndarray, rng: np.random.Generator, strength: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Perturb both frames independently: ``nsflow_ros.data.perturb.perturb_pair`` when present (the
-    project's shared training perturbation), else :func:`perturb_illumination`."""
+    """Perturb both frames independently with ``nsflow_ros.data.perturb.perturb_pair`` (the project's shared
+    training perturbation), strength clipped to [0, 1]."""
     strength = float(np.clip(strength, 0.0, 1.0))
-    try:
-        from nsflow_ros.data.perturb import perturb_pair  # type: ignore[import-not-found]
-    except ImportError:
-        return perturb_illumination(img1, rng, strength), perturb_illumination(img2, rng, strength)
     return perturb_pair(img1, img2, rng, strength)
 
 
@@ -215,8 +213,7 @@ def make_pair(
         raise TrainError(f"source photo must be (H, W) uint8, got {src.shape} {src.dtype}")
     f1, f2, p = render_views(src, rng, cfg)
     f1, f2 = _perturb_pair(f1, f2, rng, strength)
-    found = cv2.goodFeaturesToTrack(f1, cfg.max_points, 0.01, cfg.min_distance)
-    pts = np.zeros((0, 2)) if found is None else found.reshape(-1, 2).astype(np.float64)
+    pts = detect_corners(f1, cfg.max_points, min_distance=cfg.min_distance)
     target = cv2.perspectiveTransform(pts[None], p)[0] if len(pts) else pts.copy()
     r = cfg.window // 2
 

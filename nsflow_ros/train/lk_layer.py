@@ -73,7 +73,7 @@ def _stack_level(desc2: torch.Tensor) -> torch.Tensor:
 
 
 def _normal_equations(
-    level2: torch.Tensor, centers: torch.Tensor, template: torch.Tensor, channels: int, window: int
+    level2: torch.Tensor, centers: torch.Tensor, template: torch.Tensor, window: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """S, J^T J as (h11, h12, h22) and J^T f at the given frame-2 centres; all (M,) / (M, 3) / (M, 2)."""
     m = centers.shape[0]
@@ -109,12 +109,10 @@ def optimality_condition(
     Shape:
         desc1, desc2: (C, H, W). points, flow: (N, 2). Returns (N, 2).
     """
-    c = desc1.shape[0]
     n = points.shape[0]
     template = _template(desc1, points, window)
     s = sample_windows(_stack_level(desc2), points + flow, window).reshape(n, 3, -1)
     f = s[:, 0] - template
-    del c
     return torch.stack([(s[:, 1] * f).sum(1), (s[:, 2] * f).sum(1)], 1)
 
 
@@ -126,12 +124,11 @@ def _lm_solve(
     Only the still-active points are evaluated in each iteration; results are written back out of place
     so that the same code records a valid graph in UNROLL mode.
     """
-    c = desc1.shape[0]
     win = cfg.window
     n = pts.shape[0]
     level2 = _stack_level(desc2)
     template = _template(desc1, pts, win)
-    cost, hess, grad = _normal_equations(level2, pts + u0, template, c, win)
+    cost, hess, grad = _normal_equations(level2, pts + u0, template, win)
     u = u0
     lam = torch.full((n,), cfg.lambda_init, dtype=torch.float64, device=pts.device)
     if cfg.lambda_scale > 0:  # per-point lambda^(0) from J^T J, as in the NumPy solver
@@ -150,7 +147,7 @@ def _lm_solve(
         du = du / det[:, None]
         du = torch.where(torch.isfinite(du), du, torch.zeros_like(du))
         cand = u_a + du
-        cc, ch, cg = _normal_equations(level2, pts[idx] + cand, template[idx], c, win)
+        cc, ch, cg = _normal_equations(level2, pts[idx] + cand, template[idx], win)
         with torch.no_grad():
             accept = cc < c_a
             step_small = torch.linalg.vector_norm(du, dim=1) < cfg.eps * (

@@ -126,7 +126,7 @@ def test_initial_damping_scales_with_the_hessian(textures, scale):
     res = track(ENC(a), ENC(b), pts, config=cfg, record=True)
     level = build_pyramid(ENC(a), 1).levels[0]
     terms = solver_mod._normal_equations(
-        build_pyramid(ENC(b), 1).levels[0], pts, solver_mod._template(level, pts, cfg.window), cfg.window
+        build_pyramid(ENC(b), 1).levels[0], pts, solver_mod._sample_level(level, pts, cfg.window), cfg.window
     )
     lam0 = np.maximum(cfg.lambda_init, scale * np.maximum(terms[:, 1], terms[:, 3]))
     if scale == 3.0:
@@ -251,7 +251,7 @@ def test_patch_scharr_jacobian_equals_sampled_derivative_maps(channels):
     edge = [[2.3, 2.1], [46.7, 36.9], [2.0, 37.0]]
     centers = np.concatenate([rng.uniform([3, 3], [46, 36], (10, 2)), edge])
     level = build_pyramid(desc, 1).levels[0]
-    template = solver_mod._template(level, centers, 5)
+    template = solver_mod._sample_level(level, centers, 5)
     terms = solver_mod._normal_equations(level, centers, template, 5)
     cost, hess = terms[:, 0], terms[:, 1:4]
     dx, dy = descriptor_gradients(desc)
@@ -270,7 +270,7 @@ def test_patch_jacobian_beyond_the_image_is_that_of_the_replicated_map():
     desc = np.tile(np.linspace(0, 1, 30, dtype=np.float32), (20, 1))[..., None]  # ramp along x
     level = build_pyramid(desc, 1).levels[0]
     far = np.array([[40.5, 10.0], [-9.5, 10.0]])  # whole window right / left of the image
-    hess = solver_mod._normal_equations(level, far, solver_mod._template(level, far, 5), 5)[:, 1:4]
+    hess = solver_mod._normal_equations(level, far, solver_mod._sample_level(level, far, 5), 5)[:, 1:4]
     np.testing.assert_allclose(hess, 0.0, atol=1e-12)
 
 
@@ -279,7 +279,7 @@ def test_jacobian_terms_only_for_candidates_below_the_current_cost():
     desc = cv2.GaussianBlur(rng.random((40, 50, 4), dtype=np.float32), (0, 0), 1.5)
     level = build_pyramid(desc, 1).levels[0]
     centers = rng.uniform(8, 30, (12, 2))
-    template = solver_mod._template(level, centers + 0.4, 7)
+    template = solver_mod._sample_level(level, centers + 0.4, 7)
     full = solver_mod._normal_equations(level, centers, template, 7)
     below = np.where(np.arange(12) % 2 == 0, full[:, 0] + 1.0, full[:, 0] - 1e-9)  # even rows "accepted"
     part = solver_mod._normal_equations(level, centers, template, 7, below=below)

@@ -374,3 +374,14 @@ def test_fisheye_config_finds_the_mask_where_vins_mono_keeps_it(tmp_path):
     bad.write_bytes(b"not an image")
     with pytest.raises(CoreError, match="cannot read mask image"):
         FeatureTracker.from_vins_config(cfg, {"method": "classical"}, fisheye_mask=bad)
+
+
+def test_a_bad_right_image_leaves_the_state_as_it_was():
+    seq = syn.translating(2, stereo_disparity=-6)
+    tracker = FeatureTracker([syn.camera(), syn.camera()], _classical(stereo=True))
+    tracker.process(float(seq.stamps[0]), seq.frames[0], seq.right[0])
+    before = tracker.next_id
+    four = np.dstack([seq.right[1]] * 4)
+    with pytest.raises(CoreError, match=r"image1 must be a uint8 \(H, W\) or \(H, W, 3\) array"):
+        tracker.process(float(seq.stamps[1]), seq.frames[1], four)
+    assert tracker.next_id == before and tracker.last_stamp == float(seq.stamps[0])
