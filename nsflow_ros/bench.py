@@ -6,12 +6,15 @@ and in the same run OpenCV's ``calcOpticalFlowPyrLK`` (VINS-Fusion's 21x21 windo
 like the solver) plus GFTT, and the classical (intensity) mode through the same solver. The methods take
 turns frame by frame, so a drifting machine load hits them alike. It also times the encoder alone at
 320x240 and 752x480 (the paper's Table II sizes). Medians and 90th percentiles in milliseconds; with
-``--json`` the figures are printed as one JSON object.
+``--json`` the figures are printed as one JSON object. A solver cost model (:func:`solver_cost_model`)
+splits each mode's solver time into passes x a fixed price per pass and point evaluations x a price
+per point, fitted on the same frames: where the time goes, and so what any optimisation can save.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -39,9 +42,19 @@ from nsflow_ros.core import (
 from nsflow_ros.core.tracker import KLT_CRITERIA, KLT_WINDOW
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["main", "make_frames", "paper_encoder_onnx", "run_benchmark", "time_encoder", "timing_stats"]
+__all__ = [
+    "main",
+    "make_frames",
+    "paper_encoder_onnx",
+    "run_benchmark",
+    "solver_cost_model",
+    "time_encoder",
+    "timing_stats",
+]
 
 WIDTH, HEIGHT = 752, 480
+# Frames whose solver work the cost model counts (it also builds their pyramids).
+COST_MODEL_FRAMES = 21
 
 
 def make_frames(count: int, size: tuple[int, int] = (WIDTH, HEIGHT), seed: int = 0) -> list[np.ndarray]:
@@ -215,6 +228,76 @@ def time_encoder(
     return timing_stats([_timed(lambda: encoder(frame))[1] for _ in range(repeats)])
 
 
+def _median_ms(fn: Callable[[], Any], repeats: int) -> float:
+    return float(np.median([_timed(fn)[1] for _ in range(repeats)]))
+
+
+def _fit_pass_costs(work: np.ndarray, ms: np.ndarray) -> tuple[float, float]:
+    """Least-squares (a, b) of ms = a * passes + b * point evaluations; work rows: [passes, evaluations]."""
+    if work.ndim != 2 or work.shape[1] != 2 or work.shape[0] != ms.shape[0] or work.shape[0] < 2:
+        raise NSFlowError(f"need (n >= 2, 2) work counts and n times, got {work.shape} and {ms.shape}")
+    (a, b), *_ = np.linalg.lstsq(work, ms, rcond=None)
+    return float(a), float(b)
+
+
+def solver_cost_model(
+    encoder: Encoder, cfg: LMConfig, frames: list[np.ndarray], points: int, repeats: int = 3
+) -> dict[str, float]:
+    """Where the solver's time goes: its work per frame and the price of each unit of work.
+
+    The solver is batched: a pass (one LM iteration of every still-active point at one level, or the
+    evaluation of all points at a level's starting flow) costs a fixed amount whatever the number of
+    points (NumPy and OpenCV call overhead), plus an amount per point evaluated in it. This tracks each
+    pair of consecutive ``frames`` with the first 1, 4, 16, 64 and all corners, counts passes P and point
+    evaluations E, times each run (median of ``repeats``) and fits t = a P + b E by least squares. With
+    all corners, a P and b E bound what fewer calls per pass, or cheaper per-point arithmetic, can save.
+
+    Args:
+        encoder: the descriptor encoder of the mode to model.
+        cfg: solver settings.
+        frames: a sequence of at least two frames (the benchmark's).
+        points: GFTT corners per frame.
+        repeats: timed runs per sample.
+
+    Returns:
+        with all corners, medians per frame: ``passes``, ``point_evaluations``, ``measured_ms``; the fit:
+        ``fixed_us_per_pass`` (a) and ``us_per_point_evaluation`` (b); its parts at the median work
+        ``fixed_ms`` (a P) and ``per_point_ms`` (b E), and ``modelled_ms`` (their sum).
+
+    Raises:
+        NSFlowError: with fewer than two frames.
+    """
+    if len(frames) < 2:
+        raise NSFlowError(f"the solver cost model needs at least 2 frames, got {len(frames)}")
+    pyrs = [build_pyramid(encoder(f), cfg.levels) for f in frames]
+    corners = [detect_corners(to_gray(f), points, min_distance=30) for f in frames]
+    nlev = min(cfg.levels, pyrs[0].num_levels)
+    rows, times, full = [], [], []
+    for prev, cur, pts in zip(pyrs, pyrs[1:], corners, strict=False):
+        for count in sorted({min(c, len(pts)) for c in (1, 4, 16, 64, len(pts))} - {0}):
+            sub = pts[:count]
+            res = track(prev, cur, sub, config=cfg, record=True)
+            # each level also evaluates every point once at its starting flow: a pass of its own
+            work = (len(res.history) + nlev, int(res.iterations.sum()) + nlev * count)
+            ms = _median_ms(functools.partial(track, prev, cur, sub, config=cfg), repeats)
+            rows.append(work)
+            times.append(ms)
+            if count == len(pts):
+                full.append((*work, ms))
+    a, b = _fit_pass_costs(np.asarray(rows, np.float64), np.asarray(times))
+    p, e, measured = (float(v) for v in np.median(np.asarray(full), axis=0))
+    return {
+        "passes": p,
+        "point_evaluations": e,
+        "measured_ms": measured,
+        "fixed_us_per_pass": a * 1e3,
+        "us_per_point_evaluation": b * 1e3,
+        "fixed_ms": a * p,
+        "per_point_ms": b * e,
+        "modelled_ms": a * p + b * e,
+    }
+
+
 def run_benchmark(
     frames: int = 60,
     points: int = 150,
@@ -280,6 +363,14 @@ def run_benchmark(
                 method.step(frame)
         for name, method in methods.items():
             out[name] = method.figures()
+        if progress:
+            print("[bench] solver cost model ...", file=sys.stderr, flush=True)
+        encoders = {"nsflow": encoder, "classical": IntensityEncoder()}
+        out["solver_cost_model"] = {
+            mode: solver_cost_model(encoders[mode], cfg, seq[:COST_MODEL_FRAMES], points)
+            for mode in ("nsflow", "classical")
+            if mode in methods
+        }
         for name, size in (("encoder_320x240", (320, 240)), ("encoder_752x480", (WIDTH, HEIGHT))):
             if progress:
                 print(f"[bench] {name} ...", file=sys.stderr, flush=True)
@@ -329,6 +420,14 @@ def format_table(res: dict[str, Any]) -> str:
     lines.append("")
     for key, val in res["ratios"].items():
         lines.append(f"ratio {key:30s} {val:6.2f}x")
+    for mode, model in res.get("solver_cost_model", {}).items():
+        lines.append(
+            f"{mode} solver per frame: {model['passes']:.0f} passes x {model['fixed_us_per_pass']:.0f} us "
+            f"+ {model['point_evaluations']:.0f} point evaluations x "
+            f"{model['us_per_point_evaluation']:.2f} us "
+            f"= {model['fixed_ms']:.2f} + {model['per_point_ms']:.2f} = {model['modelled_ms']:.2f} ms "
+            f"(measured {model['measured_ms']:.2f}, outside the pipeline)"
+        )
     shares = {m: res[m]["tracked_share"] for m in ("nsflow", "classical", "opencv_klt") if m in res}
     lines.append("tracked share: " + ", ".join(f"{m} {v:.3f}" for m, v in shares.items()))
     return "\n".join(lines)

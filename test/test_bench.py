@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+import pytest
 from onnx_models import conv_encoder
 
-from nsflow_ros.bench import main, run_benchmark
+from nsflow_ros.bench import _fit_pass_costs, main, make_frames, run_benchmark, solver_cost_model
+from nsflow_ros.core import IntensityEncoder, LMConfig
+from nsflow_ros.errors import NSFlowError
 
 
 def test_benchmark_measures_every_stage_beside_opencv(tmp_path):
@@ -18,6 +22,7 @@ def test_benchmark_measures_every_stage_beside_opencv(tmp_path):
             assert 0 < fig["median_ms"] <= fig["p90_ms"]
     assert res["opencv_klt"]["klt"]["median_ms"] > 0
     assert res["classical"]["tracked_share"] > 0.5
+    assert set(res["solver_cost_model"]) == {"nsflow", "classical"}
     assert set(res["ratios"]) == {
         "classical_solver_vs_klt",
         "nsflow_solver_vs_klt",
@@ -32,3 +37,26 @@ def test_cli_json_and_errors(tmp_path, capsys):
     assert out["setup"]["descriptor_channels"] == 1
     assert main(["--model", str(tmp_path / "missing.onnx"), "--frames", "2"]) == 1
     assert "missing.onnx" in capsys.readouterr().err
+
+
+def test_cost_fit_recovers_known_prices():
+    work = np.array([[10, 10], [12, 48], [20, 300], [33, 1900], [30, 1500]], np.float64)
+    ms = 0.06 * work[:, 0] + 0.0017 * work[:, 1]
+    a, b = _fit_pass_costs(work, ms)
+    assert a == pytest.approx(0.06) and b == pytest.approx(0.0017)
+    with pytest.raises(NSFlowError, match="work counts"):
+        _fit_pass_costs(work[:1], ms[:1])
+
+
+def test_solver_cost_model_counts_the_work_of_real_frames():
+    frames = make_frames(3, (320, 240))
+    cfg = LMConfig()
+    model = solver_cost_model(IntensityEncoder(), cfg, frames, points=30, repeats=1)
+    # at least the starting evaluation and one LM pass per level, every pass evaluating >= 1 point
+    assert cfg.levels * 2 <= model["passes"] <= cfg.levels * (cfg.max_iterations + 1)
+    assert model["passes"] <= model["point_evaluations"] <= model["passes"] * 30
+    assert model["measured_ms"] > 0
+    assert model["modelled_ms"] == pytest.approx(model["fixed_ms"] + model["per_point_ms"])
+    assert model["fixed_ms"] == pytest.approx(model["fixed_us_per_pass"] * model["passes"] / 1e3)
+    with pytest.raises(NSFlowError, match="at least 2 frames"):
+        solver_cost_model(IntensityEncoder(), cfg, frames[:1], points=30)
