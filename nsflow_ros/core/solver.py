@@ -267,9 +267,12 @@ def _sample_level(level: tuple[np.ndarray, ...], centers: np.ndarray, size: int)
     return [_sample_chunk(chunk, centers, size, maps) for chunk in level]
 
 
-def _take(template: list[np.ndarray], rows: np.ndarray) -> list[np.ndarray]:
-    """The templates of some points (axis 1 of the solver's layout)."""
-    return [t[:, rows] for t in template]
+def _take(template: list[np.ndarray], keep: np.ndarray) -> list[np.ndarray]:
+    """The templates of the points where ``keep`` is True (axis 1 of the solver's layout).
+
+    np.compress / np.take along axis 1 copy about twice as fast as fancy indexing ``t[:, keep]``.
+    """
+    return [np.compress(keep, t, axis=1) for t in template]
 
 
 _SUM = "imjk,imjk->m"  # per point: sum over window rows, columns and channels
@@ -314,7 +317,7 @@ def _normal_equations(
     terms = np.zeros((rows.size, 5)) if part else sums[:, 1:]
     for p, f in zip(patches, resid, strict=True):
         if part:
-            p, f = p[:, rows], f[:, rows]
+            p, f = np.take(p, rows, axis=1), np.take(f, rows, axis=1)
         size_, k, _, ch = p.shape
         flat = p.reshape(size_, k * size_, ch) if ch > 1 else p.reshape(size_, k * size_)
         # Unnormalised Scharr ([-3 0 3; -10 0 10; -3 0 3]); the 1/32 is applied to the sums below.
