@@ -374,12 +374,16 @@ def _solve_level(
             det = a11 * a22 - h12 * h12
             du = np.stack([h12 * g2 - a22 * g1, h12 * g1 - a11 * g2], axis=1) / det[:, None]
             du[~np.isfinite(du)] = 0.0
-            cand = np.empty_like(s_a)
-            cand[:, _U] = s_a[:, _U] + du
-            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below=s_a[:, _COST])
-            accept = cand[:, _COST] < s_a[:, _COST]
+            # The stop tests look at u^(k), its J^T f and the step, all known before the candidate.
             step_small = np.hypot(du[:, 0], du[:, 1]) < cfg.eps * (1.0 + np.hypot(s_a[:, 0], s_a[:, 1]))
             stop = step_small | (np.abs(s_a[:, _GRAD]).max(axis=1) < cfg.eps)
+            # J at a candidate serves the next iteration, and at level 0 the final degeneracy test; on a
+            # coarser level a point that stops now never uses it, so only its cost is evaluated.
+            below = s_a[:, _COST] if level_index == 0 else np.where(stop, -np.inf, s_a[:, _COST])
+            cand = np.empty_like(s_a)
+            cand[:, _U] = s_a[:, _U] + du
+            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below=below)
+            accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
             lam_a = np.where(accept, lam_a / cfg.nu, lam_a * cfg.nu)
             if history is not None:
