@@ -265,7 +265,7 @@ def solver_cost_model(
         ``fixed_ms`` (a P) and ``per_point_ms`` (b E), and ``modelled_ms`` (their sum).
 
     Raises:
-        NSFlowError: with fewer than two frames.
+        NSFlowError: with fewer than two frames, or no corners to track.
     """
     if len(frames) < 2:
         raise NSFlowError(f"the solver cost model needs at least 2 frames, got {len(frames)}")
@@ -284,6 +284,8 @@ def solver_cost_model(
             times.append(ms)
             if count == len(pts):
                 full.append((*work, ms))
+    if not full:
+        raise NSFlowError("the solver cost model found no corners to track in its frames")
     a, b = _fit_pass_costs(np.asarray(rows, np.float64), np.asarray(times))
     p, e, measured = (float(v) for v in np.median(np.asarray(full), axis=0))
     return {
@@ -365,11 +367,10 @@ def run_benchmark(
             out[name] = method.figures()
         if progress:
             print("[bench] solver cost model ...", file=sys.stderr, flush=True)
-        encoders = {"nsflow": encoder, "classical": IntensityEncoder()}
         out["solver_cost_model"] = {
-            mode: solver_cost_model(encoders[mode], cfg, seq[:COST_MODEL_FRAMES], points)
-            for mode in ("nsflow", "classical")
-            if mode in methods
+            name: solver_cost_model(method.encoder, cfg, seq[:COST_MODEL_FRAMES], points)
+            for name, method in methods.items()
+            if isinstance(method, _Pipeline)
         }
         for name, size in (("encoder_320x240", (320, 240)), ("encoder_752x480", (WIDTH, HEIGHT))):
             if progress:

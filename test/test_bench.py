@@ -60,3 +60,6 @@ def test_solver_cost_model_counts_the_work_of_real_frames():
     assert model["fixed_ms"] == pytest.approx(model["fixed_us_per_pass"] * model["passes"] / 1e3)
     with pytest.raises(NSFlowError, match="at least 2 frames"):
         solver_cost_model(IntensityEncoder(), cfg, frames[:1], points=30)
+    blank = [np.zeros((240, 320, 3), np.uint8)] * 2
+    with pytest.raises(NSFlowError, match="no corners"):
+        solver_cost_model(IntensityEncoder(), cfg, blank, points=30)
