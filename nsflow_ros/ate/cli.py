@@ -1,4 +1,4 @@
-"""Command line of the ATE tools: ``ros2 run nsflow_ros ate`` / ``nsflow-ate`` / ``ate``.
+"""Command line of the ATE tools: ``nsflow-ate`` (``ros2 run nsflow_ros ate`` from a ROS workspace).
 
 Three subcommands; ``ape`` is the default when the first argument is not a subcommand::
 
@@ -20,6 +20,7 @@ import math
 import sys
 from pathlib import Path
 
+from nsflow_ros.argtypes import program_name
 from nsflow_ros.ate.align import ALIGN_METHODS
 from nsflow_ros.ate.batch import (
     FAIL_POLICIES,
@@ -34,7 +35,7 @@ from nsflow_ros.errors import NSFlowError
 
 __all__ = ["build_parser", "main"]
 
-PROG = "ate"
+PROG = "nsflow-ate"
 _SUBCOMMANDS = ("ape", "drift", "batch")
 
 _FORMATS_HELP = f"""\
@@ -114,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
         The parser with the ``ape``, ``drift`` and ``batch`` subcommands.
     """
     parser = argparse.ArgumentParser(
-        prog=PROG,
+        prog=program_name(PROG),
         description="Score trajectories against ground truth: ATE (APE) with optional RPE, UMA-VI drift, "
         "and batch tables in the layout of the paper's EuRoC table. 'ape' is the default subcommand.",
         epilog=_FORMATS_HELP,
@@ -327,7 +328,7 @@ def main(args: list[str] | None = None) -> int:
     try:
         return handlers[ns.command](ns)
     except NSFlowError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        print(f"{program_name(PROG)}: error: {exc}", file=sys.stderr)
         return 1
 
 

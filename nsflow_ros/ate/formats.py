@@ -24,6 +24,7 @@ Every reading error names the file, and for malformed rows the line number and t
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +65,8 @@ _EUROC_HEADER = (
     "v_RS_R_x [m s^-1],v_RS_R_y [m s^-1],v_RS_R_z [m s^-1],b_w_RS_S_x [rad s^-1],b_w_RS_S_y [rad s^-1],"
     "b_w_RS_S_z [rad s^-1],b_a_RS_S_x [m s^-2],b_a_RS_S_y [m s^-2],b_a_RS_S_z [m s^-2]"
 )
+_BINARY = re.compile(r"[\x00-\x08\x0e-\x1f\x7f]")
+"""Control characters no text trajectory holds (tab, newlines, form feed and vertical tab are allowed)."""
 _NS_FIELDS = ("t_ns", "px", "py", "pz", "qw", "qx", "qy", "qz")
 _TUM_FIELDS = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
 
@@ -132,12 +135,21 @@ def _read_lines(path: Path) -> tuple[list[str], list[tuple[int, str]]]:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
         raise ATEError(
-            f"{path}: not a text trajectory file ({exc.reason} at byte {exc.start})", reason="malformed"
+            f"{path}: cannot parse it as a trajectory: not a text file ({exc.reason} at byte {exc.start})",
+            reason="malformed",
         ) from exc
     except OSError as exc:
         raise ATEError(f"{path}: cannot read ({exc.strerror})") from exc
+    binary = _BINARY.search(text)
+    if binary is not None:  # random bytes can decode as UTF-8; text files hold no control characters
+        raise ATEError(
+            f"{path}: cannot parse it as a trajectory: not a text file (control character "
+            f"{binary.group()!r} at character {binary.start()})",
+            reason="malformed",
+        )
     headers: list[str] = []
     data: list[tuple[int, str]] = []
+    plain_header = False
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line:
@@ -145,8 +157,10 @@ def _read_lines(path: Path) -> tuple[list[str], list[tuple[int, str]]]:
         if line.startswith("#"):
             headers.append(line)
             continue
-        if not data and not any(_is_number(p) for p in _split(line) if p):
+        # one header line without '#' is allowed; a second line of non-numbers is a bad data row
+        if not data and not plain_header and not any(_is_number(p) for p in _split(line) if p):
             headers.append(line)
+            plain_header = True
             continue
         data.append((lineno, line))
     return headers, data

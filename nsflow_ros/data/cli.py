@@ -6,6 +6,7 @@ import argparse
 import sys
 import time
 
+from nsflow_ros.argtypes import positive_float, program_name
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.sample import FORMATS, make_sample_sequence
 
@@ -24,15 +25,17 @@ def _formats(text: str) -> tuple[str, ...]:
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser."""
     p = argparse.ArgumentParser(
-        prog="nsflow-make-sample",
+        prog=program_name("nsflow-make-sample"),
         description="Render a synthetic EuRoC-like stereo-inertial sequence (textured room, 752x480 "
                     "pinhole-radtan cameras, 200 Hz IMU) as an ASL folder, a ROS 2 bag (mcap) and a ROS 1 "
                     "bag, with ground truth. Reuses an identical sequence that already exists.",
     )
     p.add_argument("--out", default="data/sample", help="output folder (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="random seed of scene, flight and noise (default: 0)")
-    p.add_argument("--duration", type=float, default=10.0, help="seconds of images (default: %(default)s)")
-    p.add_argument("--rate", type=float, default=20.0, help="camera rate in Hz (default: %(default)s)")
+    p.add_argument("--duration", type=positive_float, default=10.0,
+                   help="seconds of images (default: %(default)s)")
+    p.add_argument("--rate", type=positive_float, default=20.0,
+                   help="camera rate in Hz (default: %(default)s)")
     p.add_argument("--mono", action="store_true", help="cam0 only (default: stereo)")
     p.add_argument("--formats", type=_formats, default=FORMATS,
                    help=f"comma-separated subset of {','.join(FORMATS)} (default: all)")
@@ -56,6 +59,10 @@ def main(args: list[str] | None = None) -> int:
         )
     except DataError as err:
         print(f"nsflow-make-sample: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # disk full, permissions changed while writing
+        print(f"nsflow-make-sample: error: cannot write {err.filename or opts.out}: {err.strerror}",
+              file=sys.stderr)
         return 1
     print(f"{seq.root}: {len(seq)} frames x {len(seq.cameras)} camera(s), formats {', '.join(seq.formats)} "
           f"({time.perf_counter() - t0:.1f} s)")

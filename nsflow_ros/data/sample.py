@@ -291,7 +291,8 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
         The sequence.
 
     Raises:
-        DataError: on bad parameters, or when ``out_dir`` holds other files and ``overwrite`` is false.
+        DataError: on bad parameters, when ``out_dir`` holds other files and ``overwrite`` is false,
+            or when it cannot be created.
     """
     root = Path(out_dir)
     fmts = tuple(dict.fromkeys(formats))
@@ -315,7 +316,10 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
         raise DataError(f"{root} exists and is not a sample sequence; choose another folder or overwrite it")
 
     tmp = _temp_sibling(root)
-    tmp.mkdir(parents=True)
+    try:
+        tmp.mkdir(parents=True)
+    except OSError as err:  # name the folder asked for, not the temporary sibling
+        raise DataError(f"cannot create {root}: {err.strerror}") from None
     try:
         _generate(tmp, params, key, fmts, n_frames, progress, workers)
         # Another process may have finished the same sequence meanwhile: keep its copy then.

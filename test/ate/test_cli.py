@@ -94,7 +94,7 @@ def test_known_errors_exit_1_with_a_message(pair, tmp_path, capsys, case, messag
     assert main([str(gt), str(est), "--json"]) == 1
     captured = capsys.readouterr()
     assert captured.out == ""
-    assert captured.err.startswith("ate: error: ") and message in captured.err
+    assert captured.err.startswith("nsflow-ate: error: ") and message in captured.err
     assert str(est) in captured.err
 
 
@@ -140,4 +140,4 @@ def test_usage(capsys):
     assert "invalid choice: 'affine'" in capsys.readouterr().err
     assert main(["a.csv", "b.csv", "--rpe-delta", "0"]) == 2
     assert "expected an integer >= 1" in capsys.readouterr().err
-    assert build_parser().prog == "ate"
+    assert build_parser().prog == "nsflow-ate"

@@ -166,7 +166,16 @@ def test_path_errors(tmp_path):
     with pytest.raises(ATEError, match="several VINS result files"):
         read_trajectory(tmp_path / "two")
     (tmp_path / "bin.csv").write_bytes(b"\xff\xfe\x00\x81")
-    with pytest.raises(ATEError, match="not a text trajectory file"):
+    with pytest.raises(ATEError, match="cannot parse it as a trajectory: not a text file"):
         read_trajectory(tmp_path / "bin.csv")
+    # bytes that happen to be valid UTF-8 are still not a trajectory, and not an "empty" one
+    (tmp_path / "nul.csv").write_bytes(b"ab\x00cd\x01\n\x02\x03\n")
+    with pytest.raises(ATEError, match=r"cannot parse it as a trajectory: not a text file .*'\\x00'") as info:
+        read_trajectory(tmp_path / "nul.csv")
+    assert info.value.reason == "malformed"
+    # only one header line may go without '#': two lines of words are a bad row, not an empty file
+    _write(tmp_path / "words.txt", "hello world\nfoo bar baz\n")
+    with pytest.raises(ATEError, match="line 2"):
+        read_trajectory(tmp_path / "words.txt")
     with pytest.raises(ATEError, match="explicit format"):
         write_trajectory(read_trajectory(tmp_path / "two" / "vins_result_loop.csv"), tmp_path / "x", "auto")

@@ -1,0 +1,78 @@
+"""Conventions shared by the command-line tools: argparse value types and the program name in usage lines.
+
+Bad values are rejected by argparse itself (usage line, one error line naming the option, exit 2), so
+no tool starts work it would abandon on an argument it could have checked up front.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+__all__ = ["non_negative_float", "positive_float", "positive_int", "program_name"]
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1.
+
+    Raises:
+        argparse.ArgumentTypeError: naming the text given.
+    """
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0.
+
+    Raises:
+        argparse.ArgumentTypeError: naming the text given.
+    """
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """A finite number >= 0.
+
+    Raises:
+        argparse.ArgumentTypeError: naming the text given.
+    """
+    value = _number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
+    return value
+
+
+def program_name(name: str) -> str:
+    """The program name for usage lines: as the user typed it, ``nsflow-ate`` or ``ate`` (``ros2 run``).
+
+    Args:
+        name: the console-script name, e.g. ``nsflow-ate``.
+
+    Returns:
+        the basename of ``sys.argv[0]`` when it is ``name`` or its ``ros2 run`` short name (``ate``,
+        ``make_sample``), else ``name`` (run as a module or from a test).
+    """
+    typed = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    short = name.removeprefix("nsflow-").replace("-", "_")
+    return typed if typed in (name, short) else name
