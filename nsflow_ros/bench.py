@@ -39,7 +39,7 @@ from nsflow_ros.core import (
     to_gray,
     track,
 )
-from nsflow_ros.core.tracker import KLT_CRITERIA, KLT_WINDOW
+from nsflow_ros.core.methods import klt_track
 from nsflow_ros.errors import NSFlowError
 
 __all__ = [
@@ -187,20 +187,16 @@ class _OpenCVKLT(_Method):
         super().__init__(("klt", "detection", "total"))
         self.points = points
         self.prev: np.ndarray | None = None
-        self.pts = np.zeros((0, 1, 2), np.float32)
+        self.pts = np.zeros((0, 2))
 
     def step(self, frame: np.ndarray) -> None:
         gray = to_gray(frame)
         t_klt = 0.0
         if self.prev is not None and len(self.pts):
-            (_, st, _), t_klt = _timed(
-                lambda: cv2.calcOpticalFlowPyrLK(
-                    self.prev, gray, self.pts, None, winSize=KLT_WINDOW, maxLevel=2, criteria=KLT_CRITERIA
-                )
-            )
+            (_, st), t_klt = _timed(lambda: klt_track(self.prev, gray, self.pts, max_level=2))
             self.tracked.append(float(st.mean()))
         found, t_det = _timed(lambda: cv2.goodFeaturesToTrack(gray, self.points, 0.01, 30))
-        self.pts = found.astype(np.float32) if found is not None else np.zeros((0, 1, 2), np.float32)
+        self.pts = found.reshape(-1, 2).astype(np.float64) if found is not None else np.zeros((0, 2))
         if self.prev is not None:
             self._record(t_klt, t_det, t_klt + t_det)
         self.prev = gray

@@ -60,6 +60,10 @@ class LMConfig:
             mode kept 93.5 % of points within 1 px against 98.9 % at 1e-5 (NSFlow: 99.4 % either way).
             Flat and saturated windows (eigenvalue ~0) are caught at either value. OpenCV's LK default
             (1e-4 on its scaled gradients) corresponds to about 1.6e-6 here.
+        margin: how far (px) a point must stay from the image edge, in both frames, for status True;
+            None = half the window (the whole window inside the image). A smaller margin keeps points
+            whose window reaches past the edge, as OpenCV's LK does (sampling replicates the border, as
+            the encoder's padding does).
         lambda_scale: tau of the per-point initial damping lambda^(0) = max(lambda_init,
             tau * max(diag J^T J)) at the start of each level (Madsen, Nielsen and Tingleff's
             initialisation); 0 = lambda_init for every point.
@@ -92,6 +96,7 @@ class LMConfig:
     eps: float = 1e-2
     min_eigen: float = 1e-5
     lambda_scale: float = 0.1
+    margin: int | None = None
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -110,6 +115,8 @@ class LMConfig:
             raise CoreError(f"LMConfig.min_eigen must be >= 0, got {self.min_eigen}")
         if self.lambda_scale < 0:
             raise CoreError(f"LMConfig.lambda_scale must be >= 0, got {self.lambda_scale}")
+        if self.margin is not None and self.margin < 0:
+            raise CoreError(f"LMConfig.margin must be >= 0 or None, got {self.margin}")
 
 
 @dataclass(frozen=True)
@@ -423,6 +430,7 @@ def track(
     config: LMConfig | None = None,
     *,
     record: bool = False,
+    first_level: np.ndarray | None = None,
 ) -> TrackResult:
     """Track points from frame 1 to frame 2 with the descriptor LM-LK solver.
 
@@ -433,6 +441,9 @@ def track(
         flow0: initial flow (e.g. a prediction); zeros when None.
         config: solver settings; ``LMConfig()`` when None.
         record: keep a per-iteration history (for convergence analysis; costs time).
+        first_level: per point, the coarsest pyramid level it is solved on (a trusted start needs fewer
+            levels); None = every point on all levels. Points share the passes of the levels they have
+            in common, so one call serves points with and without a good start.
 
     Returns:
         a :class:`TrackResult`; points[i] + flow[i] is the position in frame 2 where status[i].
@@ -441,7 +452,7 @@ def track(
         CoreError: on mismatched maps, a wrong points/flow0 shape, or non-finite input.
 
     Shape:
-        desc1, desc2: (H, W, C) float. points: (N, 2). flow0: (N, 2).
+        desc1, desc2: (H, W, C) float. points: (N, 2). flow0: (N, 2). first_level: (N,) int.
     """
     cfg = config or LMConfig()
     pyr1 = _as_pyramid(desc1, cfg.levels, "desc1")
@@ -470,11 +481,37 @@ def track(
 
     nlev = min(cfg.levels, pyr1.num_levels, pyr2.num_levels)
     ch = pyr1.channels
-    u = flow / 2.0 ** (nlev - 1)
-    for lev in range(nlev - 1, -1, -1):
-        s = 2.0**lev
-        state = _solve_level(pyr1.levels[lev], pyr2.levels[lev], pts / s, u, cfg, lev, iterations, history)
-        u = state[:, _U] * 2.0 if lev > 0 else state[:, _U]
+    if first_level is None:
+        u = flow / 2.0 ** (nlev - 1)
+        for lev in range(nlev - 1, -1, -1):
+            s = 2.0**lev
+            state = _solve_level(
+                pyr1.levels[lev], pyr2.levels[lev], pts / s, u, cfg, lev, iterations, history
+            )
+            u = state[:, _U] * 2.0 if lev > 0 else state[:, _U]
+    else:
+        first = np.asarray(first_level)
+        if first.shape != (n,) or not np.issubdtype(first.dtype, np.integer):
+            raise CoreError(f"first_level must be ({n},) integers, got {first.dtype} {first.shape}")
+        # u in level-0 pixels; a point joins at its first level, so coarse passes carry only those
+        # that need them.
+        u = flow.copy()
+        first = np.minimum(first, nlev - 1)
+        for lev in range(int(first.max(initial=0)), -1, -1):
+            s = 2.0**lev
+            sel = first >= lev
+            part = sel.all()
+            p_l = pts if part else pts[sel]
+            u_l = (u if part else u[sel]) / s
+            it = iterations if part else np.zeros(int(sel.sum()), np.int64)
+            st = _solve_level(pyr1.levels[lev], pyr2.levels[lev], p_l / s, u_l, cfg, lev, it, history)
+            if part:
+                u = st[:, _U] * s
+            else:
+                u[sel] = st[:, _U] * s
+                iterations[sel] += it
+        state = st  # level 0 holds every point
+        u = state[:, _U]
     status = _valid(pts, u, state[:, _HESS], pyr1.shape, ch, cfg)
     return TrackResult(u, status, state[:, _COST], iterations, history or [])
 
@@ -483,7 +520,7 @@ def _valid(
     pts: np.ndarray, u: np.ndarray, hess: np.ndarray, shape: tuple[int, int], channels: int, cfg: LMConfig
 ) -> np.ndarray:
     h, w = shape
-    r = cfg.window // 2
+    r = cfg.window // 2 if cfg.margin is None else cfg.margin
 
     def inside(p: np.ndarray) -> np.ndarray:
         return (p[:, 0] >= r) & (p[:, 0] <= w - 1 - r) & (p[:, 1] >= r) & (p[:, 1] <= h - 1 - r)

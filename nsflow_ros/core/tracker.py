@@ -4,9 +4,10 @@
 optical-flow calls replaced by the NSFlow descriptor LM solver (:func:`nsflow_ros.core.solver.track`):
 
 1. track the previous frame's points into the current frame (from the gyro prediction when there is one,
-   single level, falling back to the full pyramid when fewer than 10 points survive);
-2. flow-back check: track the result back, starting at the previous position as VINS does but on the
-   full pyramid (see ``_track_pair`` for why); a point is kept only if it returns within 0.5 px;
+   falling back to a solve without it when fewer than 10 points survive; otherwise the method may start
+   each point from its previous flow);
+2. flow-back check: track the result back, starting at the previous position as VINS does; a point is
+   kept only if it returns within 0.5 px;
 3. border check: the rounded position must lie at least 1 px inside the image;
 4. optional fundamental-matrix RANSAC on a virtual 460 px pinhole (VINS-Mono's ``rejectWithF``; VINS-Fusion
    leaves it commented out, so it is off by default);
@@ -16,17 +17,19 @@ optical-flow calls replaced by the NSFlow descriptor LM solver (:func:`nsflow_ro
    and count 1;
 6. undistorted normalised points from the camera model; velocity = change of the undistorted point over
    dt for ids seen in the previous frame, 0 for new ids;
-7. stereo: left -> right tracking with the full pyramid, a right -> left back-check (0.5 px) and the border
-   check; right points reuse the left ids, velocities come from the previous right points.
+7. stereo: left -> right tracking (the method may start each id from its previous disparity), the border
+   check and a right -> left back-check (0.5 px); right points reuse the left ids, velocities come from
+   the previous right points.
 
-Each frame's descriptor pyramid is computed once: frame t's pyramid is frame 2 of the pair (t-1, t) and
-frame 1 of (t, t+1); the right image's pyramid serves both stereo directions.
+Each frame's representation (descriptor pyramid, gray image) is computed once: frame t's is frame 2 of
+the pair (t-1, t) and frame 1 of (t, t+1); the right image's serves both stereo directions.
 
-Method ``"klt"`` is the baseline VINS itself runs: steps 1, 2 and 7 call OpenCV's
-``cv2.calcOpticalFlowPyrLK`` with VINS-Fusion's exact arguments (21x21 window, maxLevel 3, or maxLevel 1
-with ``OPTFLOW_USE_INITIAL_FLOW`` for the predicted and the flow-back calls; criteria COUNT|EPS 30 / 0.01)
-on the gray (or CLAHE'd) images, and everything else (detection, 0.5 px flow-back test, border, mask, ids)
-is the same code as for the LM methods, so differences between methods come from the flow alone.
+The optical-flow calls are made by a tracking method chosen once from the registry
+:data:`nsflow_ros.core.methods.METHODS` (``nsflow``, ``classical``, ``klt``, ``nsflow_lk``): the method
+decides, for each kind of solve, its start, levels and points; everything else (detection, the 0.5 px
+check, border, mask, ids) is the same code for every method, so differences between methods come from
+the flow alone. Method ``"klt"`` is the baseline VINS itself runs: OpenCV's ``cv2.calcOpticalFlowPyrLK``
+with VINS-Fusion's exact arguments on the gray (or CLAHE'd) images.
 
 Nothing here imports rclpy or torch: the ROS node and the offline replayer/demo share this class.
 """
@@ -46,42 +49,32 @@ import numpy as np
 
 from nsflow_ros.core.camera import CameraModel
 from nsflow_ros.core.detector import detect_corners
-from nsflow_ros.core.encoder import Encoder, IntensityEncoder, load_encoder, to_gray
+from nsflow_ros.core.encoder import Encoder, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import body_to_camera_rotation, integrate_gyro, predict_pixels
-from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid
-from nsflow_ros.core.solver import LMConfig, track
+from nsflow_ros.core.methods import METHODS as _REGISTRY
+from nsflow_ros.core.methods import SolveKind, TrackingMethod, make_method
+from nsflow_ros.core.solver import LMConfig
 
 if TYPE_CHECKING:  # the core does not depend on the VINS layer at run time
     from nsflow_ros.vins.config import VinsConfig
 
 __all__ = [
     "FISHEYE_MASK_NAME",
-    "KLT_CRITERIA",
-    "KLT_GUIDED_MAX_LEVEL",
-    "KLT_MAX_LEVEL",
-    "KLT_WINDOW",
     "METHODS",
     "CameraFeatures",
     "FeatureTracker",
     "FrameFeatures",
     "TrackerSettings",
     "find_fisheye_mask",
-    "klt_track",
     "load_mask",
     "reject_with_fundamental",
 ]
 
-METHODS = ("nsflow", "classical", "klt")
-"""Tracking methods: the NSFlow encoder (ONNX) or image intensity, both through the same LM solver, or
-OpenCV's pyramidal KLT called exactly as VINS-Fusion calls it (the baseline)."""
-
-# VINS-Fusion's calcOpticalFlowPyrLK arguments (feature_tracker.cpp): window, full-pyramid maxLevel, the
-# maxLevel of the calls that start from a given flow (prediction, flow-back), and the stop criteria.
-KLT_WINDOW = (21, 21)
-KLT_MAX_LEVEL = 3
-KLT_GUIDED_MAX_LEVEL = 1
-KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+METHODS = tuple(_REGISTRY)
+"""Tracking methods (:data:`nsflow_ros.core.methods.METHODS`): the NSFlow encoder (ONNX) or image
+intensity through the paper's LM solver, OpenCV's pyramidal KLT called exactly as VINS-Fusion calls it
+(the baseline), or the NSFlow descriptors through OpenCV's LK."""
 
 # VINS-Mono's FOCAL_LENGTH: the virtual pinhole on which the F-matrix RANSAC threshold is measured.
 _VIRTUAL_FOCAL = 460.0
@@ -93,10 +86,11 @@ class TrackerSettings:
 
     Attributes:
         method: "nsflow" (learned encoder, the default), "classical" (intensity descriptors, same LM
-            solver) or "klt" (OpenCV ``calcOpticalFlowPyrLK`` on the gray / CLAHE'd image with VINS-Fusion's
+            solver), "klt" (OpenCV ``calcOpticalFlowPyrLK`` on the gray / CLAHE'd image with VINS-Fusion's
             arguments: 21x21, maxLevel 3, criteria COUNT|EPS 30 / 0.01; ``lm`` is then unused, the rest of
-            the pipeline is the same).
-        model_path: ONNX encoder for "nsflow"; None means the shipped ``models/nsflow_encoder.onnx``.
+            the pipeline is the same) or "nsflow_lk" (the learned descriptors as uint8 through the same
+            OpenCV calls).
+        model_path: ONNX encoder of the learned methods; None = the shipped ``models/nsflow_encoder.onnx``.
         num_threads: encoder threads; None = all usable cores.
         max_cnt: VINS ``max_cnt``, the number of features kept per frame.
         min_dist: VINS ``min_dist``, the minimum distance between features in pixels.
@@ -111,7 +105,10 @@ class TrackerSettings:
         lm: the solver's settings. Four levels by default: VINS calls OpenCV LK with maxLevel 3, i.e.
             four pyramid levels, and the capture range matters for stereo disparity and fast motion.
             ``min_eigen`` is the solver's 1e-5: on real textures at 320x240, 1e-4 rejected about 30 %
-            of correctly tracked GFTT corners (survival per frame 0.59 -> 0.86 at 1e-5).
+            of correctly tracked GFTT corners (survival per frame 0.59 -> 0.86 at 1e-5). ``margin`` 1:
+            a point may be tracked until its window reaches past the edge, as OpenCV's LK allows (the
+            VINS border check keeps 1 px); requiring the whole window inside lost 3 % of the tracks
+            per frame on the 752x480 sample sequence, nearly all within 40 px of the border.
         use_imu_prediction: use gyro samples given to :meth:`FeatureTracker.process` to predict the flow.
         prediction_min_tracked: with a prediction, retry on the full pyramid when fewer points survive
             the single-level solve (VINS: 10).
@@ -130,7 +127,7 @@ class TrackerSettings:
     border: int = 1
     equalize: bool = False
     stereo: bool = False
-    lm: LMConfig = field(default_factory=lambda: LMConfig(levels=4))
+    lm: LMConfig = field(default_factory=lambda: LMConfig(levels=4, margin=1))
     use_imu_prediction: bool = False
     prediction_min_tracked: int = 10
 
@@ -292,53 +289,6 @@ def _velocities(
     return vel, match
 
 
-def klt_track(
-    image1: np.ndarray,
-    image2: np.ndarray,
-    pts: np.ndarray,
-    start: np.ndarray | None = None,
-    max_level: int = KLT_MAX_LEVEL,
-) -> tuple[np.ndarray, np.ndarray]:
-    """One ``cv2.calcOpticalFlowPyrLK`` call with VINS-Fusion's window and criteria.
-
-    Args:
-        image1: gray uint8 image the points lie in.
-        image2: gray uint8 image to track them into.
-        pts: points in image 1.
-        start: initial positions in image 2 (``OPTFLOW_USE_INITIAL_FLOW``, as VINS's predicted and
-            flow-back calls); None starts from ``pts``.
-        max_level: OpenCV ``maxLevel`` (VINS: 3, or 1 when starting from ``start``).
-
-    Returns:
-        (positions in image 2, OpenCV's status); lost points keep a finite position.
-
-    Shape:
-        pts, start: (N, 2). Returns (N, 2) float64 and (N,) bool.
-    """
-    n = pts.shape[0]
-    if n == 0:
-        return np.zeros((0, 2)), np.zeros(0, bool)
-    p1 = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 1, 2)
-    flags, p2 = 0, None
-    if start is not None:
-        p2 = np.ascontiguousarray(start, dtype=np.float32).reshape(-1, 1, 2).copy()
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    new, status, _ = cv2.calcOpticalFlowPyrLK(
-        image1, image2, p1, p2, winSize=KLT_WINDOW, maxLevel=max_level, criteria=KLT_CRITERIA, flags=flags
-    )
-    out = new.reshape(-1, 2).astype(np.float64)
-    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1)
-    return np.where(ok[:, None], out, pts), ok
-
-
-def _make_encoder(settings: TrackerSettings) -> Encoder | None:
-    if settings.method == "klt":
-        return None  # OpenCV works on the gray image itself
-    if settings.method == "classical":
-        return IntensityEncoder()
-    return load_encoder(settings.model_path, threads=settings.num_threads)
-
-
 FISHEYE_MASK_NAME = "fisheye_mask.jpg"
 
 
@@ -393,10 +343,23 @@ class _CameraState:
     ids: np.ndarray
     pixels: np.ndarray
     undistorted: np.ndarray
+    flow: np.ndarray  # pixel motion since the id's previous frame on this camera, NaN for new ids
 
 
 def _empty_state() -> _CameraState:
-    return _CameraState(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)))
+    return _CameraState(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+def _lookup(ids: np.ndarray, table_ids: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` of ``table_ids`` for each of ``ids``; NaN where an id is not in the table."""
+    out = np.full((ids.shape[0], values.shape[1]), np.nan)
+    if ids.size == 0 or table_ids.size == 0:
+        return out
+    order = np.argsort(table_ids, kind="stable")
+    pos = np.clip(np.searchsorted(table_ids[order], ids), 0, table_ids.size - 1)
+    found = table_ids[order][pos] == ids
+    out[found] = values[order[pos[found]]]
+    return out
 
 
 class FeatureTracker:
@@ -442,10 +405,11 @@ class FeatureTracker:
                 raise CoreError(
                     f"stereo cameras differ in size: cam0 {c0.width}x{c0.height}, cam1 {c1.width}x{c1.height}"
                 )
-        if encoder is not None and self.settings.method == "klt":
-            raise CoreError("method 'klt' tracks the gray image with OpenCV; an encoder cannot be given")
-        # None for "klt"; the frame "pyramid" is then the gray image (OpenCV builds its own pyramid).
-        self.encoder: Encoder | None = encoder if encoder is not None else _make_encoder(self.settings)
+        s = self.settings
+        # The method is chosen here, once; every solve below is method-blind.
+        self.method: TrackingMethod = make_method(
+            s.method, lm=s.lm, encoder=encoder, model_path=s.model_path, threads=s.num_threads
+        )
         self.body_R_cam0 = None if body_R_cam0 is None else np.asarray(body_R_cam0, dtype=np.float64)
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")
@@ -499,10 +463,15 @@ class FeatureTracker:
 
     # -- state -----------------------------------------------------------------------------------------
 
+    @property
+    def encoder(self) -> Encoder | None:
+        """The method's descriptor encoder (None for ``klt``, which tracks the gray image)."""
+        return self.method.encoder
+
     def reset(self) -> None:
         """Forget all tracks (ids keep counting up, so an id is never reused)."""
         self._stamp: float | None = None
-        self._pyramid: DescriptorPyramid | np.ndarray | None = None
+        self._frame: Any = None  # the previous camera-0 frame's representation
         self._left = _empty_state()
         self._counts = np.zeros(0, np.int64)
         self._right = _empty_state()
@@ -519,97 +488,45 @@ class FeatureTracker:
 
     # -- helpers ---------------------------------------------------------------------------------------
 
-    def _prepare(self, image: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """Return (gray for detection, encoder input); KLT's input is the gray image, as in VINS."""
+    def _prepare(self, image: np.ndarray, name: str) -> tuple[np.ndarray, Any]:
+        """Return (gray for detection, the method's representation of the image)."""
         try:
             gray = to_gray(image)
         except CoreError as err:
             raise CoreError(f"{name}: {err}") from err
         if self._clahe is not None:
             gray = self._clahe.apply(gray)
-            return gray, gray
-        # encoders of gray input (and KLT) get the gray image already made, not the BGR one again
-        gray_input = self.encoder is None or getattr(self.encoder, "input_channels", 3) == 1
-        return gray, (gray if gray_input else image)
+            return gray, self.method.prepare(gray, gray)
+        return gray, self.method.prepare(image, gray)
 
-    def _pyramid_of(self, encoder_input: np.ndarray) -> DescriptorPyramid | np.ndarray:
-        if self.encoder is None:
-            return encoder_input  # klt: the gray image
-        return build_pyramid(self.encoder(encoder_input), self.settings.lm.levels)
-
-    def _track_klt(
-        self, img1: np.ndarray, img2: np.ndarray, pts: np.ndarray, size: tuple[int, int],
-        predicted: np.ndarray | None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """VINS-Fusion's trackImage optical-flow block, call for call."""
-        s = self.settings
-        if predicted is not None:
-            start = np.where(np.isfinite(predicted), predicted, pts)
-            new, status = klt_track(img1, img2, pts, start, KLT_GUIDED_MAX_LEVEL)
-            if int(status.sum()) < s.prediction_min_tracked:
-                new, status = klt_track(img1, img2, pts, None, KLT_MAX_LEVEL)
-        else:
-            new, status = klt_track(img1, img2, pts, None, KLT_MAX_LEVEL)
-        if s.flow_back and status.any():
-            # VINS: reverse from the forward result, starting at the previous position, maxLevel 1.
-            back, back_ok = klt_track(img2, img1, new, pts, KLT_GUIDED_MAX_LEVEL)
-            status &= back_ok & (np.hypot(*(back - pts).T) <= s.flow_back_threshold)
-        status &= _in_border(new, size, s.border)
-        return new, status
-
-    def _track_pair(
+    def _track(
         self,
-        pyr1: DescriptorPyramid | np.ndarray,
-        pyr2: DescriptorPyramid | np.ndarray,
+        kind: SolveKind,
+        check: SolveKind,
+        frame1: Any,
+        frame2: Any,
         pts: np.ndarray,
         size: tuple[int, int],
-        predicted: np.ndarray | None = None,
+        start: np.ndarray | None = None,
+        prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Forward track (+ flow-back and border checks); returns (new positions, status)."""
-        s = self.settings
-        if isinstance(pyr1, np.ndarray) and isinstance(pyr2, np.ndarray):
-            return self._track_klt(pyr1, pyr2, pts, size, predicted)
-        lm = s.lm
-        if predicted is not None:
-            usable = np.isfinite(predicted).all(axis=1)
-            flow0 = np.where(usable[:, None], predicted - pts, 0.0)
-            res = track(pyr1, pyr2, pts, flow0, replace(lm, levels=1))
-            if int(res.status.sum()) < s.prediction_min_tracked:
-                res = track(pyr1, pyr2, pts, flow0, lm)
-        else:
-            res = track(pyr1, pyr2, pts, None, lm)
-        status = res.status.copy()
-        # Lost points may carry a non-finite result; keep them finite so the reverse solve accepts them.
-        new = np.where(np.isfinite(res.flow), pts + res.flow, pts)
-        if s.flow_back and status.any():
-            # Reverse track starting at the original point, as VINS does, but on the full pyramid: on one
-            # level the LM solver's gradient stop test accepts that start almost as is, and occluded points
-            # tracked 15-50 px off passed the check; from the coarse levels they are caught (6 of 6, with
-            # no correct track lost, on the occlusion test).
-            status = self._flow_back(pyr2, pyr1, new, pts, status, guided=True)
-        status &= _in_border(new, size, s.border)
-        return new, status
+        """A solve, the border check and its reverse check, the same for every method.
 
-    def _flow_back(
-        self,
-        pyr2: DescriptorPyramid,
-        pyr1: DescriptorPyramid,
-        new: np.ndarray,
-        pts: np.ndarray,
-        status: np.ndarray,
-        *,
-        guided: bool,
-    ) -> np.ndarray:
-        """``status``, cleared where tracking ``new`` back from frame 2 misses ``pts`` by more than the
-        threshold; the reverse solve starts at ``pts`` when ``guided``, else at ``new``. Only live points
-        are re-tracked: the others are dropped anyway, and lost points are the batched solver's slowest."""
-        idx = np.flatnonzero(status)
-        start, target = new[idx], pts[idx]
-        back = track(pyr2, pyr1, start, target - start if guided else None, self.settings.lm)
-        returned = np.hypot(*(start + back.flow - target).T) <= self.settings.flow_back_threshold
-        out = status.copy()
-        out[idx] = back.status & returned
-        return out
+        Returns (positions in frame 2, status). A trusted ``start`` (the IMU prediction) that leaves fewer
+        than ``prediction_min_tracked`` points is dropped and the solve repeated without it (VINS).
+        """
+        s = self.settings
+        m = self.method
+        new, status = m.solve(kind, frame1, frame2, pts, start, prior)
+        if start is not None and int(status.sum()) < s.prediction_min_tracked:
+            new, status = m.solve(kind, frame1, frame2, pts, None, prior)
+        status &= _in_border(new, size, s.border)
+        if s.flow_back and status.any():
+            # Only live points are checked: the others are dropped anyway.
+            idx = np.flatnonzero(status)
+            back, ok = m.solve(check, frame2, frame1, new[idx], pts[idx])
+            status[idx] = ok & (np.hypot(*(back - pts[idx]).T) <= s.flow_back_threshold)
+        return new, status
 
     def _predict(self, gyro: np.ndarray | None, stamp: float) -> np.ndarray | None:
         if not self.settings.use_imu_prediction or gyro is None:
@@ -711,15 +628,19 @@ class FeatureTracker:
         timings: dict[str, float] = {}
 
         predicted = self._predict(gyro, stamp)  # before any state changes: may raise on bad samples
-        gray0, enc0 = self._prepare(image0, "image0")
         t0 = time.perf_counter()
-        pyr0 = self._pyramid_of(enc0)
+        gray0, frame0 = self._prepare(image0, "image0")
         timings["encode"] = (time.perf_counter() - t0) * 1e3
 
         t0 = time.perf_counter()
         prev = self._left
-        if self._pyramid is not None and prev.ids.size:
-            pts, status = self._track_pair(self._pyramid, pyr0, prev.pixels, size, predicted)
+        if self._frame is not None and prev.ids.size:
+            # Constant-velocity prior: each id moves as it did into the previous frame.
+            prior = prev.pixels + prev.flow
+            pts, status = self._track(
+                SolveKind.FORWARD, SolveKind.FLOW_BACK, self._frame, frame0, prev.pixels, size,
+                predicted, prior,
+            )
             ids, counts, prev_px = prev.ids[status], self._counts[status], prev.pixels[status]
             pts = pts[status]
             prev_un = prev.undistorted[status]
@@ -756,48 +677,30 @@ class FeatureTracker:
         right_state = _empty_state()
         if s.stereo:
             t0 = time.perf_counter()
-            _, enc1 = self._prepare(image1, "image1")  # type: ignore[arg-type]
-            pyr1 = self._pyramid_of(enc1)
+            _, frame1 = self._prepare(image1, "image1")  # type: ignore[arg-type]
             r_ids, r_pts, r_cnt = np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64)
             if ids.size:
-                rpts, st = self._stereo(pyr0, pyr1, pts, size)
+                # Prior: each id's disparity in the previous frame.
+                r = self._right
+                disparity = r.pixels - _lookup(r.ids, prev.ids, prev.pixels)
+                prior = pts + _lookup(ids, r.ids, disparity)
+                rpts, st = self._track(
+                    SolveKind.STEREO, SolveKind.STEREO_BACK, frame0, frame1, pts, size, None, prior
+                )
                 r_ids, r_pts, r_cnt = ids[st], rpts[st], counts[st]
             r_un = self.cameras[1].lift(r_pts) if r_pts.size else np.zeros((0, 2))
             r_vel, r_match = _velocities(r_ids, r_un, self._right.ids, self._right.undistorted, dt)
             r_prev = np.full_like(r_pts, np.nan)
             r_prev[r_match >= 0] = self._right.pixels[r_match[r_match >= 0]]
             cams.append(CameraFeatures(1, r_ids, r_pts, r_un, r_vel, r_cnt, r_prev))
-            right_state = _CameraState(r_ids, r_pts, r_un)
+            right_state = _CameraState(r_ids, r_pts, r_un, r_pts - r_prev)
             timings["stereo"] = (time.perf_counter() - t0) * 1e3
 
         # Commit the new state only now, so an exception above leaves the tracker as it was.
         self._stamp = float(stamp)
-        self._pyramid = pyr0
-        self._left = _CameraState(ids, pts, un0)
+        self._frame = frame0
+        self._left = _CameraState(ids, pts, un0, pts - prev_px)
         self._counts = counts
         self._right = right_state
         timings["total"] = (time.perf_counter() - t_start) * 1e3
         return FrameFeatures(float(stamp), tuple(cams), size, timings)
-
-    def _stereo(
-        self,
-        pyr_left: DescriptorPyramid | np.ndarray,
-        pyr_right: DescriptorPyramid | np.ndarray,
-        pts: np.ndarray,
-        size: tuple[int, int],
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Left -> right on the full pyramid, right -> left back-check on the full pyramid (as VINS)."""
-        s = self.settings
-        if isinstance(pyr_left, np.ndarray) and isinstance(pyr_right, np.ndarray):
-            right, status = klt_track(pyr_left, pyr_right, pts)
-            status &= _in_border(right, size, s.border)
-            if s.flow_back and status.any():
-                back, back_ok = klt_track(pyr_right, pyr_left, right)  # VINS: maxLevel 3, no initial flow
-                status &= back_ok & (np.hypot(*(back - pts).T) <= s.flow_back_threshold)
-            return right, status
-        res = track(pyr_left, pyr_right, pts, None, s.lm)
-        right = np.where(np.isfinite(res.flow), pts + res.flow, pts)
-        status = res.status & _in_border(right, size, s.border)
-        if s.flow_back and status.any():
-            status = self._flow_back(pyr_right, pyr_left, right, pts, status, guided=False)
-        return right, status

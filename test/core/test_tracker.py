@@ -155,6 +155,7 @@ def test_stereo_ids_pair_with_the_left_ids():
     seq = syn.translating(8, stereo_disparity=-9.5)
     tracker = FeatureTracker([syn.camera(), syn.camera()], _classical(stereo=True))
     res = _run(tracker, seq)
+    off = total = 0
     for k, frame in enumerate(res):
         left, right = frame.cameras
         assert (left.camera_id, right.camera_id) == (0, 1)
@@ -164,8 +165,11 @@ def test_stereo_ids_pair_with_the_left_ids():
         err = np.hypot(*(right.pixels[ri] - (left.pixels[li] + [-9.5, 0.0])).T)
         # Near the image border the coarse levels see mostly replicated pixels, and now and then a point
         # there slides along the border in both directions (one of ~60 in one frame: 20 px off, passing
-        # the flow-back check), as in VINS-Fusion's stereo matching, which has no further test.
-        assert np.median(err) < 0.15 and (err < 1.0).mean() >= 0.98
+        # the flow-back check), as in VINS-Fusion's stereo matching, which has no further test. The
+        # two-level back-check started at the answer lets one more such point through in 550.
+        assert np.median(err) < 0.15 and (err < 1.0).mean() >= 0.97
+        off += int((err >= 1.0).sum())
+        total += err.size
         np.testing.assert_array_equal(right.track_counts[ri], left.track_counts[li])
         if k:
             prev_right = res[k - 1].cameras[1]
@@ -174,6 +178,7 @@ def test_stereo_ids_pair_with_the_left_ids():
             np.testing.assert_allclose(
                 right.velocities[ci], (right.undistorted[ci] - prev_right.undistorted[pi]) / dt
             )
+    assert off <= 0.01 * total
 
 
 def test_descriptor_maps_are_computed_once_per_image(pan):
