@@ -24,12 +24,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.records import ImageRecord
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.replay import ReplayOptions, replay_records
 from nsflow_ros.vins.draw import draw_tracks
+from nsflow_ros.vins.session import FrontEndSession
 
 __all__ = ["OfflineSummary", "TrackStats", "contact_sheet", "run_offline"]
 
@@ -205,7 +205,9 @@ def run_offline(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cfg = load_vins_config(config or share_file("config/euroc/euroc_mono_imu_config.yaml"))
-    tracker = FeatureTracker.from_vins_config(cfg, {"method": method, "stereo": False, **(overrides or {})})
+    # the same frame policy as the node (duplicate stamps, VINS-Mono's first frame and freq), camera 0 only
+    fixed = {"stereo": False, **(overrides or {})}
+    session = FrontEndSession(cfg, {"method": method}, tracker_overrides=fixed)
     stats = TrackStats(_sample_of(Path(opts.path)))
     rows: list[str] = []
     sheet: list[tuple[int, np.ndarray]] = []
@@ -216,7 +218,13 @@ def run_offline(
             if not isinstance(rec, ImageRecord):
                 continue
             gray = rec.gray()
-            feats = tracker.process(rec.stamp_ns * 1e-9, gray)
+            outcome = session.process(rec.stamp_ns * 1e-9, gray)
+            if outcome.skipped == "tracker":
+                raise NSFlowError(f"frame at {rec.stamp_ns} ns: {outcome.note}")
+            feats = outcome.features
+            bar.update(1)
+            if feats is None:
+                continue
             cf = feats.cameras[0]
             stats.add_frame(rec.stamp_ns, {int(i): p for i, p in zip(cf.ids, cf.pixels, strict=True)})
             for j in range(len(cf.ids)):
@@ -227,7 +235,6 @@ def run_offline(
                 )
             if stats.frames % 10 == 5 and len(sheet) < 4 * sheet_frames:
                 sheet.append((stats.frames, draw_tracks(feats, gray)))
-            bar.update(1)
     except NSFlowError as err:
         error = err  # keep what was processed; report after writing
     finally:
