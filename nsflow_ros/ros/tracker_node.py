@@ -1,55 +1,73 @@
 """The ``tracker`` node: NSFlow features for an unchanged VINS-Fusion / VINS-Mono estimator.
 
     ros2 run nsflow_ros tracker --ros-args -p config_file:=<VINS config.yaml>
+    nsflow-tracker --help      (what it does, its topics, every parameter with its default)
 
 Subscribes to the config's image0_topic (and image1_topic for stereo, paired by exact stamp) with
-sensor-data QoS, optionally to its imu_topic (gyro prediction), and publishes
+sensor-data QoS (overridable through ``qos_overrides.<topic>.subscription.*``), optionally to its imu_topic
+(gyro prediction), and publishes
 
 * ``/feature_tracker/feature`` (sensor_msgs/PointCloud, reliable, depth 2000 like the estimator's queue),
-  header = the image header, in the VINS-Fusion layout (default for VINS-Fusion configs) or the VINS-Mono
-  layout (first frame dropped, ``freq`` throttling, only points tracked more than once);
+  header = the image header, in the VINS-Fusion or VINS-Mono layout;
 * ``/feature_tracker/restart`` (std_msgs/Bool, VINS-Mono layout) on a stamp gap > 1 s or time going back;
-* ``image_track`` (sensor_msgs/Image, bgr8) when show_track is on.
+* ``image_track`` (sensor_msgs/Image, bgr8) when show_track is on;
+* ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) with the status that is also logged every
+  ``status_period`` seconds: frames received / processed / dropped, features, latency.
+
+The node is a thin shell: the frame policy (VINS-Mono's first-frame drop, ``freq`` throttling, restarts)
+and the tracker live in :class:`nsflow_ros.vins.session.FrontEndSession`. Images are decoded and paired
+in the subscription callbacks and handed to one worker thread through a bounded queue: when the tracker
+falls behind, the oldest waiting frame is dropped and counted, never silently. Parameter changes at run
+time land in the session (:data:`nsflow_ros.ros.tracker_params.PARAMETERS` says which can change).
 
 A bad frame (unsupported encoding, wrong step, truncated data, wrong size, duplicate stamp) is logged once
-per cause, then counted, and skipped. A missing or malformed config or model file stops the node at
-start-up with a clear message and exit code 1.
+per cause, then counted, and skipped. A missing or malformed config or model file, or a parameter of the
+wrong type, stops the node at start-up with one line and exit code 1. SIGINT and SIGTERM stop it cleanly
+with exit code 0 after its summary line.
 """
 
 from __future__ import annotations
 
+import json
 import sys
+import threading
 import time
 from array import array
 from collections import Counter, deque
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point32
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import ChannelFloat32, Image, Imu, PointCloud
 from std_msgs.msg import Bool
 
 from nsflow_ros.allocator import keep_large_buffers
-from nsflow_ros.core.errors import CoreError
-from nsflow_ros.core.imu import GyroBuffer
-from nsflow_ros.core.tracker import FeatureTracker, FrameFeatures
+from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.files import atomic_write
+from nsflow_ros.ros.errors import ParameterError
 from nsflow_ros.ros.image_conv import ImageDecodeError, image_to_numpy, numpy_to_image_fields
+from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
+from nsflow_ros.ros.tracker_params import NODE_NAME, PARAMETERS, spec, usage
+from nsflow_ros.ros.transport import use_large_image_transport
 from nsflow_ros.stamps import stamp_to_ns, stamp_to_s
-from nsflow_ros.vins.config import OVERRIDABLE_KEYS, VinsConfig, apply_overrides, load_vins_config
+from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.draw import draw_tracks
 from nsflow_ros.vins.errors import ConfigError
-from nsflow_ros.vins.messages import LAYOUTS, FeatureCloud, encode
+from nsflow_ros.vins.messages import FeatureCloud, encode
+from nsflow_ros.vins.session import SESSION_SETTINGS, FrameOutcome, FrontEndSession
 
-__all__ = ["NODE_NAME", "PARAMETERS", "TrackerNode", "main", "resolve_config_path"]
+__all__ = ["FEATURE_QOS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "resolve_config_path"]
 
-NODE_NAME = "nsflow_tracker"
 FEATURE_QOS = QoSProfile(
     depth=2000, reliability=QoSReliabilityPolicy.RELIABLE, history=QoSHistoryPolicy.KEEP_LAST
 )
@@ -57,39 +75,7 @@ IMU_QOS = QoSProfile(
     depth=400, reliability=QoSReliabilityPolicy.BEST_EFFORT, history=QoSHistoryPolicy.KEEP_LAST
 )
 MAX_PENDING = 10  # unpaired stereo images kept per side
-RESTART_GAP_S = 1.0  # VINS-Mono: a larger stamp gap restarts the estimator
-
-# name -> (default, description). -1 means "take the value from the VINS config file".
-PARAMETERS: dict[str, tuple[Any, str]] = {
-    "config_file": ("config/euroc/euroc_mono_imu_config.yaml",
-                    "VINS-Fusion or VINS-Mono config file (OpenCV YAML); a relative path is looked up in the "
-                    "package share directory, then in the working directory"),
-    "method": (
-        "nsflow",
-        "'nsflow' (learned encoder + LM solver), 'classical' (intensity, same solver) or 'klt' (OpenCV "
-        "calcOpticalFlowPyrLK as VINS-Fusion calls it: 21x21, maxLevel 3, 30 iterations / eps 0.01)",
-    ),
-    "model_path": ("", "ONNX encoder for method 'nsflow'; '' = the model shipped in models/"),
-    "max_cnt": (-1, "most features per image (VINS max_cnt, >= 1); -1 = from the VINS config"),
-    "min_dist": (-1, "minimum distance between features in px (VINS min_dist); -1 = from the VINS config"),
-    "F_threshold": (-1.0, "fundamental-matrix RANSAC threshold in pixels (VINS F_threshold, > 0); "
-                          "-1.0 = from the VINS config"),
-    "flow_back": (-1, "reverse-tracking check, 0/1 (VINS flow_back); -1 = from the VINS config"),
-    "show_track": (-1, "publish the image_track debug image, 0/1 (VINS show_track); -1 = from the config"),
-    "freq": (-1, "feature publishing rate in Hz for the VINS-Mono layout (VINS freq, 0 = 100); "
-                 "-1 = from the VINS config"),
-    "equalize": (-1, "CLAHE before tracking, 0/1 (VINS-Mono equalize); -1 = from the VINS config"),
-    "reject_with_f": (-1, "fundamental-matrix RANSAC on tracked points, 0/1; -1 = on for the VINS-Mono "
-                          "layout (VINS-Mono does it), off for VINS-Fusion (it does not)"),
-    "output_layout": ("", "feature message layout 'fusion' or 'mono'; '' = the dialect of the config file"),
-    "feature_topic": ("/feature_tracker/feature", "topic of the sensor_msgs/PointCloud features"),
-    "restart_topic": ("/feature_tracker/restart", "topic of the std_msgs/Bool restart (VINS-Mono layout)"),
-    "image_track_topic": ("image_track", "topic of the debug image"),
-    "use_imu_prediction": (False, "predict feature positions from the gyro (needs imu_topic in the config)"),
-    "num_threads": (0, "CPU threads for the encoder; 0 = all usable cores"),
-    "fisheye_mask": ("", "mask image for a config with fisheye: 1 (255 = usable); '' = fisheye_mask.jpg in "
-                         "the config's folder or its parent, where VINS-Mono keeps it"),
-}
+DIAGNOSTIC_NAME = f"{NODE_NAME}: front-end"
 
 
 def resolve_config_path(value: str) -> Path:
@@ -118,6 +104,20 @@ def resolve_config_path(value: str) -> Path:
     raise ConfigError(f"VINS config {value!r} not found (looked at {', '.join(str(c) for c in candidates)})")
 
 
+@dataclass
+class _Frame:
+    """A decoded frame waiting for the tracker."""
+
+    header: Any
+    image0: np.ndarray
+    image1: np.ndarray | None
+    t_recv: float  # perf_counter when its (first) image arrived
+
+
+def _percentile(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
 class TrackerNode(Node):
     """The nsflow_tracker node.
 
@@ -126,69 +126,135 @@ class TrackerNode(Node):
         parameter_overrides: parameters to set at construction (tests, composition).
 
     Raises:
-        NSFlowError: ConfigError / EncoderError / CoreError when the config, the model or a setting is bad.
+        NSFlowError: ParameterError / ConfigError / EncoderError / CoreError when a parameter, the config,
+            the model or a setting is bad.
     """
 
     def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None) -> None:
         super().__init__(NODE_NAME, context=context, parameter_overrides=parameter_overrides)
-        for name, (default, description) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=description))
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        p: dict[str, Any] = {}
+        for ps in PARAMETERS:
+            # dynamic typing so that a slip (-p F_threshold:=1) reaches spec.coerce and gets a clear answer
+            desc = ParameterDescriptor(
+                description=ps.full_description, read_only=not ps.live, dynamic_typing=True
+            )
+            p[ps.name] = ps.coerce(self.declare_parameter(ps.name, ps.default, desc).value)
+        self._params = p
+        if p["queue_size"] < 1:
+            raise ParameterError(f"parameter queue_size: got {p['queue_size']}, expected an integer >= 1")
+        if p["status_period"] < 0:
+            raise ParameterError(f"parameter status_period: got {p['status_period']}, expected a number >= 0")
 
         cfg = load_vins_config(resolve_config_path(str(p["config_file"])))
-        cfg = apply_overrides(cfg, {k: p[k] for k in OVERRIDABLE_KEYS})
-        layout = str(p["output_layout"]) or cfg.dialect
-        if layout not in LAYOUTS:
-            raise ConfigError(f"parameter output_layout must be one of {LAYOUTS} or '', got {layout!r}")
-        reject = int(p["reject_with_f"])
         use_imu = bool(p["use_imu_prediction"])
         if use_imu and not cfg.imu_topic:
             self.get_logger().warning("use_imu_prediction is on but the config names no imu_topic: disabled")
             use_imu = False
-        overrides = {
-            "method": str(p["method"]),
-            "model_path": str(p["model_path"]) or None,
-            "num_threads": int(p["num_threads"]) or None,
-            "reject_with_f": layout == "mono" if reject < 0 else bool(reject),
-            "use_imu_prediction": use_imu,
-        }
-        self.config: VinsConfig = cfg
-        self.layout = layout
-        mask_path = str(p["fisheye_mask"]) or None
-        self.tracker = FeatureTracker.from_vins_config(cfg, overrides, fisheye_mask=mask_path)
+        settings = {k: p[k] for k in SESSION_SETTINGS if k != "use_imu_prediction"}
+        self.session = FrontEndSession(
+            cfg,
+            {**settings, "use_imu_prediction": use_imu},
+            layout=str(p["output_layout"]) or None,
+            fisheye_mask=str(p["fisheye_mask"]) or None,
+        )
+        self.layout = self.session.layout
 
         self.stats: Counter[str] = Counter()
         self.latencies_ms: deque[float] = deque(maxlen=2000)
+        self._lat_lock = threading.Lock()
         self._logged_causes: set[str] = set()
         self._pending: tuple[dict[int, Any], dict[int, Any]] = ({}, {})
-        self._gyro = GyroBuffer() if use_imu else None
-        # VINS-Mono front-end state (first image, restart, freq throttling).
-        self._first_image = True
-        self._first_time = 0.0
-        self._last_time = 0.0
-        self._pub_count = 1
-        self._init_pub = False
+        self._lock = threading.Lock()  # the session and the publishers: worker vs. parameter updates
+        self._queue: deque[_Frame] = deque()
+        self._queue_size = int(p["queue_size"])
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._status = _StatusWindow()
 
         self._feature_pub = self.create_publisher(PointCloud, str(p["feature_topic"]), FEATURE_QOS)
         self._restart_pub = self.create_publisher(Bool, str(p["restart_topic"]), FEATURE_QOS)
-        self._track_pub = (
-            self.create_publisher(Image, str(p["image_track_topic"]), 10) if cfg.show_track else None
-        )
+        self._track_pub: Any = None
+        self._set_track_publisher(self.session.show_track)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._subs = [
             self.create_subscription(
-                Image, topic, lambda m, i=i: self._on_image(i, m), qos_profile_sensor_data
+                Image,
+                topic,
+                lambda m, i=i: self._on_image(i, m),
+                qos_profile_sensor_data,
+                qos_overriding_options=QoSOverridingOptions.with_default_policies(),
             )
             for i, topic in enumerate(cfg.image_topics)
         ]
-        if self._gyro is not None:
+        if use_imu:
             self._subs.append(self.create_subscription(Imu, cfg.imu_topic, self._on_imu, IMU_QOS))
-        s = self.tracker.settings
+        self._timer: Any = None
+        self._set_status_timer(float(p["status_period"]))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self._worker = threading.Thread(target=self._work, name="nsflow_tracker_frames", daemon=True)
+        self._worker.start()
+        s = self.session.tracker.settings
+        images = ", ".join(sub.topic_name for sub in self._subs[: len(cfg.image_topics)])
         self.get_logger().info(
             f"{cfg.dialect} config {cfg.path} ({'stereo' if s.stereo else 'mono'}, {cfg.image_width}x"
-            f"{cfg.image_height}); method {s.method}, layout {layout}, max_cnt {s.max_cnt}, min_dist "
+            f"{cfg.image_height}); method {s.method}, layout {self.layout}, max_cnt {s.max_cnt}, min_dist "
             f"{s.min_dist:g}, flow_back {s.flow_back}, F-RANSAC {s.reject_with_f}, IMU prediction {use_imu}; "
-            f"images on {', '.join(cfg.image_topics)}, features on {p['feature_topic']}"
+            f"images on {images}"
+            + (f", IMU on {self._subs[-1].topic_name}" if use_imu else "")
+            + f"; features on {self._feature_pub.topic_name}"
         )
+
+    # -- accessors kept for callers ----------------------------------------------------------------------
+
+    @property
+    def tracker(self) -> Any:
+        """The session's :class:`~nsflow_ros.core.tracker.FeatureTracker`."""
+        return self.session.tracker
+
+    @property
+    def config(self) -> Any:
+        """The effective VINS config (file values with the parameter overrides)."""
+        return self.session.config
+
+    # -- parameters ------------------------------------------------------------------------------------
+
+    def _set_track_publisher(self, on: bool) -> None:
+        if on and self._track_pub is None:
+            self._track_pub = self.create_publisher(Image, str(self._params["image_track_topic"]), 10)
+        elif not on and self._track_pub is not None:
+            self.destroy_publisher(self._track_pub)
+            self._track_pub = None
+
+    def _set_status_timer(self, period: float) -> None:
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        if period > 0:
+            self._timer = self.create_timer(period, self._report_status)
+
+    def _on_set_parameters(self, params: list[Any]) -> SetParametersResult:
+        """Apply a parameter change to the running node, or refuse it with the reason."""
+        ours = [q for q in params if q.name in self._params]
+        if not ours:
+            return SetParametersResult(successful=True)
+        try:
+            values = {q.name: spec(q.name).coerce(q.value) for q in ours}
+            period = values.get("status_period")
+            if period is not None and period < 0:
+                raise ParameterError(f"parameter status_period: got {period}, expected a number >= 0")
+            session = {k: v for k, v in values.items() if k in SESSION_SETTINGS}
+            with self._lock:
+                notes = self.session.update(**session) if session else []
+                self._set_track_publisher(self.session.show_track)
+        except NSFlowError as err:
+            return SetParametersResult(successful=False, reason=str(err))
+        if period is not None:
+            self._set_status_timer(period)
+        self._params.update(values)
+        for note in notes:
+            self.get_logger().info(f"parameter change: {note}")
+        return SetParametersResult(successful=True)
 
     # -- inputs ----------------------------------------------------------------------------------------
 
@@ -202,101 +268,87 @@ class TrackerNode(Node):
 
     def _on_imu(self, msg: Imu) -> None:
         w = msg.angular_velocity
-        self._gyro.add(stamp_to_s(msg.header.stamp), (w.x, w.y, w.z))  # type: ignore[union-attr]
+        with self._lock:
+            self.session.add_gyro(stamp_to_s(msg.header.stamp), (w.x, w.y, w.z))
 
     def _on_image(self, cam: int, msg: Image) -> None:
         t_recv = time.perf_counter()
-        self.stats["images_in"] += 1
+        self.stats["images_received"] += 1
         try:
             img = image_to_numpy(msg)
         except ImageDecodeError as err:
             self._bad(err.cause, f"camera {cam}: {err}")
             return
-        if not self.tracker.settings.stereo:
-            self._frame(msg.header, img, None, t_recv)
+        if not self.session.tracker.settings.stereo:
+            self._enqueue(_Frame(msg.header, img, None, t_recv))
             return
         key = stamp_to_ns(msg.header.stamp)
         other = self._pending[1 - cam].pop(key, None)
         if other is None:
             pending = self._pending[cam]
-            pending[key] = (msg.header, img)
+            pending[key] = (msg.header, img, t_recv)
             while len(pending) > MAX_PENDING:  # the partner never came
                 pending.pop(min(pending))
                 self.stats["unpaired_images"] += 1
             return
-        left, right = ((msg.header, img), other) if cam == 0 else (other, (msg.header, img))
-        self._frame(left[0], left[1], right[1], t_recv)
+        left, right = ((msg.header, img, t_recv), other) if cam == 0 else (other, (msg.header, img, t_recv))
+        self._enqueue(_Frame(left[0], left[1], right[1], min(left[2], right[2])))
 
-    # -- one frame -------------------------------------------------------------------------------------
+    def _enqueue(self, frame: _Frame) -> None:
+        with self._wake:
+            self.stats["frames_received"] += 1
+            if len(self._queue) >= self._queue_size:  # the tracker is behind: drop the oldest frame
+                self._queue.popleft()
+                self.stats["dropped_busy"] += 1
+            self._queue.append(frame)
+            self._wake.notify()
 
-    def _mono_gate(self, stamp: float) -> bool | None:
-        """VINS-Mono's img_callback bookkeeping: None = skip the frame, else whether to publish it."""
-        if self._first_image:
-            self._first_image = False
-            self._first_time = self._last_time = stamp
-            return None
-        if stamp - self._last_time > RESTART_GAP_S or stamp < self._last_time:
-            self.get_logger().warning(f"image stamp discontinuity ({self._last_time:.3f} -> {stamp:.3f} s): "
-                                      "restarting the estimator")
-            self._first_image = True
-            self._last_time = 0.0
-            self._pub_count = 1
+    # -- the worker --------------------------------------------------------------------------------------
+
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while not self._queue and not self._stopping:
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                frame = self._queue.popleft()
+            try:
+                with self._lock:
+                    self._frame(frame)
+            except Exception as err:
+                self._bad(f"internal:{type(err).__name__}", f"{type(err).__name__}: {err}")
+
+    def _frame(self, item: _Frame) -> None:
+        stamp = stamp_to_s(item.header.stamp)
+        out: FrameOutcome = self.session.process(stamp, item.image0, item.image1)
+        if out.skipped in ("duplicate_stamp", "tracker"):
+            self._bad(out.skipped if out.skipped == "duplicate_stamp" else f"tracker:{out.note}", out.note)
+            return
+        if out.restart:
+            self.get_logger().warning(out.note)
             self._restart_pub.publish(Bool(data=True))
-            self.tracker.reset()
-            self.stats["restarts"] += 1
-            return None
-        self._last_time = stamp
-        freq = self.config.freq
-        rate = self._pub_count / (stamp - self._first_time)
-        if round(rate) <= freq:
-            if abs(rate - freq) < 0.01 * freq:  # reset the frequency control near the target
-                self._first_time = stamp
-                self._pub_count = 0
-            return True
-        return False
-
-    def _frame(self, header: Any, img0: np.ndarray, img1: np.ndarray | None, t_recv: float) -> None:
-        stamp = stamp_to_s(header.stamp)
-        last = self.tracker.last_stamp
-        if last is not None and stamp == last:
-            self._bad("duplicate_stamp", f"stamp {stamp:.9f} repeats the previous frame's")
             return
-        publish = True
-        if self.layout == "mono":
-            gate = self._mono_gate(stamp)
-            if gate is None:
-                return
-            publish = gate
-        elif last is not None and stamp < last:
-            self.get_logger().warning(f"time went backwards ({last:.3f} -> {stamp:.3f} s): tracks reset")
-            self.tracker.reset()
-            self.stats["resets"] += 1
-        gyro = None
-        if self._gyro is not None and self.tracker.last_stamp is not None:
-            gyro = self._gyro.window(self.tracker.last_stamp, stamp)
-        try:
-            frame = self.tracker.process(stamp, img0, img1, gyro, detect=publish)
-        except CoreError as err:
-            self._bad(f"tracker:{err}", str(err))
+        if not out.tracked:
             return
-        self.stats["frames"] += 1
-        if self._gyro is not None:
-            self._gyro.prune(stamp)
-        if self.layout == "mono":
-            if not publish:
-                return
-            self._pub_count += 1
-            if not self._init_pub:  # VINS-Mono skips the first published frame
-                self._init_pub = True
-                return
-        self._publish(header, frame)
-        self.latencies_ms.append((time.perf_counter() - t_recv) * 1e3)
+        if out.note:
+            self.get_logger().warning(out.note)
+        self.stats["frames_processed"] += 1
+        if out.features is None:
+            return
+        msg = self._cloud(item.header, out.features)
+        latency = (time.perf_counter() - item.t_recv) * 1e3
+        with self._lat_lock:
+            self.latencies_ms.append(latency)
+        self._status.add(latency, len(out.features.cameras[0]))
+        self._feature_pub.publish(msg)
+        self.stats["published"] += 1
         if self._track_pub is not None:
-            self._publish_track(header, frame, img0, img1)
+            self._publish_track(item.header, out.features, item.image0, item.image1)
 
     # -- outputs ---------------------------------------------------------------------------------------
 
-    def _publish(self, header: Any, frame: FrameFeatures) -> None:
+    def _cloud(self, header: Any, frame: FrameFeatures) -> PointCloud:
         cloud: FeatureCloud = encode(frame, self.layout, self.config.num_of_cam)  # type: ignore[arg-type]
         msg = PointCloud()
         msg.header = header
@@ -307,8 +359,7 @@ class TrackerNode(Node):
             ch.values = array("f", values.tobytes())
             chans.append(ch)
         msg.channels = chans
-        self._feature_pub.publish(msg)
-        self.stats["published"] += 1
+        return msg
 
     def _publish_track(
         self, header: Any, frame: FrameFeatures, img0: np.ndarray, img1: np.ndarray | None
@@ -318,30 +369,277 @@ class TrackerNode(Node):
                     step=fields["step"])
         msg.header = header
         msg.data = fields["data"]
-        self._track_pub.publish(msg)  # type: ignore[union-attr]
+        self._track_pub.publish(msg)
+
+    # -- status ----------------------------------------------------------------------------------------
+
+    def counters(self) -> dict[str, Any]:
+        """The run's counters: frames received / processed / dropped (and why), published, latency."""
+        s = self.stats
+        dropped = {
+            "busy": s["dropped_busy"],
+            "unpaired_images": s["unpaired_images"],
+            "bad": s["bad_frames"],
+        }
+        with self._lat_lock:
+            lat = list(self.latencies_ms)
+        policy = self.session.counters["skipped:first_frame"] + self.session.counters["skipped:restart"]
+        return {
+            "node": self.get_fully_qualified_name(),
+            "method": self.session.tracker.settings.method,
+            "stereo": bool(self.session.tracker.settings.stereo),
+            "images_received": s["images_received"],
+            "frames_received": s["frames_received"],
+            "frames_processed": s["frames_processed"],
+            "frames_published": s["published"],
+            "frames_skipped_by_policy": policy,
+            "frames_dropped": sum(dropped.values()),
+            "dropped": dropped,
+            "restarts": self.session.counters["restarts"],
+            "latency_ms_p50": _percentile(lat, 50),
+            "latency_ms_p90": _percentile(lat, 90),
+        }
 
     def summary(self) -> str:
-        """One line of counters (frames, published, bad frames by cause)."""
-        return ", ".join(f"{k} {v}" for k, v in sorted(self.stats.items())) or "no images received"
+        """One line: frames received / processed / dropped (by cause), published, latency."""
+        c = self.counters()
+        if not c["images_received"]:
+            return "no images received"
+        d = c["dropped"]
+        lat = (
+            f"; latency p50 {c['latency_ms_p50']:.1f} ms, p90 {c['latency_ms_p90']:.1f} ms"
+            if c["latency_ms_p50"] is not None
+            else ""
+        )
+        return (
+            f"frames received {c['frames_received']}, processed {c['frames_processed']}, published "
+            f"{c['frames_published']}, dropped {c['frames_dropped']} (tracker busy {d['busy']}, unpaired "
+            f"images {d['unpaired_images']}, bad {d['bad']}){lat}"
+        )
+
+    def _report_status(self) -> None:
+        """Log one status line (WARN when frames were dropped) and publish it on /diagnostics."""
+        c = self.counters()
+        window = self._status.take(c)
+        level = DiagnosticStatus.OK
+        if window["frames_received"] == 0:
+            message = "no images" if not c["images_received"] else "no images in the last period"
+        elif window["dropped"]:
+            level = DiagnosticStatus.WARN
+            message = f"falling behind: dropped {window['dropped']} of {window['frames_received']} frames"
+        else:
+            message = "tracking"
+        values = {
+            "frames received": c["frames_received"],
+            "frames processed": c["frames_processed"],
+            "frames dropped": c["frames_dropped"],
+            "frames published": c["frames_published"],
+            "frames received (period)": window["frames_received"],
+            "frames processed (period)": window["frames_processed"],
+            "frames dropped (period)": window["dropped"],
+            "features per frame (period)": window["features"],
+            "latency p50 ms (period)": window["latency_p50"],
+            "latency p90 ms (period)": window["latency_p90"],
+            "method": c["method"],
+        }
+        array_msg = DiagnosticArray()
+        array_msg.header.stamp = self.get_clock().now().to_msg()
+        array_msg.status = [
+            DiagnosticStatus(
+                level=level,
+                name=DIAGNOSTIC_NAME,
+                message=message,
+                hardware_id=self.get_fully_qualified_name(),
+                values=[KeyValue(key=k, value="" if v is None else f"{v:.1f}" if isinstance(v, float)
+                                 else str(v)) for k, v in values.items()],
+            )
+        ]
+        self._diag_pub.publish(array_msg)
+        if window["frames_received"] == 0 and window["quiet"]:
+            return  # say "no images" once, then stay quiet until images come
+        line = (
+            f"{message}: {window['frames_received']} frames received, {window['frames_processed']} "
+            f"processed, {window['dropped']} dropped in the last {window['seconds']:.1f} s"
+        )
+        if window["latency_p50"] is not None:
+            line += (
+                f"; {window['features']:.0f} features/frame, latency p50 {window['latency_p50']:.1f} ms, "
+                f"p90 {window['latency_p90']:.1f} ms"
+            )
+        if level == DiagnosticStatus.WARN:
+            self.get_logger().warning(line)
+        else:
+            self.get_logger().info(line)
+
+    # -- shutdown --------------------------------------------------------------------------------------
+
+    def stop_worker(self, timeout: float = 5.0) -> None:
+        """Stop the frame worker (frames still waiting are counted as dropped)."""
+        with self._wake:
+            self._stopping = True
+            self.stats["dropped_busy"] += len(self._queue)
+            self._queue.clear()
+            self._wake.notify_all()
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(timeout)
+
+    def write_summary_file(self) -> Path | None:
+        """Write :meth:`counters` as JSON to the summary_file parameter's path, if one is set."""
+        target = str(self._params["summary_file"])
+        if not target:
+            return None
+        path = Path(target)
+        text = json.dumps(self.counters(), indent=2)
+        atomic_write(path, lambda tmp: tmp.write_text(text))
+        return path
+
+    def destroy_node(self) -> None:
+        self.stop_worker()
+        super().destroy_node()
+
+
+class _StatusWindow:
+    """Counters and latencies since the last status report."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._latencies: list[float] = []
+        self._features: list[int] = []
+        self._last: dict[str, int] = {"frames_received": 0, "frames_processed": 0, "frames_dropped": 0}
+        self._t = time.monotonic()
+        self._idle = 0
+
+    def add(self, latency_ms: float, features: int) -> None:
+        with self._lock:
+            self._latencies.append(latency_ms)
+            self._features.append(features)
+
+    def take(self, counters: dict[str, Any]) -> dict[str, Any]:
+        """The period's figures; starts the next period."""
+        with self._lock:
+            lat, feats = self._latencies, self._features
+            self._latencies, self._features = [], []
+        now = time.monotonic()
+        out = {
+            "seconds": now - self._t,
+            "frames_received": counters["frames_received"] - self._last["frames_received"],
+            "frames_processed": counters["frames_processed"] - self._last["frames_processed"],
+            "dropped": counters["frames_dropped"] - self._last["frames_dropped"],
+            "features": float(np.mean(feats)) if feats else 0.0,
+            "latency_p50": _percentile(lat, 50),
+            "latency_p90": _percentile(lat, 90),
+        }
+        self._idle = self._idle + 1 if out["frames_received"] == 0 else 0
+        out["quiet"] = self._idle > 1
+        self._t = now
+        self._last = {k: counters[k] for k in self._last}
+        return out
+
+
+# -- the process ---------------------------------------------------------------------------------------
+
+
+def _program(argv0: str | None) -> str:
+    name = Path(argv0 or "nsflow-tracker").name
+    if name == "tracker":
+        return "ros2 run nsflow_ros tracker"
+    return name if name.startswith("nsflow") else "nsflow-tracker"
+
+
+def _check_ros_args(ros_args: list[str]) -> None:
+    """Check what rcl would reject with a long message: a params file that cannot be read.
+
+    Raises:
+        ParameterError: naming the file.
+    """
+    for k, arg in enumerate(ros_args):
+        if arg == "--params-file":
+            if k + 1 >= len(ros_args):
+                raise ParameterError("--params-file needs a file name")
+            path = Path(ros_args[k + 1])
+            if not path.is_file():
+                what = "is not a file" if path.exists() else "does not exist"
+                raise ParameterError(f"--params-file {path}: {what} (expected a ROS 2 parameters YAML file)")
+            try:
+                path.read_bytes()
+            except OSError as err:
+                raise ParameterError(f"--params-file {path}: cannot read it ({err.strerror})") from err
+
+
+def _rcl_message(err: Exception) -> str:
+    """The first sentence of an rcl error, without the C source locations."""
+    text = str(err).split(", at /")[0]
+    return text.removeprefix("failed to initialize rcl: ")
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point of ``ros2 run nsflow_ros tracker``; returns the exit code (1 on a start-up error)."""
+    """Entry point of ``ros2 run nsflow_ros tracker`` / ``nsflow-tracker``.
+
+    Args:
+        args: the command line including the program name (None = ``sys.argv``).
+
+    Returns:
+        0 after a normal stop (SIGINT, SIGTERM, shutdown) or ``--help``; 1 on a start-up error; 2 on an
+        unknown command-line argument.
+    """
+    argv = list(sys.argv if args is None else args)
+    prog = _program(argv[0] if argv else None)
+    user = argv[1:]
+    ros_args: list[str] = []
+    if "--ros-args" in user:
+        ros_args = user[user.index("--ros-args") + 1 :]
+        user = user[: user.index("--ros-args")]
+    if "-h" in user or "--help" in user:
+        print(usage(prog), end="")
+        return 0
+    if user:
+        print(f"usage: {prog} [-h] [--ros-args ...]\n{prog}: error: unrecognized arguments: {' '.join(user)}",
+              file=sys.stderr)
+        return 2
+    try:
+        _check_ros_args(ros_args)
+    except ParameterError as err:
+        print(f"{NODE_NAME}: error: {err}", file=sys.stderr)
+        return 1
     keep_large_buffers()  # per-frame buffers stay on the heap (nsflow_ros.allocator)
-    rclpy.init(args=args)
+    use_large_image_transport()
+    with StopSignals() as stop:
+        try:
+            init_without_signal_handlers(argv)
+        except Exception as err:
+            print(f"{NODE_NAME}: error: bad ROS arguments: {_rcl_message(err)}", file=sys.stderr)
+            return 1
+        return _run(stop)
+
+
+def _run(stop: StopSignals) -> int:
     node: TrackerNode | None = None
+    executor: SingleThreadedExecutor | None = None
     code = 0
     try:
         node = TrackerNode()
-        rclpy.spin(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        # Short waits: a signal only sets a flag, seen here within 0.2 s.
+        while not stop.requested.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.2)
     except NSFlowError as err:
         print(f"{NODE_NAME}: error: {err}", file=sys.stderr)
         code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+    except (KeyboardInterrupt, ExternalShutdownException, StopRequested):
+        pass  # a stop while starting up, or a second signal
     finally:
         if node is not None:
-            node.get_logger().info(f"shutting down: {node.summary()}")
+            node.stop_worker()
+            if rclpy.ok():
+                node.get_logger().info(f"shutting down: {node.summary()}")
+            try:
+                node.write_summary_file()
+            except OSError as err:
+                print(f"{NODE_NAME}: error: cannot write the summary file: {err}", file=sys.stderr)
+                code = code or 1
+            if executor is not None:
+                executor.shutdown(timeout_sec=1.0)
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()

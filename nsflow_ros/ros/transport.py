@@ -1,0 +1,41 @@
+"""The DDS transport profile the package's ROS processes use unless the user chose one.
+
+Fast DDS's default shared-memory segment (0.5 MiB) cannot hold two back-to-back 752x480 images, so
+best-effort stereo images are lost even for a subscriber that keeps up. ``config/fastdds_large_images.xml``
+gives each participant a 16 MiB segment; :func:`use_large_image_transport` points Fast DDS at it before
+rclpy starts, unless the environment already names a profiles file or another RMW is selected.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["PROFILE_ENV", "PROFILE_FILE", "use_large_image_transport"]
+
+PROFILE_FILE = "config/fastdds_large_images.xml"
+PROFILE_ENV = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+"""The variables Fast DDS reads its XML profiles from (2.x reads the first, 3.x the second)."""
+
+
+def use_large_image_transport() -> Path | None:
+    """Set ``FASTRTPS_DEFAULT_PROFILES_FILE`` to the shipped profile when nothing else is chosen.
+
+    Call it before ``rclpy.init``; child processes inherit the setting.
+
+    Returns:
+        the profile now in use, or None when the user's own setting (or a non-Fast DDS RMW) is kept or
+        the file is not installed.
+    """
+    if any(os.environ.get(name) for name in PROFILE_ENV):
+        return None
+    if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") not in ("rmw_fastrtps_cpp", ""):
+        return None
+    from nsflow_ros.resources import ResourceError, share_file
+
+    try:
+        path = share_file(PROFILE_FILE)
+    except ResourceError:
+        return None
+    os.environ[PROFILE_ENV[0]] = str(path)
+    return path
