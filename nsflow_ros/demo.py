@@ -84,6 +84,14 @@ def _wait_for(cond: Any, timeout: float, proc: subprocess.Popen[bytes] | None = 
     return False
 
 
+def _read_summary(path: Path) -> dict[str, Any]:
+    """The tracker node's summary file ({} when it wrote none, e.g. it was killed)."""
+    try:
+        return dict(json.loads(path.read_text()))
+    except (OSError, ValueError):
+        return {}
+
+
 def _run_one(
     ctx: Any, seq: Any, config: Path, method: str, level: str, seed: int, rate: float, log: Path
 ) -> tuple[dict[str, Any], Any]:
@@ -97,6 +105,8 @@ def _run_one(
     executor.add_node(collector.node)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
+    summary_file = log.with_suffix(".summary.json")
+    summary_file.unlink(missing_ok=True)
     cmd = [
         sys.executable,
         "-m",
@@ -108,6 +118,8 @@ def _run_one(
         f"method:={method}",
         "-p",
         "show_track:=1",
+        "-p",
+        f"summary_file:={summary_file}",
     ]
     with log.open("wb") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
@@ -136,6 +148,11 @@ def _run_one(
         frames, debug = dict(collector.frames), dict(collector.debug)
     figures = _stats(frames, seq)
     figures["frames_sent"] = sent
+    # what the tracker itself saw: frames that reached it and frames it tracked (its summary file)
+    node = _read_summary(summary_file)
+    figures["tracker_received"] = node.get("frames_received")
+    figures["tracker_processed"] = node.get("frames_processed")
+    figures["tracker_dropped"] = node.get("frames_dropped")
     mid = sorted(debug)[len(debug) // 2] if debug else None
     return figures, (debug[mid] if mid is not None else None)
 
@@ -157,6 +174,7 @@ def run_demo(
     from nsflow_ros.offline import _write_png, contact_sheet
     from nsflow_ros.resources import ResourceError, share_file
     from nsflow_ros.ros.image_conv import image_to_numpy
+    from nsflow_ros.ros.transport import use_large_image_transport
 
     out_dir.mkdir(parents=True, exist_ok=True)
     notes = []
@@ -173,6 +191,7 @@ def run_demo(
     config = share_file("config/euroc/euroc_mono_imu_config.yaml")
     # a private DDS domain, so the demo neither hears nor disturbs other ROS 2 graphs on this machine
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(100, 200)))
+    use_large_image_transport()  # this process and the tracker nodes it starts
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     results: dict[str, dict[str, Any]] = {}
@@ -207,18 +226,25 @@ def run_demo(
 def format_summary(summary: dict[str, Any]) -> str:
     """The demo's table."""
     head = (
-        f"{'perturbation':12s} {'method':10s} {'frames':>6s} {'feat/frame':>10s} {'track len':>9s} "
-        f"{'err median px':>13s} {'<1 px':>7s}"
+        f"{'perturbation':12s} {'method':10s} {'sent':>5s} {'recv':>5s} {'proc':>5s} {'out':>5s} "
+        f"{'feat/frame':>10s} {'track len':>9s} {'err median px':>13s} {'<1 px':>7s}"
     )
     lines = [head, "-" * len(head)]
     for level, per in summary["results"].items():
         for method, f in per.items():
             med = "n/a" if f["error_median_px"] is None else f"{f['error_median_px']:.3f}"
             within = "n/a" if f["error_within_1px"] is None else f"{100 * f['error_within_1px']:.1f}%"
-            lines.append(
-                f"{level:12s} {method:10s} {f['frames']:6d} {f['features_per_frame']:10.1f} "
-                f"{f['mean_track_length']:9.1f} {med:>13s} {within:>7s}"
+            recv, proc = (
+                "?" if f.get(k) is None else str(f[k]) for k in ("tracker_received", "tracker_processed")
             )
+            lines.append(
+                f"{level:12s} {method:10s} {f['frames_sent']:5d} {recv:>5s} {proc:>5s} {f['frames']:5d} "
+                f"{f['features_per_frame']:10.1f} {f['mean_track_length']:9.1f} {med:>13s} {within:>7s}"
+            )
+    lines.append(
+        "sent: frames replayed; recv / proc: frames the tracker node received / tracked (from its summary); "
+        "out: feature messages the demo received"
+    )
     lines += [f"note: {n}" for n in summary["notes"]]
     return "\n".join(lines)
 
@@ -232,11 +258,17 @@ def main(args: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1.0 = real time)")
     opts = p.parse_args(args)
     t0 = time.monotonic()
+    from nsflow_ros.ros.signals import StopRequested, StopSignals
+
     try:
-        summary = run_demo(opts.out, duration=opts.duration, seed=opts.seed, rate=opts.rate)
+        with StopSignals(raise_now=True):
+            summary = run_demo(opts.out, duration=opts.duration, seed=opts.seed, rate=opts.rate)
     except NSFlowError as err:
         print(f"nsflow-demo: {err}", file=sys.stderr)
         return 1
+    except (KeyboardInterrupt, StopRequested):
+        print("nsflow-demo: stopped", file=sys.stderr)
+        return 0
     print()
     print(format_summary(summary))
     print(

@@ -16,4 +16,11 @@ def test_replay_reaches_tracker_node_and_features_come_back(tmp_path):
     assert fig["error_count"] > 200 and fig["error_median_px"] < 0.3
     assert (tmp_path / "tracks.png").stat().st_size > 10_000
     assert json.loads((tmp_path / "summary.json").read_text())["results"]["none"]["classical"]["frames"] > 0
-    assert "classical" in format_summary(summary)
+    # the tracker node's own counts, from its summary file
+    assert fig["frames"] <= fig["tracker_processed"] <= fig["tracker_received"] <= fig["frames_sent"]
+    assert fig["tracker_dropped"] == fig["tracker_received"] - fig["tracker_processed"]
+    table = format_summary(summary)
+    assert "classical" in table and "recv" in table and "proc" in table
+    row = next(line for line in table.splitlines() if line.startswith("none") and "classical" in line)
+    counts = [fig["frames_sent"], fig["tracker_received"], fig["tracker_processed"]]
+    assert row.split()[2:5] == [str(n) for n in counts]

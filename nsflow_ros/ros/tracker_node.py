@@ -195,7 +195,8 @@ class TrackerNode(Node):
         self._worker = threading.Thread(target=self._work, name="nsflow_tracker_frames", daemon=True)
         self._worker.start()
         s = self.session.tracker.settings
-        images = ", ".join(sub.topic_name for sub in self._subs[: len(cfg.image_topics)])
+        self._image_topics = [sub.topic_name for sub in self._subs[: len(cfg.image_topics)]]
+        images = ", ".join(self._image_topics)
         self.get_logger().info(
             f"{cfg.dialect} config {cfg.path} ({'stereo' if s.stereo else 'mono'}, {cfg.image_width}x"
             f"{cfg.image_height}); method {s.method}, layout {self.layout}, max_cnt {s.max_cnt}, min_dist "
@@ -258,9 +259,17 @@ class TrackerNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------------------
 
-    def _bad(self, cause: str, message: str) -> None:
-        """Log a bad frame once per cause; count every occurrence."""
+    def _bad(self, cause: str, message: str, *, image: bool = False) -> None:
+        """Log a bad image or frame once per cause; count every occurrence.
+
+        Args:
+            cause: short cause, the key of the count.
+            message: what is wrong, for the log.
+            image: an image that could not be decoded (before pairing) rather than a frame the session
+                refused.
+        """
         self.stats["bad_frames"] += 1
+        self.stats["bad_images" if image else "refused_frames"] += 1
         self.stats[f"bad:{cause}"] += 1
         if cause not in self._logged_causes:
             self._logged_causes.add(cause)
@@ -277,7 +286,7 @@ class TrackerNode(Node):
         try:
             img = image_to_numpy(msg)
         except ImageDecodeError as err:
-            self._bad(err.cause, f"camera {cam}: {err}")
+            self._bad(err.cause, f"camera {cam}: {err}", image=True)
             return
         if not self.session.tracker.settings.stereo:
             self._enqueue(_Frame(msg.header, img, None, t_recv))
@@ -376,11 +385,7 @@ class TrackerNode(Node):
     def counters(self) -> dict[str, Any]:
         """The run's counters: frames received / processed / dropped (and why), published, latency."""
         s = self.stats
-        dropped = {
-            "busy": s["dropped_busy"],
-            "unpaired_images": s["unpaired_images"],
-            "bad": s["bad_frames"],
-        }
+        dropped = {"busy": s["dropped_busy"], "refused": s["refused_frames"]}
         with self._lat_lock:
             lat = list(self.latencies_ms)
         policy = self.session.counters["skipped:first_frame"] + self.session.counters["skipped:restart"]
@@ -395,6 +400,8 @@ class TrackerNode(Node):
             "frames_skipped_by_policy": policy,
             "frames_dropped": sum(dropped.values()),
             "dropped": dropped,
+            "images_unpaired": s["unpaired_images"],
+            "images_undecodable": s["bad_images"],
             "restarts": self.session.counters["restarts"],
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p90": _percentile(lat, 90),
@@ -413,8 +420,9 @@ class TrackerNode(Node):
         )
         return (
             f"frames received {c['frames_received']}, processed {c['frames_processed']}, published "
-            f"{c['frames_published']}, dropped {c['frames_dropped']} (tracker busy {d['busy']}, unpaired "
-            f"images {d['unpaired_images']}, bad {d['bad']}){lat}"
+            f"{c['frames_published']}, dropped {c['frames_dropped']} (tracker busy {d['busy']}, refused "
+            f"{d['refused']}); images unpaired {c['images_unpaired']}, undecodable "
+            f"{c['images_undecodable']}{lat}"
         )
 
     def _report_status(self) -> None:
@@ -422,11 +430,15 @@ class TrackerNode(Node):
         c = self.counters()
         window = self._status.take(c)
         level = DiagnosticStatus.OK
-        if window["frames_received"] == 0:
-            message = "no images" if not c["images_received"] else "no images in the last period"
-        elif window["dropped"]:
+        if window["frames_received"] == 0 and not window["unpaired"]:
+            message = f"no images on {', '.join(self._image_topics)}"
+        elif window["dropped"] or window["unpaired"]:
             level = DiagnosticStatus.WARN
             message = f"falling behind: dropped {window['dropped']} of {window['frames_received']} frames"
+            if window["unpaired"]:
+                message = f"{window['unpaired']} images without their stereo partner"
+                if window["dropped"]:
+                    message += f", {window['dropped']} of {window['frames_received']} frames dropped"
         else:
             message = "tracking"
         values = {
@@ -437,6 +449,7 @@ class TrackerNode(Node):
             "frames received (period)": window["frames_received"],
             "frames processed (period)": window["frames_processed"],
             "frames dropped (period)": window["dropped"],
+            "images unpaired (period)": window["unpaired"],
             "features per frame (period)": window["features"],
             "latency p50 ms (period)": window["latency_p50"],
             "latency p90 ms (period)": window["latency_p90"],
@@ -455,8 +468,10 @@ class TrackerNode(Node):
             )
         ]
         self._diag_pub.publish(array_msg)
-        if window["frames_received"] == 0 and window["quiet"]:
-            return  # say "no images" once, then stay quiet until images come
+        if window["frames_received"] == 0:
+            if not window["quiet"]:  # say it once, then stay quiet until images come
+                self.get_logger().info(f"{message} in the last {window['seconds']:.1f} s")
+            return
         line = (
             f"{message}: {window['frames_received']} frames received, {window['frames_processed']} "
             f"processed, {window['dropped']} dropped in the last {window['seconds']:.1f} s"
@@ -505,7 +520,9 @@ class _StatusWindow:
         self._lock = threading.Lock()
         self._latencies: list[float] = []
         self._features: list[int] = []
-        self._last: dict[str, int] = {"frames_received": 0, "frames_processed": 0, "frames_dropped": 0}
+        self._last: dict[str, int] = {
+            "frames_received": 0, "frames_processed": 0, "frames_dropped": 0, "images_unpaired": 0
+        }
         self._t = time.monotonic()
         self._idle = 0
 
@@ -525,6 +542,7 @@ class _StatusWindow:
             "frames_received": counters["frames_received"] - self._last["frames_received"],
             "frames_processed": counters["frames_processed"] - self._last["frames_processed"],
             "dropped": counters["frames_dropped"] - self._last["frames_dropped"],
+            "unpaired": counters["images_unpaired"] - self._last["images_unpaired"],
             "features": float(np.mean(feats)) if feats else 0.0,
             "latency_p50": _percentile(lat, 50),
             "latency_p90": _percentile(lat, 90),

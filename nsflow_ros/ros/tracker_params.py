@@ -32,12 +32,14 @@ class ParamSpec:
         default: the default value; its Python type is the parameter's type.
         description: what it does, its unit and what special values mean.
         live: True = a change at run time takes effect; False = read-only (a set is refused).
+        example: a typical value for error messages (None = the default).
     """
 
     name: str
     default: bool | int | float | str
     description: str
     live: bool
+    example: bool | int | float | str | None = None
 
     @property
     def kind(self) -> str:
@@ -64,7 +66,7 @@ class ParamSpec:
                 raise ParameterError(f"parameter {self.name}: got {value!r}, expected a finite number")
             return value
         got = "no value" if value is None else f"{value!r} ({_KINDS.get(type(value), type(value).__name__)})"
-        example = _yaml_value(self.default)
+        example = _yaml_value(self.default if self.example is None else self.example)
         raise ParameterError(
             f"parameter {self.name}: got {got}, expected {_article(self.kind)} {self.kind} "
             f"(e.g. -p {self.name}:={example})"
@@ -92,18 +94,18 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         "model_path", "",
         "ONNX encoder for method 'nsflow'; '' = the model shipped in the package's models/ folder. A change "
         "restarts the tracks.", True),
-    ParamSpec("max_cnt", -1, f"Most features kept per image (VINS max_cnt, >= 1). {_FROM_CONFIG}", True),
+    ParamSpec("max_cnt", -1, f"Most features kept per image (VINS max_cnt, >= 1). {_FROM_CONFIG}", True, 150),
     ParamSpec(
         "min_dist", -1, f"Minimum distance between features in pixels (VINS min_dist, >= 0). {_FROM_CONFIG}",
-        True),
+        True, 30),
     ParamSpec(
         "F_threshold", -1.0,
         "RANSAC threshold in pixels of the fundamental-matrix check (VINS F_threshold, > 0; an integer "
-        f"is accepted). {_FROM_CONFIG}", True),
+        f"is accepted). {_FROM_CONFIG}", True, 1.0),
     ParamSpec(
         "flow_back", -1,
         f"Track back and drop points that do not return within 0.5 px (VINS flow_back), 0/1. {_FROM_CONFIG}",
-        True),
+        True, 1),
     ParamSpec(
         "show_track", -1, f"Publish the image_track debug image (VINS show_track), 0/1. {_FROM_CONFIG}",
         True),
@@ -111,7 +113,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         "freq", -1,
         "Feature publishing rate in Hz of the 'mono' layout (VINS-Mono freq; 0 = 100 Hz, in effect every "
         "image, as in VINS-Mono); frames in between are tracked but not published. The 'fusion' layout "
-        f"publishes every frame and ignores it. {_FROM_CONFIG}", True),
+        f"publishes every frame and ignores it. {_FROM_CONFIG}", True, 10),
     ParamSpec(
         "equalize", -1,
         "Equalise the image (CLAHE) before tracking (VINS-Mono equalize), 0/1. A change restarts the "
