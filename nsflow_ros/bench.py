@@ -6,7 +6,9 @@ and in the same run OpenCV's ``calcOpticalFlowPyrLK`` (VINS-Fusion's 21x21 windo
 like the solver) plus GFTT, and the classical (intensity) mode through the same solver. The methods take
 turns frame by frame, so a drifting machine load hits them alike. It also times the encoder alone at
 320x240 and 752x480 (the paper's Table II sizes). Medians and 90th percentiles in milliseconds; with
-``--json`` the figures are printed as one JSON object. A solver cost model (:func:`solver_cost_model`)
+``--json`` the figures are printed as one JSON object. First of all it runs the whole VINS-style tracker
+per frame, mono and stereo, every tracking method interleaved with ``klt``, and reports time, ratio to
+``klt`` and track quality (:mod:`nsflow_ros.tracker_bench`). A solver cost model (:func:`solver_cost_model`)
 splits each mode's solver time into passes x a fixed price per pass and point evaluations x a price
 per point, fitted on the same frames: where the time goes, and so what any optimisation can save.
 """
@@ -29,6 +31,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.allocator import keep_large_buffers
+from nsflow_ros.argtypes import non_negative_float, positive_int, program_name
 from nsflow_ros.core import (
     Encoder,
     IntensityEncoder,
@@ -41,6 +44,7 @@ from nsflow_ros.core import (
 )
 from nsflow_ros.core.methods import klt_track
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
 
 __all__ = [
     "main",
@@ -432,12 +436,27 @@ def format_table(res: dict[str, Any]) -> str:
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``nsflow-bench`` / ``ros2 run nsflow_ros bench``."""
-    parser = argparse.ArgumentParser(prog="nsflow-bench", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, default=60, help="frames of the 752x480 sequence (default 60)")
-    parser.add_argument("--points", type=int, default=150, help="GFTT points per frame (default 150)")
+    parser = argparse.ArgumentParser(prog=program_name("nsflow-bench"), description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=positive_int, default=60,
+                        help="frames of the 752x480 sequence of the stage benchmark (default 60)")
+    parser.add_argument("--points", type=positive_int, default=150,
+                        help="GFTT points per frame (default 150)")
     parser.add_argument("--model", default=None, help="ONNX encoder (default: the shipped model)")
-    parser.add_argument("--threads", type=int, default=2, help="onnxruntime / OpenCV threads (default 2)")
+    parser.add_argument("--threads", type=positive_int, default=2,
+                        help="onnxruntime / OpenCV threads (default 2)")
     parser.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    parser.add_argument(
+        "--tracker-seconds", type=non_negative_float, default=10.0,
+        help="seconds of the 20 Hz sample sequence for the whole-tracker benchmark, mono and stereo, every "
+        "method interleaved with klt (default 10 = 200 frames; 0 = skip it)",
+    )
+    parser.add_argument(
+        "--methods", default="nsflow,nsflow_lk,classical,klt",
+        help="comma-separated tracking methods of the whole-tracker benchmark (default "
+        "nsflow,nsflow_lk,classical,klt; klt is always run as the baseline)",
+    )
+    parser.add_argument("--no-stages", action="store_true",
+                        help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
     parser.add_argument(
         "--system-malloc",
         action="store_true",
@@ -454,7 +473,18 @@ def main(args: list[str] | None = None) -> int:
     opts = parser.parse_args(args)
     heap = False if opts.system_malloc else keep_large_buffers()
     try:
-        res = run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json)
+        res: dict[str, Any] = {}
+        if opts.tracker_seconds > 0:
+            methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
+            res["tracker"] = run_tracker_benchmark(
+                opts.tracker_seconds, methods, model=opts.model, threads=opts.threads, progress=not opts.json
+            )
+        if not opts.no_stages:
+            res.update(
+                run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json)
+            )
+        res.setdefault("machine", {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                                   "threads": opts.threads})
         if opts.node_frames > 0:
             from nsflow_ros.ros.bench_node import run_node_benchmark
 
@@ -469,7 +499,11 @@ def main(args: list[str] | None = None) -> int:
     if opts.json:
         print(json.dumps(res, indent=2))
         return 0
-    print(format_table(res))
+    if "tracker" in res:
+        print(format_tracker_table(res["tracker"]))
+        print()
+    if "setup" in res:
+        print(format_table(res))
     for mode, node in res.get("node", {}).items():
         lat = node["latency_ms"]
         rss = ", ".join(f"{v:.1f} MB after {k} frames" for k, v in node["rss_mb"].items()) or "n/a"

@@ -1,0 +1,203 @@
+"""Whole-tracker benchmark: the VINS-style tracker per frame, every method interleaved, with its quality.
+
+Every tracking method of :data:`nsflow_ros.core.methods.METHODS` runs the shipped EuRoC configs (mono and
+stereo, flow-back on, 752x480) over the same frames of the synthetic EuRoC-like sample sequence, taking
+turns frame by frame so that the drifting load of a shared machine hits them alike. Per method and mode
+it reports the tracker's per-frame wall time (median, p90, and the stages), the ratio to ``klt`` (VINS's
+own KLT front-end, measured in the same run) and the quality against the sequence's exact optical flow:
+
+* carried-over share: features of camera 0 kept from one frame to the next, over those it had;
+* stereo matches: right-image features over left-image features;
+* median error (px) of carried-over and of stereo features against ground-truth flow, and the share
+  more than 1 px off (points the ground truth marks occluded or outside the image are left out).
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nsflow_ros.core.methods import METHODS
+from nsflow_ros.core.tracker import FeatureTracker
+from nsflow_ros.errors import NSFlowError
+from nsflow_ros.resources import share_file
+
+__all__ = ["MODES", "format_tracker_table", "run_tracker_benchmark"]
+
+MODES = ("mono", "stereo")
+CONFIGS = {
+    "mono": "config/euroc/euroc_mono_imu_config.yaml",
+    "stereo": "config/euroc/euroc_stereo_imu_config.yaml",
+}
+
+
+def _stats(values: Sequence[float]) -> dict[str, float]:
+    a = np.asarray(values, dtype=np.float64)
+    if a.size == 0:
+        return {"median_ms": float("nan"), "p90_ms": float("nan")}
+    return {"median_ms": float(np.median(a)), "p90_ms": float(np.percentile(a, 90))}
+
+
+class _Run:
+    """One method in one mode: its tracker and what it measured."""
+
+    def __init__(self, tracker: FeatureTracker) -> None:
+        self.tracker = tracker
+        self.total: list[float] = []
+        self.stages: dict[str, list[float]] = {}
+        self.carried: list[float] = []
+        self.matched: list[float] = []
+        self.err: list[np.ndarray] = []
+        self.stereo_err: list[np.ndarray] = []
+        self.had = 0  # camera-0 features of the previous frame
+
+    def step(self, seq: Any, i: int, left: np.ndarray, right: np.ndarray | None) -> None:
+        before = self.had
+        t0 = time.perf_counter()
+        frame = self.tracker.process(seq.time(i), left, right)
+        wall = (time.perf_counter() - t0) * 1e3
+        self.had = len(frame.cameras[0])
+        if i == 0:
+            return  # nothing to track yet
+        self.total.append(wall)
+        for k, v in frame.timings.items():
+            if k != "total":
+                self.stages.setdefault(k, []).append(v)
+        c0 = frame.cameras[0]
+        kept = np.isfinite(c0.previous[:, 0])
+        if before:
+            self.carried.append(int(kept.sum()) / before)
+        if kept.any():
+            flow, visible = seq.flow(i - 1, i, c0.previous[kept])
+            e = np.hypot(*(c0.pixels[kept] - c0.previous[kept] - flow).T)
+            self.err.append(e[visible])
+        if right is not None:
+            c1 = frame.cameras[1]
+            self.matched.append(len(c1) / max(1, len(c0)))
+            if len(c1):
+                idx = np.searchsorted(c0.ids, c1.ids)
+                flow, visible = seq.flow(i, i, c0.pixels[idx], 0, 1)
+                self.stereo_err.append(np.hypot(*(c1.pixels - c0.pixels[idx] - flow).T)[visible])
+
+    def figures(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"total": _stats(self.total)}
+        out["stages"] = {k: _stats(v)["median_ms"] for k, v in self.stages.items()}
+        err = np.concatenate(self.err) if self.err else np.zeros(0)
+        out["carried_share"] = float(np.mean(self.carried)) if self.carried else float("nan")
+        out["error_median_px"] = float(np.median(err)) if err.size else float("nan")
+        out["error_over_1px_share"] = float(np.mean(err > 1.0)) if err.size else float("nan")
+        if self.matched:
+            serr = np.concatenate(self.stereo_err) if self.stereo_err else np.zeros(0)
+            out["stereo_matched_share"] = float(np.mean(self.matched))
+            out["stereo_error_median_px"] = float(np.median(serr)) if serr.size else float("nan")
+            out["stereo_error_over_1px_share"] = float(np.mean(serr > 1.0)) if serr.size else float("nan")
+        return out
+
+
+def run_tracker_benchmark(
+    duration: float = 10.0,
+    methods: Sequence[str] = ("nsflow", "nsflow_lk", "classical", "klt"),
+    modes: Sequence[str] = MODES,
+    *,
+    model: str | None = None,
+    threads: int | None = None,
+    seed: int = 0,
+    cache_dir: str | Path | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Time the whole tracker per frame for each method and mode, interleaved, with its quality.
+
+    Args:
+        duration: seconds of the 20 Hz sample sequence (10 s = 200 frames).
+        methods: registry names; ``klt`` is always added (the ratios' baseline).
+        modes: "mono" and / or "stereo" (the shipped EuRoC mono / stereo configs).
+        model: ONNX encoder of the learned methods; None = the shipped one.
+        threads: encoder threads; None = all usable cores.
+        seed: the sample sequence's seed.
+        cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
+            folder removed afterwards.
+        progress: a tqdm bar on stderr.
+
+    Returns:
+        ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}}}``.
+
+    Raises:
+        NSFlowError: an unknown method or mode, or a model / config that cannot be loaded.
+    """
+    from nsflow_ros.data.sample import make_sample_sequence
+    from nsflow_ros.vins.config import load_vins_config
+
+    names = list(dict.fromkeys([*methods, "klt"]))
+    unknown = [m for m in names if m not in METHODS]
+    bad_modes = [m for m in modes if m not in MODES]
+    if unknown or bad_modes:
+        raise NSFlowError(f"unknown method(s) {unknown} or mode(s) {bad_modes}; "
+                          f"methods: {list(METHODS)}, modes: {list(MODES)}")
+    if not duration > 0:
+        raise NSFlowError(f"duration must be > 0 s, got {duration}")
+    tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
+    try:
+        root = Path(tmp.name if tmp else cache_dir) / f"sample-seed{seed}-{duration:g}s"
+        seq = make_sample_sequence(root, seed=seed, duration=duration, stereo=True, formats=("asl",),
+                                   progress=progress)
+        runs: dict[str, dict[str, _Run]] = {}
+        for mode in modes:
+            cfg = load_vins_config(share_file(CONFIGS[mode]))
+            over: dict[str, Any] = {"stereo": mode == "stereo", "num_threads": threads}
+            if model is not None:
+                over["model_path"] = model
+            runs[mode] = {m: _Run(FeatureTracker.from_vins_config(cfg, {**over, "method": m})) for m in names}
+        frames = range(len(seq))
+        if progress:
+            from tqdm import tqdm
+
+            frames = tqdm(frames, desc="tracker benchmark", unit="frame", leave=False)
+        stereo = "stereo" in modes
+        for i in frames:
+            left = seq.image(i, 0)
+            right = seq.image(i, 1) if stereo else None
+            # Frame by frame, every method and mode in turn.
+            for mode, by_method in runs.items():
+                for run in by_method.values():
+                    run.step(seq, i, left, right if mode == "stereo" else None)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    out: dict[str, Any] = {"setup": {"frames": len(seq), "size": [752, 480], "duration_s": duration,
+                                     "methods": names, "modes": list(modes), "interleaved": True,
+                                     "configs": {m: CONFIGS[m] for m in modes}}}
+    out["ratios"] = {}
+    for mode, by_method in runs.items():
+        out[mode] = {m: run.figures() for m, run in by_method.items()}
+        base = out[mode]["klt"]["total"]["median_ms"]
+        out["ratios"][mode] = {m: out[mode][m]["total"]["median_ms"] / base for m in names if m != "klt"}
+    return out
+
+
+def format_tracker_table(res: dict[str, Any]) -> str:
+    """The whole-tracker figures as a text table, one row per mode and method."""
+    s = res["setup"]
+    lines = [
+        f"whole tracker (VINS-style, shipped EuRoC configs, flow-back on), {s['frames']} frames "
+        f"{s['size'][0]}x{s['size'][1]} of the sample sequence, methods interleaved",
+        "",
+        f"{'mode':7s}{'method':11s}{'median ms':>10s}{'p90 ms':>8s}{'x klt':>7s}{'carried':>9s}"
+        f"{'err px':>8s}{'>1px':>7s}{'stereo':>8s}{'s.err px':>9s}{'s.>1px':>7s}  stages (median ms)",
+    ]
+    for mode in s["modes"]:
+        for m, f in res[mode].items():
+            ratio = res["ratios"][mode].get(m, 1.0)
+            st = " ".join(f"{k} {v:.1f}" for k, v in f["stages"].items())
+            stereo = (f"{f['stereo_matched_share']:8.3f}{f['stereo_error_median_px']:9.3f}"
+                      f"{f['stereo_error_over_1px_share']:7.1%}" if "stereo_matched_share" in f else " " * 24)
+            lines.append(
+                f"{mode:7s}{m:11s}{f['total']['median_ms']:10.2f}{f['total']['p90_ms']:8.2f}{ratio:6.2f}x"
+                f"{f['carried_share']:9.3f}{f['error_median_px']:8.3f}{f['error_over_1px_share']:7.1%}"
+                f"{stereo}  {st}"
+            )
+    return "\n".join(lines)

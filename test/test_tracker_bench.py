@@ -1,0 +1,59 @@
+"""The whole-tracker benchmark: every method interleaved with klt, timed and scored against true flow."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from nsflow_ros.bench import main
+from nsflow_ros.errors import NSFlowError
+from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("bench")
+    return run_tracker_benchmark(0.3, ["classical", "nsflow_lk"], cache_dir=cache, threads=1)
+
+
+def test_every_method_and_mode_is_timed_beside_klt(result):
+    assert result["setup"]["frames"] == 6
+    assert result["setup"]["methods"] == ["classical", "nsflow_lk", "klt"]  # klt added as the baseline
+    for mode in ("mono", "stereo"):
+        for method in ("classical", "nsflow_lk", "klt"):
+            fig = result[mode][method]
+            assert 0 < fig["total"]["median_ms"] <= fig["total"]["p90_ms"]
+            assert fig["stages"]["encode"] >= 0 and fig["stages"]["track"] > 0
+            # the sample's motion is small and textured: real trackers keep most points, accurately
+            assert 0.5 < fig["carried_share"] <= 1.0
+            assert fig["error_median_px"] < 0.5
+        assert set(result["ratios"][mode]) == {"classical", "nsflow_lk"}
+    assert "stereo_matched_share" not in result["mono"]["klt"]
+    assert 0.5 < result["stereo"]["klt"]["stereo_matched_share"] <= 1.0
+    assert result["stereo"]["classical"]["stereo_error_median_px"] < 0.5
+    # the stereo tracker does more work per frame than the mono one
+    assert result["stereo"]["klt"]["stages"]["stereo"] > 0
+
+
+def test_table_has_a_row_per_mode_and_method(result):
+    table = format_tracker_table(result)
+    rows = [line for line in table.splitlines() if line.startswith(("mono", "stereo"))]
+    assert len(rows) == 6
+    assert "x klt" in table
+
+
+def test_bad_method_or_duration_is_an_error(tmp_path):
+    with pytest.raises(NSFlowError, match="unknown method"):
+        run_tracker_benchmark(0.1, ["sift"], cache_dir=tmp_path)
+    with pytest.raises(NSFlowError, match="duration"):
+        run_tracker_benchmark(0.0, ["klt"], cache_dir=tmp_path)
+
+
+def test_cli_runs_only_the_tracker_part_as_json(capsys):
+    args = ["--tracker-seconds", "0.2", "--no-stages", "--threads", "1"]
+    assert main([*args, "--methods", "klt", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out["tracker"]["mono"]) == {"klt"} and "setup" not in out
+    assert main([*args, "--methods", "nope"]) == 1
+    assert "unknown method" in capsys.readouterr().err
