@@ -180,8 +180,14 @@ def main(args: list[str] | None = None) -> int:
 def _publish(ropts: ReplayOptions, *, clock: bool, progress: bool) -> int:
     import rclpy
 
-    rclpy.init()
+    from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
+    from nsflow_ros.ros.transport import use_large_image_transport
+
+    use_large_image_transport()
+    init_without_signal_handlers()
     node = rclpy.create_node("nsflow_replay")
+    # SIGINT / SIGTERM stop the replay between messages; the context stays valid for the last log line
+    stop = StopSignals(raise_now=True).install()
     try:
         n = publish_stream(
             node,
@@ -192,12 +198,13 @@ def _publish(ropts: ReplayOptions, *, clock: bool, progress: bool) -> int:
             total_s=ropts.duration,
         )
         node.get_logger().info(f"replayed {n} messages from {ropts.path}")
-    except KeyboardInterrupt:
-        pass
+    except (KeyboardInterrupt, StopRequested):
+        node.get_logger().info("replay stopped")
     finally:
         node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+        stop.restore()
     return 0
 
 

@@ -50,18 +50,26 @@ class StopSignals:
         if self.raise_now or not first:
             raise StopRequested(signal.Signals(signum).name)
 
-    def __enter__(self) -> StopSignals:
+    def install(self) -> StopSignals:
+        """Install the handlers (only the main thread can; elsewhere this does nothing)."""
         if threading.current_thread() is threading.main_thread():
             for sig in STOP_SIGNALS:
                 self._previous[sig] = signal.signal(sig, self._handle)
         return self
 
-    def __exit__(
-        self, kind: type[BaseException] | None, err: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def restore(self) -> None:
+        """Put the previous handlers back."""
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
+
+    def __enter__(self) -> StopSignals:
+        return self.install()
+
+    def __exit__(
+        self, kind: type[BaseException] | None, err: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.restore()
 
 
 def init_without_signal_handlers(args: list[str] | None = None, context: Any = None) -> None:
