@@ -11,7 +11,7 @@ import math
 import os
 import sys
 
-__all__ = ["non_negative_float", "positive_float", "positive_int", "program_name"]
+__all__ = ["non_negative_float", "non_negative_int", "positive_float", "positive_int", "program_name"]
 
 
 def _number(text: str) -> float:
@@ -36,6 +36,21 @@ def positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """An integer >= 0.
+
+    Raises:
+        argparse.ArgumentTypeError: naming the text given.
+    """
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
     return value
 
 

@@ -6,6 +6,7 @@ every builder takes the typestore to build for, :func:`ros2_store` (Jazzy) or :f
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import cache
 from typing import Any
 
@@ -22,6 +23,7 @@ __all__ = [
     "ENCODINGS",
     "IMAGE",
     "IMU",
+    "POINT_CLOUD",
     "POINT_STAMPED",
     "decode_compressed",
     "decode_image",
@@ -30,6 +32,7 @@ __all__ = [
     "imu_message",
     "is_ros1",
     "message_to_record",
+    "point_cloud_message",
     "point_message",
     "record_to_cdr",
     "record_to_message",
@@ -43,6 +46,7 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMU = "sensor_msgs/msg/Imu"
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
+POINT_CLOUD = "sensor_msgs/msg/PointCloud"
 
 # encoding -> (dtype, channels)
 ENCODINGS: dict[str, tuple[np.dtype, int]] = {
@@ -155,6 +159,41 @@ def point_message(store: Any, stamp_ns: int, frame_id: str, xyz: Any, *, seq: in
     p = np.asarray(xyz, dtype=np.float64).reshape(3)
     point = store.types["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2]))
     return store.types[POINT_STAMPED](header=_header(store, stamp_ns, frame_id, seq), point=point)
+
+
+def point_cloud_message(store: Any, stamp_ns: int, frame_id: str, points: np.ndarray, channels: np.ndarray,
+                        names: Sequence[str], *, seq: int = 0) -> Any:
+    """A sensor_msgs/PointCloud (the VINS feature message) from arrays.
+
+    Args:
+        store: typestore to build for.
+        stamp_ns: header stamp in nanoseconds.
+        frame_id: header frame id.
+        points: (x, y, z) per point.
+        channels: one row of values per channel.
+        names: the channel names, one per row of ``channels``.
+        seq: ROS 1 header sequence number (ignored for ROS 2).
+
+    Raises:
+        DataError: when the shapes do not agree.
+
+    Shape:
+        points: (N, 3). channels: (C, N).
+    """
+    pts = np.asarray(points, dtype=np.float32)
+    chans = np.asarray(channels, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3 or chans.ndim != 2 or chans.shape[1] != pts.shape[0] \
+            or chans.shape[0] != len(names):
+        raise DataError(f"point cloud: points {pts.shape}, channels {chans.shape} and {len(names)} channel "
+                        "names do not agree (expected (N, 3), (C, N) and C names)")
+    t = store.types
+    point = t["geometry_msgs/msg/Point32"]
+    channel = t["sensor_msgs/msg/ChannelFloat32"]
+    return t[POINT_CLOUD](
+        header=_header(store, stamp_ns, frame_id, seq),
+        points=[point(x=x, y=y, z=z) for x, y, z in pts.tolist()],
+        channels=[channel(name=str(n), values=chans[k].copy()) for k, n in enumerate(names)],
+    )
 
 
 def serialize(store: Any, msg: Any, msgtype: str) -> bytes:

@@ -54,8 +54,8 @@ from nsflow_ros.data.writers import (
     ASL_GROUNDTRUTH_HEADER,
     AslWriter,
     BagWriter,
-    _temp_sibling,
     groundtruth_row,
+    temp_sibling,
 )
 
 __all__ = [
@@ -315,7 +315,7 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
     if root.exists() and not empty_dir and not _is_sample(root) and not overwrite:
         raise DataError(f"{root} exists and is not a sample sequence; choose another folder or overwrite it")
 
-    tmp = _temp_sibling(root)
+    tmp = temp_sibling(root)
     try:
         tmp.mkdir(parents=True)
     except OSError as err:  # name the folder asked for, not the temporary sibling

@@ -63,8 +63,9 @@ IMU_TOPICS = ("/imu0", "/imu0/data")
 SourceKind = Literal["ros1", "ros2", "asl"]
 _DECODABLE = (IMAGE, COMPRESSED_IMAGE, IMU)
 # What rosbags (and the storage libraries under it) raise on damaged data.
+# A file of random bytes named .bag fails in rosbags' header check with a UnicodeDecodeError.
 _BAG_ERRORS = (AnyReaderError, ReaderError1, ReaderError2, SerdeError, struct.error, sqlite3.Error, OSError,
-               EOFError)
+               EOFError, UnicodeDecodeError)
 
 
 def _asl_root(path: Path) -> Path | None:

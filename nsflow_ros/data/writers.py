@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TextIO
@@ -26,9 +26,11 @@ from nsflow_ros.data.camera import PinholeRadtan
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.messages import (
     IMU,
+    POINT_CLOUD,
     POINT_STAMPED,
     image_message,
     imu_message,
+    point_cloud_message,
     point_message,
     record_to_message,
     ros1_store,
@@ -45,6 +47,7 @@ __all__ = [
     "AslWriter",
     "BagWriter",
     "groundtruth_row",
+    "temp_sibling",
     "write_ros2_bag",
 ]
 
@@ -295,13 +298,25 @@ class BagWriter:
         msg = point_message(self.store, stamp_ns, frame_id, xyz, seq=self._next_seq(topic))
         self.write_message(topic, POINT_STAMPED, stamp_ns, msg)
 
+    def write_point_cloud(self, topic: str, stamp_ns: int, points: np.ndarray, channels: np.ndarray,
+                          names: Sequence[str], frame_id: str = "world") -> None:
+        """Write a sensor_msgs/PointCloud (e.g. VINS features) stamped ``stamp_ns``.
+
+        Shape:
+            points: (N, 3). channels: (C, N).
+        """
+        msg = point_cloud_message(self.store, stamp_ns, frame_id, points, channels, names,
+                                  seq=self._next_seq(topic))
+        self.write_message(topic, POINT_CLOUD, stamp_ns, msg)
+
     def write_record(self, record: Record) -> None:
         """Write an :class:`ImageRecord` or :class:`ImuRecord` at its own stamp."""
         msgtype, msg = record_to_message(self.store, record, seq=self._next_seq(record.topic))
         self.write_message(record.topic, msgtype, record.stamp_ns, msg)
 
 
-def _temp_sibling(path: Path) -> Path:
+def temp_sibling(path: Path) -> Path:
+    """A hidden, unique name beside ``path`` to build it under before renaming it into place."""
     return path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
 
 
@@ -328,7 +343,7 @@ def write_ros2_bag(path: str | Path, records: Iterable[Record], *, storage: str 
         raise DataError(f"bag {path} exists already; not overwriting")
     # Build inside a hidden sibling folder under the final name (the storage file is named after the
     # bag folder), then move it into place in one rename.
-    tmp = _temp_sibling(path)
+    tmp = temp_sibling(path)
     tmp.mkdir(parents=True)
     try:
         with BagWriter(tmp / path.name, storage=storage) as bag:

@@ -1,11 +1,15 @@
-"""``ros2 run nsflow_ros replay``: play a bag or ASL folder over ROS 2 topics, optionally perturbed.
+"""``nsflow-replay``: play a bag or ASL folder over ROS 2 topics, optionally perturbed.
 
-Reads ROS 1 bags, ROS 2 bags (sqlite3, mcap) and EuRoC / UMA-VI ASL folders through rosbags (no ROS
-installation needed to read), streams them (never loads a whole bag), and publishes the images and IMU
-as serialised messages with ``/clock``, paced on wall time by ``--rate``. Images go out with sensor-data
-QoS, everything else reliable. ``--perturb`` applies the paper's illumination perturbation on the fly;
-``--write-bag`` writes the (perturbed) stream to a new ROS 2 bag instead of publishing; ``--offline``
-runs the tracker core straight over the data without middleware (see :mod:`nsflow_ros.offline`).
+``ros2 run nsflow_ros replay`` from a colcon workspace. Reads ROS 1 bags, ROS 2 bags (sqlite3, mcap)
+and EuRoC / UMA-VI ASL folders through rosbags (no ROS installation needed to read), streams them (never
+loads a whole bag), and publishes the images and IMU as serialised messages with ``/clock``, paced on
+wall time by ``--rate``. Images go out with sensor-data QoS, everything else reliable. Before the first
+message it waits (bounded by ``--wait-timeout``) until ``--wait-subscribers`` subscribers listen to a
+camera topic, so a tracker started just before or after the replay still gets the first frame.
+``--perturb`` applies the paper's illumination perturbation on the fly; ``--write-bag`` writes the
+(perturbed) stream to a new ROS 2 bag instead of publishing; ``--offline`` runs the tracker core straight
+over the data without middleware (see :mod:`nsflow_ros.offline`); ``--features-bag`` tracks every frame
+offline and writes a VINS feature bag (see :mod:`nsflow_ros.feature_bag`).
 """
 
 from __future__ import annotations
@@ -14,15 +18,26 @@ import argparse
 import importlib
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from itertools import chain
 from pathlib import Path
 from typing import Any
 
+from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_float, program_name
 from nsflow_ros.data.records import RawMessage
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.replay import ReplayOptions, parse_remaps, replay_stream
 
-__all__ = ["main", "message_class", "publish_stream"]
+__all__ = ["DESCRIPTION", "main", "message_class", "publish_stream", "wait_for_subscribers"]
+
+DESCRIPTION = (
+    "Play a ROS 1 bag, ROS 2 bag or EuRoC / UMA-VI ASL folder over ROS 2 topics (images with sensor-data "
+    "QoS, IMU and the rest reliable, /clock), optionally with the paper's illumination perturbation. "
+    "Or, without ROS: write the stream to a new ROS 2 bag (--write-bag), track it offline (--offline), or "
+    "track every frame offline and write a VINS-Fusion feature bag with the IMU (--features-bag) for "
+    "'rosbag play' into the estimator. ROS arguments after --ros-args (e.g. -r /cam0/image_raw:=/left) "
+    "apply to the published topics."
+)
 
 
 def message_class(msgtype: str) -> Any:
@@ -34,6 +49,27 @@ def message_class(msgtype: str) -> Any:
         raise NSFlowError(f"message type {msgtype} is not available in this ROS installation") from err
 
 
+def wait_for_subscribers(publishers: Iterable[Any], count: int, timeout: float) -> bool:
+    """Wait until one of ``publishers`` has matched ``count`` subscriptions, or ``timeout`` seconds passed.
+
+    Args:
+        publishers: rclpy publishers (e.g. those of the camera topics).
+        count: subscriptions to wait for; 0 returns at once.
+        timeout: seconds to wait at most.
+
+    Returns:
+        whether the subscribers matched in time.
+    """
+    pubs = list(publishers)
+    deadline = time.monotonic() + timeout
+    while True:
+        if count <= 0 or any(p.get_subscription_count() >= count for p in pubs):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+
+
 def publish_stream(
     node: Any,
     stream: Iterable[RawMessage],
@@ -43,6 +79,8 @@ def publish_stream(
     progress: bool = True,
     total_s: float | None = None,
     publishers: dict[str, Any] | None = None,
+    wait_subscribers: int = 0,
+    wait_timeout: float = 10.0,
 ) -> int:
     """Publish a message stream from ``node``, paced by the messages' stamps.
 
@@ -54,6 +92,9 @@ def publish_stream(
         progress: show a progress bar (seconds of data replayed).
         total_s: length of the stream in seconds, for the progress bar.
         publishers: topic -> publisher, reused and filled across calls (None: new ones per call).
+        wait_subscribers: before the first message, create the publishers of the topics in the first
+            second of data and wait until a camera topic has this many subscribers (0 = no wait).
+        wait_timeout: seconds to wait for them at most; then publishing starts anyway, with a warning.
 
     Returns:
         number of messages published.
@@ -65,15 +106,37 @@ def publish_stream(
     pubs: dict[str, Any] = {} if publishers is None else publishers
     clock_pub = node.create_publisher(Clock, "/clock", 10) if clock else None
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    bar = tqdm(total=total_s, unit="s", disable=not progress, desc="replay", bar_format=None)
+
+    def publisher(msg: RawMessage) -> Any:
+        if msg.topic not in pubs:
+            qos = qos_profile_sensor_data if msg.msgtype.endswith("Image") else reliable
+            pubs[msg.topic] = node.create_publisher(message_class(msg.msgtype), msg.topic, qos)
+        return pubs[msg.topic]
+
+    messages = iter(stream)
+    if wait_subscribers > 0:
+        head = _head(messages, 1.0)
+        for msg in head:
+            publisher(msg)
+        cameras = [pubs[m.topic] for m in head if m.msgtype.endswith("Image")]
+        if not wait_for_subscribers(cameras or pubs.values(), wait_subscribers, wait_timeout):
+            node.get_logger().warning(
+                f"no {wait_subscribers} subscriber(s) on a camera topic after {wait_timeout:g} s; "
+                "publishing anyway"
+            )
+        messages = chain(head, messages)
+    # the bar counts tenths of seconds as integers: no 2.5700000000000003 s
+    fmt = "{desc}: {percentage:3.0f}%|{bar}| {postfix} [{elapsed}<{remaining}]"
+    if not total_s:
+        fmt = "{desc}: {postfix} [{elapsed}]"
+    bar = tqdm(total=None if total_s is None else round(total_s * 10), disable=not progress, desc="replay",
+               bar_format=fmt)
     t0_data = t0_wall = None
-    last = 0.0
+    shown = 0
     count = 0
     try:
-        for msg in stream:
-            if msg.topic not in pubs:
-                qos = qos_profile_sensor_data if msg.msgtype.endswith("Image") else reliable
-                pubs[msg.topic] = node.create_publisher(message_class(msg.msgtype), msg.topic, qos)
+        for msg in messages:
+            pub = publisher(msg)
             if t0_data is None:
                 t0_data, t0_wall = msg.stamp_ns, time.monotonic()
             elapsed = (msg.stamp_ns - t0_data) * 1e-9
@@ -85,24 +148,49 @@ def publish_stream(
                 stamp = Clock()
                 stamp.clock.sec, stamp.clock.nanosec = divmod(msg.stamp_ns, 1_000_000_000)
                 clock_pub.publish(stamp)
-            pubs[msg.topic].publish(msg.cdr)
+            pub.publish(msg.cdr)
             count += 1
-            if elapsed - last >= 0.1:
-                bar.update(elapsed - last)
-                last = elapsed
+            tenths = int(elapsed * 10)
+            if tenths > shown:
+                bar.set_postfix_str(_progress_text(tenths, total_s), refresh=False)
+                bar.update(tenths - shown)
+                shown = tenths
     finally:
         bar.close()
     return count
 
 
+def _progress_text(tenths: int, total_s: float | None) -> str:
+    done = f"{tenths / 10:.1f}"
+    return f"{done} s" if total_s is None else f"{done}/{total_s:.1f} s"
+
+
+def _head(messages: Iterator[RawMessage], seconds: float) -> list[RawMessage]:
+    """The first ``seconds`` of data (at least one message), taken from ``messages``."""
+    head: list[RawMessage] = []
+    for msg in messages:
+        head.append(msg)
+        if msg.stamp_ns - head[0].stamp_ns >= seconds * 1e9:
+            break
+    return head
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="nsflow-replay", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog=program_name("nsflow-replay"), description=DESCRIPTION)
     p.add_argument("path", type=Path, help="ROS 1 .bag, ROS 2 bag folder/.mcap/.db3, or ASL folder")
-    p.add_argument("--topics", nargs="+", default=None, help="topics to replay (default: cameras and IMU)")
-    p.add_argument("--start", type=float, default=0.0, help="seconds to skip (default 0)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to replay (default: all)")
     p.add_argument(
-        "--rate", type=float, default=1.0, help="speed factor, 0 = as fast as possible (default 1)"
+        "--topics",
+        nargs="+",
+        default=None,
+        metavar="TOPIC",
+        help="topics to replay; each must exist in the source (default: the EuRoC / UMA-VI camera and IMU "
+        "topics present). With --offline / --features-bag they must include the config's camera topics",
+    )
+    p.add_argument("--start", type=non_negative_float, default=0.0, help="seconds to skip (default 0)")
+    p.add_argument("--duration", type=positive_float, default=None, help="seconds to replay (default: all)")
+    p.add_argument(
+        "--rate", type=non_negative_float, default=1.0,
+        help="speed factor, 0 = as fast as possible (default 1)",
     )
     p.add_argument(
         "--perturb",
@@ -111,38 +199,126 @@ def _parser() -> argparse.ArgumentParser:
         help="illumination perturbation level (default none)",
     )
     p.add_argument("--seed", type=int, default=0, help="perturbation seed (default 0)")
-    p.add_argument("--remap", nargs="+", default=[], metavar="FROM:=TO", help="topic remaps")
+    p.add_argument(
+        "--remap",
+        action="append",
+        nargs="+",
+        default=[],
+        metavar="FROM:=TO",
+        help="rename a topic, e.g. --remap /cam0/image_raw:=/left; repeat for more",
+    )
+    p.add_argument(
+        "--wait-subscribers",
+        type=non_negative_int,
+        default=1,
+        metavar="N",
+        help="before publishing, wait until N subscribers listen to a camera topic (default 1; 0 = no wait)",
+    )
+    p.add_argument(
+        "--wait-timeout",
+        type=non_negative_float,
+        default=10.0,
+        metavar="S",
+        help="seconds to wait for them at most, then publish anyway (default 10)",
+    )
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument(
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument(
         "--write-bag",
         type=Path,
         default=None,
+        metavar="OUT",
         help="write the (perturbed) stream to this new ROS 2 bag instead of publishing",
     )
-    p.add_argument(
+    mode.add_argument(
         "--offline",
         type=Path,
         default=None,
         metavar="OUT_DIR",
-        help="run the tracker core over the data without ROS and write features + contact sheet",
+        help="track camera 0 without ROS and write features.csv, tracks.png and summary.json here",
+    )
+    mode.add_argument(
+        "--features-bag",
+        type=Path,
+        default=None,
+        metavar="OUT",
+        help="track every frame without ROS and write /feature_tracker/feature (VINS-Fusion layout) plus the "
+        "IMU to this new bag: OUT.bag = ROS 1, any other name = ROS 2 (mcap folder)",
     )
     p.add_argument(
-        "--config", type=Path, default=None, help="VINS config for --offline (default: EuRoC mono)"
+        "--features-bag-format",
+        choices=("ros1", "ros2"),
+        default=None,
+        help="format of --features-bag (default: ros1 for a .bag name, else ros2)",
     )
     p.add_argument(
-        "--method", choices=("nsflow", "classical", "klt"), default="nsflow", help="tracker for --offline"
+        "--config",
+        type=Path,
+        default=None,
+        help="VINS config for --offline / --features-bag: cameras, topics, max_cnt, min_dist, ...; "
+        "num_of_cam: 2 tracks stereo (default: the shipped EuRoC mono config)",
+    )
+    p.add_argument(
+        "--method",
+        choices=("nsflow", "classical", "klt"),
+        default="nsflow",
+        help="tracker for --offline / --features-bag (default nsflow)",
     )
     return p
 
 
-def main(args: list[str] | None = None) -> int:
-    """Entry point of ``nsflow-replay`` / ``ros2 run nsflow_ros replay``."""
-    argv = sys.argv[1:] if args is None else args
-    if "--ros-args" in argv:
-        argv = argv[: argv.index("--ros-args")]
-    opts = _parser().parse_args(argv)
+def _remaps(groups: list[list[str]]) -> list[str]:
+    """Flatten ``--remap`` values; several after one ``--remap`` still work, with a note."""
+    if any(len(g) > 1 for g in groups):
+        print(
+            f"{program_name('nsflow-replay')}: note: several remaps after one --remap are deprecated; "
+            "repeat --remap FROM:=TO for each",
+            file=sys.stderr,
+        )
+    return [item for g in groups for item in g]
+
+
+def _check_tracked_topics(opts: argparse.Namespace) -> None:
+    """--topics with --offline / --features-bag: they must hold the config's camera topics."""
+    if opts.topics is None:
+        return
+    from nsflow_ros.resources import share_file
+    from nsflow_ros.vins.config import load_vins_config
+
+    cfg = load_vins_config(opts.config or share_file("config/euroc/euroc_mono_imu_config.yaml"))
+    cams = list(cfg.image_topics) if opts.features_bag is not None else [cfg.image0_topic]
+    missing = [t for t in cams if t not in opts.topics]
+    if missing:
+        raise NSFlowError(
+            f"--topics {' '.join(opts.topics)} leaves out the camera topic(s) {', '.join(missing)} that "
+            f"the config {cfg.path} tracks"
+        )
+
+
+def _make_dir(path: Path) -> None:
     try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise NSFlowError(f"cannot create output folder {path}: {err.strerror}") from None
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``nsflow-replay`` / ``ros2 run nsflow_ros replay``.
+
+    Returns:
+        0 on success, 1 on a known error (one line on stderr), 2 on bad arguments (argparse).
+    """
+    argv = list(sys.argv[1:] if args is None else args)
+    ros_args: list[str] = []
+    if "--ros-args" in argv:
+        argv, ros_args = argv[: argv.index("--ros-args")], argv[argv.index("--ros-args") :]
+    opts = _parser().parse_args(argv)
+    prog = program_name("nsflow-replay")
+    try:
+        from nsflow_ros.data.sources import detect_kind
+
+        detect_kind(opts.path)  # a missing or foreign input fails here, before any output exists
         ropts = ReplayOptions(
             opts.path,
             opts.topics,
@@ -151,14 +327,30 @@ def main(args: list[str] | None = None) -> int:
             opts.rate,
             opts.perturb,
             opts.seed,
-            parse_remaps(opts.remap),
+            parse_remaps(_remaps(opts.remap)),
         )
-        if opts.offline is not None:
+        if opts.offline is not None or opts.features_bag is not None:
             from nsflow_ros.allocator import keep_large_buffers
+
+            _check_tracked_topics(opts)
+            keep_large_buffers()  # the tracker runs in this process
+        if opts.features_bag is not None:
+            from nsflow_ros.feature_bag import write_feature_bag
+
+            bag = write_feature_bag(
+                ropts,
+                opts.features_bag,
+                config=opts.config,
+                method=opts.method,
+                fmt=opts.features_bag_format,
+                progress=not opts.no_progress,
+            )
+            print(bag.text())
+            return 0
+        if opts.offline is not None:
             from nsflow_ros.offline import run_offline
 
-            keep_large_buffers()  # the tracker runs in this process
-
+            _make_dir(opts.offline)
             summary = run_offline(
                 ropts, opts.offline, config=opts.config, method=opts.method, progress=not opts.no_progress
             )
@@ -171,20 +363,39 @@ def main(args: list[str] | None = None) -> int:
             n = write_ros2_bag(opts.write_bag, replay_records(ropts))
             print(f"wrote {n} messages to {opts.write_bag}")
             return 0
-        return _publish(ropts, clock=not opts.no_clock, progress=not opts.no_progress)
+        return _publish(
+            ropts,
+            clock=not opts.no_clock,
+            progress=not opts.no_progress,
+            wait_subscribers=opts.wait_subscribers,
+            wait_timeout=opts.wait_timeout,
+            ros_args=ros_args,
+        )
     except NSFlowError as err:
-        print(f"nsflow-replay: {err}", file=sys.stderr)
+        print(f"{prog}: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # an output that cannot be written (disk full, permissions)
+        print(f"{prog}: cannot write {err.filename}: {err.strerror}", file=sys.stderr)
         return 1
 
 
-def _publish(ropts: ReplayOptions, *, clock: bool, progress: bool) -> int:
+def _publish(
+    ropts: ReplayOptions,
+    *,
+    clock: bool,
+    progress: bool,
+    wait_subscribers: int = 0,
+    wait_timeout: float = 10.0,
+    ros_args: list[str] | None = None,
+) -> int:
     import rclpy
 
     from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
     from nsflow_ros.ros.transport import use_large_image_transport
 
     use_large_image_transport()
-    init_without_signal_handlers()
+    # --ros-args remaps apply to the publishers
+    init_without_signal_handlers(args=["nsflow-replay", *(ros_args or [])])
     node = rclpy.create_node("nsflow_replay")
     # SIGINT / SIGTERM stop the replay between messages; the context stays valid for the last log line
     stop = StopSignals(raise_now=True).install()
@@ -196,6 +407,8 @@ def _publish(ropts: ReplayOptions, *, clock: bool, progress: bool) -> int:
             clock=clock,
             progress=progress,
             total_s=ropts.duration,
+            wait_subscribers=wait_subscribers,
+            wait_timeout=wait_timeout,
         )
         node.get_logger().info(f"replayed {n} messages from {ropts.path}")
     except (KeyboardInterrupt, StopRequested):
