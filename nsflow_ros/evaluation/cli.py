@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from nsflow_ros.allocator import keep_large_buffers
+from nsflow_ros.argtypes import program_name
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
@@ -33,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The command's argument parser."""
     listing = "; ".join(f"{a.key}: {a.title}" for a in ANALYSES)
     parser = argparse.ArgumentParser(
-        prog="nsflow-evaluate",
+        prog=program_name("nsflow-evaluate"),
         description="Run the NSFlow evaluation suite (NSFlow, the LM solver on intensity, OpenCV KLT) and "
         "write report.md, results.json and the figures.",
         epilog=f"analyses: {listing}",

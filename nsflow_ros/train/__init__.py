@@ -24,7 +24,7 @@ try:
 except ImportError as err:  # pragma: no cover - depends on the environment
     raise TrainError(
         "nsflow_ros.train needs PyTorch, which is not installed: pip install 'nsflow_ros[train]' "
-        "(or pip install torch)"
+        "(from a git clone: pip install -e '.[train]')"
     ) from err
 
 from nsflow_ros.train.evaluate import compare, heldout_pairs

@@ -21,30 +21,49 @@ __all__ = ["build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="nsflow-train", description=__doc__.split("\n")[0])
+    from nsflow_ros.argtypes import program_name
+
+    p = argparse.ArgumentParser(
+        prog=program_name("nsflow-train"),
+        description="Train the NSFlow encoder from scratch through the differentiable LM Lucas-Kanade layer, "
+        "export it to ONNX and compare it with classical LK on held-out photos. Writes a checkpoint, a log, "
+        "the loss curve, a validation figure per epoch, the ONNX model and eval.md under --out.",
+    )
     p.add_argument("--minutes", type=float, default=40.0, help="training wall-clock budget (default 40)")
     p.add_argument("--steps", type=int, default=None, help="step limit (default: only the time limit)")
     p.add_argument("--out", type=Path, default=Path("out/train"), help="run folder (default out/train)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of weights, pairs and noise (default 0)")
     p.add_argument("--d", type=int, default=4, help="descriptor channels (default 4)")
-    p.add_argument("--head", choices=("sigmoid", "relu", "none"), default="sigmoid")
+    p.add_argument(
+        "--head", choices=("sigmoid", "relu", "none"), default="sigmoid",
+        help="activation of the encoder's last layer (default sigmoid)",
+    )
     p.add_argument("--rgb", action="store_true", help="3-channel input (default gray)")
-    p.add_argument("--mode", choices=("implicit", "unroll"), default="implicit", help="LK layer backward")
-    p.add_argument("--rho", choices=("huber", "cauchy", "charbonnier"), default="cauchy")
-    p.add_argument("--delta", type=float, default=1.0, help="robust loss scale, px")
-    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument(
+        "--mode", choices=("implicit", "unroll"), default="implicit",
+        help="LK layer backward: implicit differentiation or unrolled iterations (default implicit)",
+    )
+    p.add_argument(
+        "--rho", choices=("huber", "cauchy", "charbonnier"), default="cauchy",
+        help="robust loss on the endpoint error (default cauchy)",
+    )
+    p.add_argument("--delta", type=float, default=1.0, help="robust loss scale in px (default 1)")
+    p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default 1e-3)")
     p.add_argument("--val-every", type=int, default=1000, help="steps per epoch (validation + figure)")
     p.add_argument("--val-per-image", type=int, default=3, help="validation pairs per held-out photo")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     p.add_argument(
         "--eval-per-image", type=int, default=20, help="held-out pairs per photo in the final comparison"
     )
     p.add_argument(
         "--install", action="store_true", help="copy the model to models/ and write the model card"
     )
-    p.add_argument("--models-dir", type=Path, default=Path("models"))
+    p.add_argument(
+        "--models-dir", type=Path, default=Path("models"),
+        help="where --install puts the model and its card (default models)",
+    )
     p.add_argument("--card-notes", type=Path, default=None, help="Markdown file added to the model card")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
 
