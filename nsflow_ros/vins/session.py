@@ -9,6 +9,7 @@ and tested once. Per frame (:meth:`FrontEndSession.process`) it
 * in the VINS-Mono layout, does what VINS-Mono's ``img_callback`` does: drops the first image, asks for an
   estimator restart on a stamp gap > 1 s or time going backwards, throttles publishing to ``freq`` Hz (the
   throttled frames are still tracked, without detecting new corners) and skips the first published frame;
+* after ``max_cnt`` is lowered, publishes only the longest ``max_cnt`` tracks (never an id it cut);
 * predicts the flow from the gyro samples given to :meth:`FrontEndSession.add_gyro` when that is on;
 * counts what it did (:attr:`FrontEndSession.counters`).
 
@@ -135,6 +136,7 @@ class FrontEndSession:
         self._gyro_lock = threading.Lock()  # IMU messages may arrive on another thread than the frames
         self.counters: Counter[str] = Counter()
         self._id_offset = 0
+        self._withheld: set[int] = set()  # ids cut after max_cnt was lowered (see _trim)
         self._last_stamp: float | None = None
         self._reset_mono_state()
 
@@ -213,6 +215,7 @@ class FrontEndSession:
                 raise
             self._id_offset += self.tracker.next_id
             self.tracker = tracker
+            self._withheld.clear()
             self.counters["rebuilds"] += 1
             what = ", ".join(sorted(changed & REBUILD_SETTINGS))
             notes.append(f"{what} changed: new tracker, tracks restart (ids continue from {self._id_offset})")
@@ -348,7 +351,31 @@ class FrontEndSession:
             if not self._init_pub:  # VINS-Mono skips the first published frame
                 self._init_pub = True
                 return FrameOutcome(None, True, note=note)
-        return FrameOutcome(self._shift_ids(frame), True, note=note)
+        return FrameOutcome(self._shift_ids(self._trim(frame)), True, note=note)
+
+    def _trim(self, frame: FrameFeatures) -> FrameFeatures:
+        """At most ``max_cnt`` features, the longest tracks first, after ``max_cnt`` was lowered.
+
+        The tracker keeps tracking what it had (VINS only stops detecting), so the excess is cut here, and
+        an id cut once is never published again: the estimator assumes an id's observations are contiguous.
+        """
+        cam0 = frame.cameras[0]
+        limit = int(self.config.max_cnt)
+        if not self._withheld and len(cam0) <= limit:
+            return frame
+        keep = ~np.isin(cam0.ids, np.fromiter(self._withheld, np.int64, len(self._withheld)))
+        rows = np.flatnonzero(keep)
+        if rows.size > limit:
+            order = np.lexsort((cam0.ids[rows], -cam0.track_counts[rows]))  # longest first, then oldest id
+            cut = rows[order[limit:]]
+            self._withheld.update(cam0.ids[cut].tolist())
+            keep[cut] = False
+        self._withheld.intersection_update(cam0.ids.tolist())  # ids never come back once gone
+        kept_ids = cam0.ids[keep]
+        cams = tuple(
+            _subset(c, keep if i == 0 else np.isin(c.ids, kept_ids)) for i, c in enumerate(frame.cameras)
+        )
+        return dataclasses.replace(frame, cameras=cams)
 
     def _shift_ids(self, frame: FrameFeatures) -> FrameFeatures:
         """Ids of a rebuilt tracker continue after the previous tracker's (never reused)."""
@@ -356,3 +383,14 @@ class FrontEndSession:
             return frame
         cams = tuple(dataclasses.replace(c, ids=c.ids + self._id_offset) for c in frame.cameras)
         return dataclasses.replace(frame, cameras=cams)
+
+
+def _subset(cam: Any, rows: np.ndarray) -> Any:
+    """The rows of one camera's features (every per-feature array field)."""
+    n = len(cam)
+    changes = {
+        f.name: getattr(cam, f.name)[rows]
+        for f in dataclasses.fields(cam)
+        if isinstance(getattr(cam, f.name), np.ndarray) and getattr(cam, f.name).shape[:1] == (n,)
+    }
+    return dataclasses.replace(cam, **changes)

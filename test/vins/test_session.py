@@ -1,0 +1,145 @@
+"""The front-end session: VINS frame policy and live setting changes, without any middleware."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import synthetic_sequences as syn
+
+from nsflow_ros.vins.config import load_vins_config
+from nsflow_ros.vins.errors import ConfigError
+from nsflow_ros.vins.session import FrontEndSession
+
+T0 = 100.0
+
+
+def _config(folder: Path, dialect: str = "fusion", freq: int = 10) -> Path:
+    cam = syn.camera()
+    common = (
+        f"image_width: {cam.width}\nimage_height: {cam.height}\nmax_cnt: 120\nmin_dist: 20\nfreq: {freq}\n"
+        "F_threshold: 1.0\nshow_track: 0\nflow_back: 1\nestimate_extrinsic: 2\n"
+    )
+    if dialect == "mono":
+        text = (
+            "%YAML:1.0\nimu_topic: \"/imu\"\nimage_topic: \"/cam0\"\nmodel_type: PINHOLE\ncamera_name: c\n"
+            "distortion_parameters:\n   k1: 0.0\n   k2: 0.0\n   p1: 0.0\n   p2: 0.0\n"
+            f"projection_parameters:\n   fx: {cam.fx}\n   fy: {cam.fy}\n   cx: {cam.cx}\n   cy: {cam.cy}\n"
+            + common + "equalize: 0\n"
+        )
+    else:
+        cam.save_yaml(folder / "cam0.yaml")
+        text = (
+            "%YAML:1.0\nimu: 0\nnum_of_cam: 1\nimage0_topic: \"/cam0\"\nimage1_topic: \"\"\n"
+            "cam0_calib: \"cam0.yaml\"\n" + common
+        )
+    path = folder / f"{dialect}.yaml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def pan() -> syn.Sequence:
+    return syn.translating(12)
+
+
+def _session(tmp_path: Path, dialect: str = "fusion", **settings) -> FrontEndSession:
+    return FrontEndSession(load_vins_config(_config(tmp_path, dialect)), {"method": "classical", **settings})
+
+
+def test_fusion_layout_publishes_every_frame_and_skips_a_repeated_stamp(tmp_path, pan):
+    s = _session(tmp_path)
+    outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(4)]
+    assert all(o.tracked and o.features is not None and not o.restart for o in outs)
+    ids1 = set(outs[1].features.cameras[0].ids.tolist())
+    assert len(ids1 & set(outs[2].features.cameras[0].ids.tolist())) > 0.7 * len(ids1)
+    dup = s.process(T0 + pan.stamps[3], pan.frames[3])
+    assert dup.skipped == "duplicate_stamp" and dup.features is None and "repeats" in dup.note
+    back = s.process(T0 + pan.stamps[1], pan.frames[1])  # time going backwards: tracks restart
+    assert back.tracked and "backwards" in back.note
+    assert np.all(back.features.cameras[0].track_counts == 1)
+    assert s.counters["tracked"] == 5 and s.counters["resets"] == 1
+    assert s.counters["skipped:duplicate_stamp"] == 1
+
+
+def test_mono_layout_first_frame_freq_and_restart(tmp_path, pan):
+    s = _session(tmp_path, "mono")
+    assert s.layout == "mono" and s.freq == 10 and s.tracker.settings.reject_with_f
+    outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(len(pan.frames))]
+    assert outs[0].skipped == "first_frame" and not outs[0].tracked
+    assert all(o.tracked for o in outs[1:])
+    published = [k for k, o in enumerate(outs) if o.features is not None]
+    # 20 Hz in, freq 10: about every other frame, minus the first published one that VINS-Mono skips
+    assert 4 <= len(published) <= 6 and s.counters["throttled"] >= 4
+    gap = s.process(T0 + 5.0, pan.frames[0])  # a 4.4 s gap restarts the estimator
+    assert gap.restart and gap.features is None and "discontinuity" in gap.note
+    assert s.counters["restarts"] == 1
+    again = s.process(T0 + 5.05, pan.frames[1])
+    assert again.skipped == "first_frame"  # after a restart, VINS-Mono drops the first image again
+
+
+def test_freq_change_takes_effect(tmp_path, pan):
+    s = _session(tmp_path, "mono")
+    assert s.update(freq=0) == ["freq is now 100"]  # 0 = 100 Hz: every 20 Hz image
+    outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(len(pan.frames))]
+    assert sum(o.features is not None for o in outs) == len(pan.frames) - 2  # first frame, first published
+
+
+def test_max_cnt_change_applies_to_the_next_frame_and_keeps_tracks(tmp_path, pan):
+    s = _session(tmp_path)
+    first = s.process(T0 + pan.stamps[0], pan.frames[0]).features
+    assert len(first.cameras[0]) > 40
+    notes = s.update(max_cnt=20, min_dist=10)
+    assert "max_cnt is now 20" in notes and "min_dist is now 10" in notes
+    nxt = s.process(T0 + pan.stamps[1], pan.frames[1]).features
+    assert 0 < len(nxt.cameras[0]) <= 20
+    assert np.all(nxt.cameras[0].track_counts == 2)  # the longest tracks were kept, not restarted
+    cut = set(first.cameras[0].ids.tolist()) - set(nxt.cameras[0].ids.tolist())
+    assert s.update(max_cnt=-1) == ["max_cnt is now 120"]  # back to the VINS config's value
+    later = s.process(T0 + pan.stamps[2], pan.frames[2]).features
+    assert len(later.cameras[0]) > 40
+    # an id cut once never comes back (the estimator assumes contiguous observations), new ids fill up
+    assert not cut & set(later.cameras[0].ids.tolist())
+    assert later.cameras[0].ids.max() > first.cameras[0].ids.max()
+
+
+def test_method_change_rebuilds_the_tracker_and_never_reuses_ids(tmp_path, pan):
+    s = _session(tmp_path)
+    for k in range(2):
+        before = s.process(T0 + pan.stamps[k], pan.frames[k]).features
+    highest = int(before.cameras[0].ids.max())
+    old_tracker = s.tracker
+    notes = s.update(method="klt")
+    assert s.tracker is not old_tracker and s.tracker.settings.method == "klt"
+    assert any("tracks restart" in n for n in notes) and s.counters["rebuilds"] == 1
+    after = s.process(T0 + pan.stamps[2], pan.frames[2]).features
+    assert after.cameras[0].ids.min() > highest
+    assert np.all(after.cameras[0].track_counts == 1)
+    nxt = s.process(T0 + pan.stamps[3], pan.frames[3]).features
+    assert len(set(nxt.cameras[0].ids.tolist()) & set(after.cameras[0].ids.tolist())) > 30
+
+
+def test_bad_updates_are_refused_and_change_nothing(tmp_path, pan):
+    s = _session(tmp_path)
+    settings, tracker = s.tracker.settings, s.tracker
+    with pytest.raises(ConfigError, match="max_cnt"):
+        s.update(max_cnt=0)
+    with pytest.raises(ConfigError, match="F_threshold"):
+        s.update(F_threshold="x")
+    with pytest.raises(ConfigError, match="unknown front-end setting"):
+        s.update(window=7)
+    with pytest.raises(Exception, match="method"):
+        s.update(method="nope")
+    with pytest.raises(ConfigError, match="use_imu_prediction"):
+        s.update(use_imu_prediction=True)
+    assert s.tracker is tracker and s.tracker.settings == settings and s.settings == {"method": "classical"}
+    assert s.update(F_threshold=2) == ["F_threshold is now 2.0"]  # an integer where a number is expected
+
+
+def test_unknown_setting_or_layout_at_construction(tmp_path):
+    cfg = load_vins_config(_config(tmp_path))
+    with pytest.raises(ConfigError, match="unknown front-end setting"):
+        FrontEndSession(cfg, {"maxcnt": 3})
+    with pytest.raises(ConfigError, match="layout"):
+        FrontEndSession(cfg, {"method": "classical"}, layout="ros1")
