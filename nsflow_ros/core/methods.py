@@ -238,7 +238,7 @@ class LMMethod(TrackingMethod):
 
     def __init__(
         self, name: str, encoder: Encoder, lm: LMConfig, *, prior_levels: int = 2, check_levels: int = 2,
-        predicted_levels: int = 1, max_residual: float = 0.5,
+        predicted_levels: int = 1, max_residual: float = 0.5, check_iterations: int = 0,
     ) -> None:
         self.name = name  # type: ignore[misc]
         self.encoder = encoder
@@ -254,6 +254,7 @@ class LMMethod(TrackingMethod):
         if not max_residual > 0:
             raise CoreError(f"max_residual must be > 0, got {max_residual}")
         self.max_residual = max_residual
+        self.check_iterations = check_iterations
 
     def residual_ratio(self, frame1: DescriptorPyramid, pts: np.ndarray, cost: np.ndarray) -> np.ndarray:
         """Residual energy 2 S over the template's contrast energy, per point (0 = a perfect match).
@@ -296,7 +297,10 @@ class LMMethod(TrackingMethod):
     ) -> tuple[np.ndarray, np.ndarray]:
         if kind.is_check:
             # Started at its answer; the full pyramid only when asked (check_levels 0).
-            return self.track_pair(frame1, frame2, pts, start, self.check_levels or None)
+            levels = self.check_levels or self.lm.levels
+            cfg = replace(self.lm, levels=levels, max_iterations=self.check_iterations or self.lm.max_iterations)
+            res = self.run(frame1, frame2, pts, None if start is None else start - pts, cfg)
+            return np.where(np.isfinite(res.flow), pts + res.flow, pts), res.status
         if start is not None:  # the IMU prediction, trusted as VINS trusts it
             usable = np.isfinite(start).all(axis=1)
             return self.track_pair(
