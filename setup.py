@@ -1,5 +1,6 @@
 """ament_python / pip packaging for nsflow_ros."""
 
+import sys
 from glob import glob
 from pathlib import Path
 
@@ -7,7 +8,7 @@ from setuptools import find_packages, setup
 
 PACKAGE = "nsflow_ros"
 
-# (console-script name for a pip install, name under lib/nsflow_ros for `ros2 run`, target)
+# (console-script name on PATH, name under lib/nsflow_ros for `ros2 run` from a colcon build, target)
 TOOLS = [
     ("nsflow-tracker", "tracker", "nsflow_ros.ros.tracker_node:main"),
     ("nsflow-replay", "replay", "nsflow_ros.ros.replay_node:main"),
@@ -18,6 +19,25 @@ TOOLS = [
     ("nsflow-train", "train", "nsflow_ros.tools:train"),
     ("nsflow-evaluate", "evaluate", "nsflow_ros.evaluation.cli:main"),
 ]
+
+
+def _ros_layout() -> bool:
+    """Whether setup.py runs as colcon (or a ROS user) runs it: ``setup.py install`` / ``develop``.
+
+    colcon builds an ament_python package with ``setup.py ... install --install-scripts lib/<pkg>`` (or
+    ``develop`` for --symlink-install), and setup.cfg sends those scripts to lib/nsflow_ros, where
+    ``ros2 run`` looks. pip builds a wheel instead (``bdist_wheel`` / ``editable_wheel`` through
+    setuptools' PEP 517 backend), whose scripts go on PATH: there only the ``nsflow-*`` names belong.
+    """
+    commands = set(sys.argv[1:])
+    return bool(commands & {"install", "develop"}) and not commands & {"bdist_wheel", "editable_wheel"}
+
+
+def _console_scripts() -> list[str]:
+    scripts = [f"{name}={target}" for name, _, target in TOOLS]
+    if _ros_layout():
+        scripts += [f"{short}={target}" for _, short, target in TOOLS]
+    return scripts
 
 
 def _data_files() -> list[tuple[str, list[str]]]:
@@ -32,10 +52,15 @@ def _data_files() -> list[tuple[str, list[str]]]:
     return files
 
 
+# The ROS 2 Jazzy wheels of what the code imports (package.xml names the same, as rosdep keys).
 ROS = [
     "ros-jazzy-rclpy",
+    "ros-jazzy-rcl-interfaces",
+    "ros-jazzy-ament-index-python",
     "ros-jazzy-sensor-msgs",
     "ros-jazzy-std-msgs",
+    "ros-jazzy-geometry-msgs",
+    "ros-jazzy-diagnostic-msgs",
     "ros-jazzy-rosgraph-msgs",
     "ros-jazzy-rmw-fastrtps-cpp",
 ]
@@ -51,6 +76,9 @@ setup(
         "numpy>=1.24",
         "opencv-python-headless>=4.8",
         "onnxruntime>=1.17",
+        # the efficiency analysis and the benchmark's random encoder read and build ONNX graphs: a 9 MB
+        # wheel beside onnxruntime's 78 MB (protobuf comes with onnxruntime already)
+        "onnx>=1.15",
         "rosbags>=0.11,!=0.11.6",
         "tqdm",
         "scikit-image>=0.22",
@@ -58,14 +86,13 @@ setup(
         *ROS,
     ],
     extras_require={
-        "train": ["torch==2.13.0", "onnx>=1.15"],
+        "train": ["torch==2.13.0"],
         "test": [
             "pytest>=7",
             "ruff",
             "evo>=1.30",
             "colcon-common-extensions",
             "torch==2.13.0",
-            "onnx>=1.15",
         ],
     },
     zip_safe=True,
@@ -74,7 +101,6 @@ setup(
     description="NSFlow learned LK front-end for VINS on ROS 2 Jazzy",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": [f"{name}={target}" for name, _, target in TOOLS]
-        + [f"{ros_name}={target}" for _, ros_name, target in TOOLS],
+        "console_scripts": _console_scripts(),
     },
 )

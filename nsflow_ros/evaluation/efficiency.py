@@ -13,7 +13,7 @@
 * The whole :class:`~nsflow_ros.core.tracker.FeatureTracker` per frame (encode, track + flow-back,
   detection, total) for ``nsflow``, ``classical`` and ``klt`` on frames of the sample sequence.
 
-Reading the ONNX graph needs the ``onnx`` package (in the ``test`` and ``train`` extras).
+Reading the ONNX graph needs the ``onnx`` package (a dependency of nsflow_ros; no rosdep key exists).
 """
 
 from __future__ import annotations
@@ -75,8 +75,8 @@ def _import_onnx() -> Any:
         import onnx
     except ImportError as err:
         raise EvaluationError(
-            "counting parameters and FLOPs reads the ONNX graph and needs the onnx package: "
-            "pip install 'nsflow_ros[test]'"
+            "counting parameters and FLOPs reads the ONNX graph and needs the onnx package, a dependency "
+            "of nsflow_ros that is missing here: pip install onnx"
         ) from err
     return onnx
 
