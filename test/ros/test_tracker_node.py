@@ -322,3 +322,123 @@ def test_fisheye_mask_parameter_limits_the_features(tmp_path, prefix, pan):
             assert len(uv) > 10 and np.all(np.rint(uv[:, 0]) < cam.width // 2)
     finally:
         h.close()
+
+
+# -- run-time behaviour: parameters, QoS, status ----------------------------------------------------------
+
+
+def _set_remote(h: Harness, **values):
+    """Set parameters through the node's set_parameters service, as `ros2 param set` does."""
+    from rclpy.parameter_client import AsyncParameterClient
+
+    client = AsyncParameterClient(h.io, h.tracker.get_fully_qualified_name())
+    assert h.spin_until(lambda: client.services_are_ready(), 10.0)
+    future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+    assert h.spin_until(future.done, 10.0)
+    return future.result().results
+
+
+def test_parameter_changes_apply_at_run_time_or_are_refused(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix), prefix)
+    try:
+        h.send(0, image_msg(pan.frames[0], T0 + pan.stamps[0]))
+        assert len(_cloud_arrays(h.clouds[-1])[0]) > 40
+        (res,) = _set_remote(h, max_cnt=20)
+        assert res.successful
+        assert h.tracker.get_parameter("max_cnt").value == 20
+        for k in range(1, 4):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+            assert 0 < len(_cloud_arrays(h.clouds[-1])[0]) <= 20
+        (res,) = _set_remote(h, feature_topic="/elsewhere")
+        assert not res.successful and "read-only" in res.reason
+        (res,) = _set_remote(h, max_cnt="abc")
+        assert not res.successful and "max_cnt" in res.reason and "'abc'" in res.reason
+        (res,) = _set_remote(h, max_cnt=0)
+        assert not res.successful and "max_cnt" in res.reason
+        (res,) = _set_remote(h, F_threshold=2)  # an integer where a number is expected
+        assert res.successful and h.tracker.config.F_threshold == 2.0
+        results = _set_remote(h, method="klt", show_track=0)
+        assert all(r.successful for r in results) and h.tracker.tracker.settings.method == "klt"
+        assert h.tracker._track_pub is None
+        before = int(max(_cloud_arrays(h.clouds[-1])[1][0]))
+        h.send(0, image_msg(pan.frames[4], T0 + pan.stamps[4]))
+        assert int(min(_cloud_arrays(h.clouds[-1])[1][0])) > before  # new tracks, ids not reused
+    finally:
+        h.close()
+
+
+def test_image_qos_is_sensor_data_unless_overridden(tmp_path, prefix):
+    from rclpy.qos import ReliabilityPolicy
+
+    h = Harness(write_config(tmp_path, prefix), prefix)
+    try:
+        assert h.tracker._subs[0].qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+    finally:
+        h.close()
+    override = {f"qos_overrides.{prefix}/cam0.subscription.reliability": "reliable",
+                f"qos_overrides.{prefix}/cam0.subscription.depth": 50}
+    h = Harness(write_config(tmp_path, prefix), prefix, **override)
+    try:
+        qos = h.tracker._subs[0].qos_profile
+        assert qos.reliability == ReliabilityPolicy.RELIABLE and qos.depth == 50
+        info = h.io.get_subscriptions_info_by_topic(f"{prefix}/cam0")
+        assert [i.qos_profile.reliability for i in info] == [ReliabilityPolicy.RELIABLE]
+    finally:
+        h.close()
+
+
+def test_status_on_diagnostics_and_dropped_frames_are_counted(tmp_path, prefix, pan):
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    h = Harness(write_config(tmp_path, prefix), prefix, status_period=0.3, queue_size=1)
+    diags: list = []
+    h.io.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    name = h.tracker.get_fully_qualified_name()
+    try:
+        process = h.tracker.session.process
+
+        def slow(*args, **kwargs):  # a tracker that cannot keep up
+            time.sleep(0.15)
+            return process(*args, **kwargs)
+
+        h.tracker.session.process = slow
+        for k in range(8):
+            h.pubs[0].publish(image_msg(pan.frames[k], T0 + pan.stamps[k]))
+            h.spin_until(lambda: False, 0.01)
+        assert h.spin_until(lambda: h.tracker.stats["frames_received"] == 8 and not h.tracker._queue, 10.0)
+        h.spin_until(lambda: False, 0.3)  # the last frame leaves the tracker
+        c = h.tracker.counters()
+        assert c["frames_received"] == 8 and c["dropped"]["busy"] >= 3
+        assert c["frames_processed"] + c["frames_dropped"] == 8 and c["frames_published"] == len(h.clouds)
+
+        def reported() -> bool:
+            return any(
+                s.hardware_id == name
+                and any(v.key == "frames dropped" and int(v.value) > 0 for v in s.values)
+                for msg in diags
+                for s in msg.status
+            )
+
+        assert h.spin_until(reported, 5.0)
+        warned = [s for msg in diags for s in msg.status if s.hardware_id == name and s.level == s.WARN]
+        assert warned and "falling behind" in warned[0].message
+        assert "dropped" in h.tracker.summary() and "received 8" in h.tracker.summary()
+    finally:
+        h.close()
+
+
+def test_summary_file_has_the_counters(tmp_path, prefix, pan):
+    import json
+
+    out = tmp_path / "summary.json"
+    h = Harness(write_config(tmp_path, prefix), prefix, summary_file=str(out))
+    try:
+        for k in range(3):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+        h.tracker.stop_worker()
+        assert h.tracker.write_summary_file() == out
+        data = json.loads(out.read_text())
+        assert data["frames_received"] == data["frames_processed"] == data["frames_published"] == 3
+        assert data["frames_dropped"] == 0 and data["latency_ms_p90"] > 0
+    finally:
+        h.close()
