@@ -12,7 +12,10 @@ from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import (
     CLASSICAL,
     KLT,
+    KLT_CLAHE,
     NSFLOW,
+    NSFLOW_LK,
+    EvalMethod,
     KLTMethod,
     LMMethod,
     PairMethod,
@@ -24,8 +27,11 @@ from nsflow_ros.evaluation.section import HeadlineRow, Section
 __all__ = [
     "CLASSICAL",
     "KLT",
+    "KLT_CLAHE",
     "NSFLOW",
+    "NSFLOW_LK",
     "EvalContext",
+    "EvalMethod",
     "EvaluationError",
     "HeadlineRow",
     "KLTMethod",

@@ -35,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     listing = "; ".join(f"{a.key}: {a.title}" for a in ANALYSES)
     parser = argparse.ArgumentParser(
         prog=program_name("nsflow-evaluate"),
-        description="Run the NSFlow evaluation suite (NSFlow, the LM solver on intensity, OpenCV KLT) and "
+        description="Run the NSFlow evaluation suite (NSFlow, NSFlow + OpenCV LK, the LM solver on "
+        "intensity, OpenCV KLT, OpenCV KLT + CLAHE, all at the tracker's deployed pyramid depth) and "
         "write report.md, results.json and the figures.",
         epilog=f"analyses: {listing}",
     )

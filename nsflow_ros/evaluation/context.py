@@ -26,8 +26,9 @@ class EvalContext:
     """Settings and shared objects of one evaluation run.
 
     Attributes:
-        methods: the compared methods, NSFlow first, then ``LM (intensity)`` and ``OpenCV KLT``
-            (:func:`~nsflow_ros.evaluation.methods.default_methods`), all at the deployed 3 levels.
+        methods: the compared methods (:func:`~nsflow_ros.evaluation.methods.default_methods`: NSFlow,
+            NSFlow + OpenCV LK, LM (intensity), OpenCV KLT, OpenCV KLT + CLAHE), all at the tracker's
+            deployed pyramid depth (4 levels).
         model: the ONNX encoder file NSFlow uses, or None for the shipped model (for sections that need
             the file itself, e.g. parameter / FLOP counts).
         quick: tiny sizes (tests, CI): the whole quick run must take well under a minute, so every

@@ -11,7 +11,8 @@
 * Encoder milliseconds at 320x240 and 752x480 (onnxruntime on the CPU, median and p90 over N runs after
   warm-up, :func:`nsflow_ros.bench.time_encoder`), with the intensity encoder timed in the same run.
 * The whole :class:`~nsflow_ros.core.tracker.FeatureTracker` per frame (encode, track + flow-back,
-  detection, total) for ``nsflow``, ``classical`` and ``klt`` on frames of the sample sequence.
+  detection, total) for every evaluated method (``nsflow``, ``nsflow_lk``, ``classical``, ``klt`` and
+  ``klt`` with CLAHE) on frames of the sample sequence.
 
 Reading the ONNX graph needs the ``onnx`` package (a dependency of nsflow_ros; no rosdep key exists).
 """
@@ -170,9 +171,9 @@ def time_tracker(
     Args:
         frames: images in order (uint8).
         camera: the tracker's camera model (its size must match the frames).
-        method: tracker method (``nsflow``, ``classical``, ``klt``).
+        method: tracker method (a key of :data:`nsflow_ros.core.methods.METHODS`).
         settings: tracker settings (``method`` is replaced); None = the defaults.
-        encoder: encoder for the LM methods (None: the tracker loads its own).
+        encoder: encoder for the methods that use one (None: the tracker loads its own).
         dt: seconds between frames.
 
     Returns:
@@ -282,8 +283,9 @@ def run(ctx: EvalContext) -> Section:
     kinds = sequences.TRACKER_METHODS
     tracker_times: dict[str, dict[str, dict[str, float]]] = {}
     for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
-        enc = encoder if name == NSFLOW else None
-        tracker_times[name] = time_tracker(frames, source.camera, kinds[name], settings=settings, encoder=enc)
+        enc = encoder if name in sequences.LEARNED else None
+        per = settings.with_overrides(kinds[name])
+        tracker_times[name] = time_tracker(frames, source.camera, per.method, settings=per, encoder=enc)
 
     out = Path(ctx.out_dir)
     fig = _figure(enc_times, tracker_times, source.size, out / f"{KEY}_times.png")

@@ -25,7 +25,7 @@ from typing import Any
 
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.context import EvalContext, atomic_write
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW
+from nsflow_ros.evaluation.methods import METHOD_ORDER
 from nsflow_ros.evaluation.registry import Analysis
 from nsflow_ros.evaluation.section import Section
 
@@ -40,7 +40,7 @@ __all__ = [
     "write_report",
 ]
 
-METHOD_COLUMNS = (NSFLOW, CLASSICAL, KLT)
+METHOD_COLUMNS = METHOD_ORDER
 
 
 @dataclass

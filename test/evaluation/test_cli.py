@@ -22,7 +22,9 @@ def test_quick_run_writes_report_with_headline_table_figures_and_json(tmp_path, 
     out = tmp_path / "ev"
     assert cli.main(["--quick", "--out", str(out), "--only", MINE, "--no-progress"]) == 0
     report = (out / "report.md").read_text()
-    assert "| metric | NSFlow | LM (intensity) | OpenCV KLT | target | met |" in report
+    methods = "NSFlow | NSFlow + OpenCV LK | LM (intensity) | OpenCV KLT | OpenCV KLT + CLAHE"
+    head = f"| metric | {methods} | target | met |"
+    assert head in report
     assert f"nsflow-evaluate --quick --out {out} --only {MINE} --no-progress" in report
     assert "Quick mode" in report and "onnxruntime" in report and "CPUs" in report
     for png in ("pairs_boxplot.png", "trackable_heatmap.png", "convergence.png"):
@@ -84,8 +86,8 @@ def test_headline_table_marks_missing_values_and_unmet_targets():
         HeadlineRow("b", {"LM (intensity)": "3"}),
     ])  # fmt: skip
     lines = headline_table([s]).splitlines()
-    assert lines[2] == "| a | 1 | - | 2 | <= 1.2x KLT | **no** |"
-    assert lines[3] == "| b | - | 3 | - | - | - |"
+    assert lines[2] == "| a | 1 | - | - | 2 | - | <= 1.2x KLT | **no** |"
+    assert lines[3] == "| b | - | - | 3 | - | - | - | - |"
     assert headline_table([]).startswith("_No headline")
 
 

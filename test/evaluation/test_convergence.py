@@ -10,7 +10,7 @@ from image_pairs import texture, warp_pair
 
 from nsflow_ros.evaluation import convergence as cv
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import default_methods
+from nsflow_ros.evaluation.methods import CLASSICAL, default_methods
 from nsflow_ros.evaluation.pairs import HomographyPair, inside, keypoints, true_flow
 
 SHIFT = np.array([[1.0, 0.0, 1.3], [0.0, 1.0, 0.6], [0.0, 0.0, 1.0]])
@@ -39,9 +39,9 @@ def test_curves_start_at_the_initial_error_and_decrease_on_texture(setup):
         assert c[3] < c[0], (m.name, c)
         assert np.median(final[m.name]) < 0.2, m.name
     # LM: once every point has stopped the curve is flat, and its end is the solver's final flow
-    lm = methods[1]
-    res = lm.track_pyramids(lm.pyramid(pair.image1), lm.pyramid(pair.image2), pts, flow0,
-                            config=replace(lm.config, levels=1, max_iterations=12))  # fmt: skip
+    lm = next(m for m in methods if m.name == CLASSICAL)
+    res = lm.run(lm.prepare(pair.image1), lm.prepare(pair.image2), pts, flow0,
+                 config=replace(lm.config, levels=1, max_iterations=12))  # fmt: skip
     end = np.linalg.norm(res.flow - true_flow(pts, SHIFT), axis=1)
     np.testing.assert_allclose(curves[lm.name][-1], np.minimum(end, 10.0), atol=1e-9)
 

@@ -13,7 +13,7 @@ from nsflow_ros.core.encoder import IntensityEncoder, load_encoder
 from nsflow_ros.evaluation import efficiency as ef
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW, KLTMethod, LMMethod
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT, METHOD_ORDER, NSFLOW, NSFLOW_LK, KLTMethod, LMMethod
 
 
 def _grouped_strided_conv(path):
@@ -82,10 +82,13 @@ def test_quick_run(tmp_path):
     assert sec.key == "efficiency" and sec.figures[0].is_file()
     assert sec.data["complexity"]["320x240"]["parameters"] == 876
     assert sec.data["complexity"]["752x480"]["flops"] == 2 * 840 * 752 * 480
-    for name in (NSFLOW, CLASSICAL, KLT):
+    assert list(sec.data["tracker_ms"]) == list(METHOD_ORDER)  # every evaluated method, whole tracker
+    for name in METHOD_ORDER:
         st = sec.data["tracker_ms"][name]
         assert 0 < st["total"]["median_ms"] <= st["total"]["p90_ms"]
     assert sec.data["tracker_ms"][KLT]["encode"]["median_ms"] < 0.05  # OpenCV needs no encoder
+    trk = sec.data["tracker_ms"]
+    assert trk[NSFLOW_LK]["encode"]["median_ms"] > trk[KLT]["encode"]["median_ms"]  # it encodes, as NSFlow
     enc = sec.data["encoder_ms"]
     assert enc[NSFLOW]["320x240"]["median_ms"] > enc["intensity"]["320x240"]["median_ms"]
     assert "| 876 |" in sec.markdown and "efficiency_times.png" in sec.markdown

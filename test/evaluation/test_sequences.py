@@ -11,7 +11,7 @@ from nsflow_ros.core.tracker import TrackerSettings
 from nsflow_ros.evaluation import sequences as sq
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW, KLTMethod, LMMethod
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT, METHOD_ORDER, NSFLOW, KLTMethod, LMMethod
 
 
 def _two_views(n: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -67,8 +67,11 @@ def test_fundamental_inliers_count_lost_tracks_against_the_rate():
 def quick_ctx(tmp_path_factory) -> EvalContext:
     root = tmp_path_factory.mktemp("seq")
     (root / "report").mkdir()
-    nsflow = LMMethod(NSFLOW, load_encoder(threads=1))
-    methods = [nsflow, LMMethod(CLASSICAL, IntensityEncoder()), KLTMethod()]
+    enc = load_encoder(threads=1)
+    methods = [
+        LMMethod(NSFLOW, enc), KLTMethod(encoder=enc), LMMethod(CLASSICAL, IntensityEncoder()), KLTMethod(),
+        KLTMethod(equalize=True),
+    ]
     return EvalContext(methods=methods, quick=True, out_dir=root / "report", progress=False, threads=1,
                        extra={"sequences": {"cache_dir": str(root / "cache")}})
 
@@ -86,7 +89,7 @@ def test_quick_run_writes_figures_table_and_computed_headline(quick_section, qui
         assert p.is_file() and p.stat().st_size > 5000 and p.parent == quick_ctx.out_dir
         assert f"]({p.name})" in sec.markdown
     res = sec.data["results"]
-    assert set(res) == {"none", "small", "large"} and set(res["none"]) == {NSFLOW, CLASSICAL, KLT}
+    assert set(res) == {"none", "small", "large"} and set(res["none"]) == set(METHOD_ORDER)
     targets = [r for r in sec.headline if r.target]
     assert len(targets) == 4 and all(isinstance(r.met, bool) for r in targets)
     # met is computed from the figures, not fixed

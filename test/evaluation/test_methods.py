@@ -1,0 +1,115 @@
+"""The evaluated methods are the tracker's own method objects: same solves, same representations."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from image_pairs import texture, warp_pair
+
+from nsflow_ros.core import methods as core
+from nsflow_ros.core.tracker import TrackerSettings
+from nsflow_ros.evaluation import methods as ev
+from nsflow_ros.evaluation import sequences
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.pairs import endpoint_errors, inside, keypoints, true_flow
+
+SHIFT = np.array([[1.0, 0.0, 3.2], [0.0, 1.0, -2.1], [0.0, 0.0, 1.0]])
+PACKAGE = Path(ev.__file__).parent
+
+
+@pytest.fixture(scope="module")
+def methods():
+    return ev.default_methods(threads=1)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    f1, f2 = warp_pair(texture("astronaut", (200, 150)), SHIFT)
+    pts = keypoints(f1, 80, 6.0)
+    gt = true_flow(pts, SHIFT)
+    keep = inside(pts + gt, 200, 150)
+    return f1, f2, pts[keep], gt[keep]
+
+
+def test_no_solver_is_called_outside_the_core_methods():
+    for path in sorted(PACKAGE.glob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute):
+                assert node.attr != "calcOpticalFlowPyrLK", f"{path.name}:{node.lineno}"
+            if isinstance(node, ast.ImportFrom) and node.module == "nsflow_ros.core.solver":
+                names = {a.name for a in node.names}
+                assert "track" not in names, f"{path.name}:{node.lineno} imports the solver's track"
+
+
+def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
+    deployed = TrackerSettings().lm
+    assert [m.name for m in methods] == list(ev.METHOD_ORDER)
+    assert {m.levels for m in methods} == {deployed.levels} == {4}
+    for m in methods:
+        key = m.tracker_overrides["method"]
+        assert key in core.METHODS
+        assert isinstance(m.core, type(core.make_method(key, encoder=m.encoder)))
+        # the sequences analysis runs the tracker with the same method and equalisation
+        assert sequences.TRACKER_METHODS[m.name] == m.tracker_overrides
+    lm = {m.name: m for m in methods if isinstance(m, ev.LMMethod)}
+    assert lm[ev.NSFLOW].config == deployed and lm[ev.CLASSICAL].config == deployed
+    assert methods[0].encoder is methods[1].encoder  # NSFlow + OpenCV LK tracks the same descriptors
+
+
+def test_each_method_solves_through_its_core_track_pair(methods, pair):
+    f1, f2, pts, gt = pair
+    flow0 = np.tile([1.0, -1.0], (len(pts), 1))
+    for m in methods:
+        res = m.track(f1, f2, pts, flow0)
+        r1, r2 = m.prepare(f1), m.prepare(f2)
+        new, status = m.core.track_pair(r1, r2, pts, pts + flow0, m.levels)
+        np.testing.assert_array_equal(res.status, status)
+        np.testing.assert_allclose(res.flow, new - pts, atol=1e-12)
+        assert np.median(endpoint_errors(res, gt)) < 0.1, m.name
+
+
+def test_klt_is_vins_call_with_the_evaluations_criteria(methods, pair):
+    f1, f2, pts, gt = pair
+    klt = next(m for m in methods if m.name == ev.KLT)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    want, ok = core.klt_track(f1, f2, pts, None, 3, window=(21, 21), criteria=crit)
+    res = klt.track(f1, f2, pts)
+    np.testing.assert_array_equal(res.status, ok)
+    np.testing.assert_allclose(res.flow, want - pts)
+    # one iteration per level from a 5 px start ends further off than thirty on a single level
+    start = gt + np.tile([5.0, 0.0], (len(pts), 1))
+    one = klt.with_iterations(1)
+    assert one.name == klt.name and one.levels == klt.levels
+    frames = (klt.prepare(f1), klt.prepare(f2))
+    e1 = endpoint_errors(one.track_frames(*frames, pts, start, 1), gt)
+    e30 = endpoint_errors(klt.track_frames(*frames, pts, start, 1), gt)
+    assert np.median(e30) < 0.1 < np.median(e1)
+
+
+def test_clahe_and_descriptor_lk_prepare_what_the_tracker_tracks(methods, pair):
+    f1 = pair[0]
+    by = {m.name: m for m in methods}
+    eq = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8)).apply(f1)
+    np.testing.assert_array_equal(by[ev.KLT_CLAHE].prepare(f1), eq)
+    np.testing.assert_array_equal(by[ev.KLT].prepare(f1), f1)
+    lk = by[ev.NSFLOW_LK]
+    desc = lk.prepare(f1)
+    assert desc.dtype == np.uint8 and desc.shape == (*f1.shape, lk.encoder.channels)
+    np.testing.assert_array_equal(desc, core.quantise_descriptors(lk.encoder(f1)))
+
+
+def test_guards(methods, pair):
+    f1, f2, pts, _ = pair
+    with pytest.raises(EvaluationError, match=r"levels must be in 1\.\.4, got 5"):
+        methods[0].track_frames(methods[0].prepare(f1), methods[0].prepare(f2), pts, None, 5)
+    with pytest.raises(EvaluationError, match=r"\(N, 2\)"):
+        methods[3].track(f1, f2, pts[:, 0])
+    with pytest.raises(EvaluationError, match="levels"):
+        ev.default_methods(levels=0)
+    with pytest.raises(EvaluationError, match="max_iterations"):
+        ev.KLTMethod(max_iterations=0)
