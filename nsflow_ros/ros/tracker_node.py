@@ -170,6 +170,7 @@ class TrackerNode(Node):
         self._wake = threading.Condition()
         self._stopping = False
         self._status = _StatusWindow()
+        self._gaps = _StampGaps()
 
         self._feature_pub = self.create_publisher(PointCloud, str(p["feature_topic"]), FEATURE_QOS)
         self._restart_pub = self.create_publisher(Bool, str(p["restart_topic"]), FEATURE_QOS)
@@ -304,6 +305,7 @@ class TrackerNode(Node):
         self._enqueue(_Frame(left[0], left[1], right[1], min(left[2], right[2])))
 
     def _enqueue(self, frame: _Frame) -> None:
+        self.stats["frames_missing"] += self._gaps.add(stamp_to_s(frame.header.stamp))
         with self._wake:
             self.stats["frames_received"] += 1
             if len(self._queue) >= self._queue_size:  # the tracker is behind: drop the oldest frame
@@ -400,6 +402,7 @@ class TrackerNode(Node):
             "frames_skipped_by_policy": policy,
             "frames_dropped": sum(dropped.values()),
             "dropped": dropped,
+            "frames_missing_upstream": s["frames_missing"],
             "images_unpaired": s["unpaired_images"],
             "images_undecodable": s["bad_images"],
             "restarts": self.session.counters["restarts"],
@@ -422,7 +425,8 @@ class TrackerNode(Node):
             f"frames received {c['frames_received']}, processed {c['frames_processed']}, published "
             f"{c['frames_published']}, dropped {c['frames_dropped']} (tracker busy {d['busy']}, refused "
             f"{d['refused']}); images unpaired {c['images_unpaired']}, undecodable "
-            f"{c['images_undecodable']}{lat}"
+            f"{c['images_undecodable']}; frames missing before the node (stamp gaps) "
+            f"{c['frames_missing_upstream']}{lat}"
         )
 
     def _report_status(self) -> None:
@@ -432,13 +436,18 @@ class TrackerNode(Node):
         level = DiagnosticStatus.OK
         if window["frames_received"] == 0 and not window["unpaired"]:
             message = f"no images on {', '.join(self._image_topics)}"
-        elif window["dropped"] or window["unpaired"]:
+        elif window["dropped"] or window["unpaired"] or window["missing"]:
             level = DiagnosticStatus.WARN
-            message = f"falling behind: dropped {window['dropped']} of {window['frames_received']} frames"
+            problems = []
+            if window["dropped"]:
+                problems.append(
+                    f"falling behind: dropped {window['dropped']} of {window['frames_received']} frames"
+                )
             if window["unpaired"]:
-                message = f"{window['unpaired']} images without their stereo partner"
-                if window["dropped"]:
-                    message += f", {window['dropped']} of {window['frames_received']} frames dropped"
+                problems.append(f"{window['unpaired']} images without their stereo partner")
+            if window["missing"]:
+                problems.append(f"{window['missing']} frames missing before the node (stamp gaps)")
+            message = "; ".join(problems)
         else:
             message = "tracking"
         values = {
@@ -450,6 +459,7 @@ class TrackerNode(Node):
             "frames processed (period)": window["frames_processed"],
             "frames dropped (period)": window["dropped"],
             "images unpaired (period)": window["unpaired"],
+            "frames missing upstream (period)": window["missing"],
             "features per frame (period)": window["features"],
             "latency p50 ms (period)": window["latency_p50"],
             "latency p90 ms (period)": window["latency_p90"],
@@ -491,8 +501,10 @@ class TrackerNode(Node):
     def stop_worker(self, timeout: float = 5.0) -> None:
         """Stop the frame worker (frames still waiting are counted as dropped)."""
         with self._wake:
+            if not self._stopping:  # frames and images still waiting were not processed
+                self.stats["dropped_busy"] += len(self._queue)
+                self.stats["unpaired_images"] += sum(len(p) for p in self._pending)
             self._stopping = True
-            self.stats["dropped_busy"] += len(self._queue)
             self._queue.clear()
             self._wake.notify_all()
         if self._worker.is_alive() and self._worker is not threading.current_thread():
@@ -513,6 +525,32 @@ class TrackerNode(Node):
         super().destroy_node()
 
 
+class _StampGaps:
+    """Frames that never reached the node, inferred from gaps in a regular camera's stamps.
+
+    The frame period is the median of the recent stamp intervals; an interval of k periods (k >= 2, to
+    the nearest period) means k - 1 frames were lost before the node (in the middleware or upstream).
+    """
+
+    def __init__(self, history: int = 50) -> None:
+        self._intervals: deque[float] = deque(maxlen=history)
+        self._last: float | None = None
+
+    def add(self, stamp: float) -> int:
+        """Record a frame's stamp; return how many frames are missing just before it."""
+        last, self._last = self._last, stamp
+        if last is None or stamp <= last:
+            return 0
+        dt = stamp - last
+        missing = 0
+        if len(self._intervals) >= 5:
+            period = float(np.median(self._intervals))
+            missing = max(0, round(dt / period) - 1) if period > 0 else 0
+        if not missing:
+            self._intervals.append(dt)
+        return missing
+
+
 class _StatusWindow:
     """Counters and latencies since the last status report."""
 
@@ -521,7 +559,11 @@ class _StatusWindow:
         self._latencies: list[float] = []
         self._features: list[int] = []
         self._last: dict[str, int] = {
-            "frames_received": 0, "frames_processed": 0, "frames_dropped": 0, "images_unpaired": 0
+            "frames_received": 0,
+            "frames_processed": 0,
+            "frames_dropped": 0,
+            "images_unpaired": 0,
+            "frames_missing_upstream": 0,
         }
         self._t = time.monotonic()
         self._idle = 0
@@ -543,6 +585,7 @@ class _StatusWindow:
             "frames_processed": counters["frames_processed"] - self._last["frames_processed"],
             "dropped": counters["frames_dropped"] - self._last["frames_dropped"],
             "unpaired": counters["images_unpaired"] - self._last["images_unpaired"],
+            "missing": counters["frames_missing_upstream"] - self._last["frames_missing_upstream"],
             "features": float(np.mean(feats)) if feats else 0.0,
             "latency_p50": _percentile(lat, 50),
             "latency_p90": _percentile(lat, 90),

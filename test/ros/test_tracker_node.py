@@ -442,3 +442,12 @@ def test_summary_file_has_the_counters(tmp_path, prefix, pan):
         assert data["frames_dropped"] == 0 and data["latency_ms_p90"] > 0
     finally:
         h.close()
+
+
+def test_frames_lost_before_the_node_are_inferred_from_stamp_gaps():
+    from nsflow_ros.ros.tracker_node import _StampGaps
+
+    gaps = _StampGaps()
+    stamps = [0.05 * k for k in range(10)] + [0.05 * k for k in (12, 13, 17, 18)]  # 2, then 3 frames lost
+    assert [gaps.add(t) for t in stamps] == [0] * 10 + [2, 0, 3, 0]
+    assert gaps.add(0.1) == 0  # time going back is not a gap
