@@ -26,6 +26,18 @@ Backward modes (:class:`BackwardMode`):
   to ~5e-9 (test/train/test_lk_layer.py); at stalled points it is the gradient of the nearby fixed point.
 * ``UNROLL`` - the same iterations recorded by autograd (accept/reject and stopping act as hard masks),
   the way Theseus' unrolled mode and the authors' LET-NET2 training differentiate. For comparison.
+
+Coarse to fine (:func:`lk_track_pyramid`): the tracker's solve, level by level like
+``nsflow_ros.core.solver.track`` - the descriptor pyramid of each frame (``cv2.pyrDown`` twins,
+:func:`~nsflow_ros.train.ops.pyramid`, differentiable), the coarsest level first from flow0 / 2^(L-1), the
+flow doubled between levels, a fresh lambda^(0) per level. With the IMPLICIT backward every level's result
+is differentiated at that level's own converged flow, w.r.t. that level's two maps (and through the
+linear pyrDown chain to the full-resolution maps), and each level's start is detached. Why: a converged
+flow is a fixed point of F = 0 that does not depend on where the iteration started (du*/du0 = 0 by the
+implicit function theorem), so the finest result's gradient reaches only the finest maps; the coarse maps
+learn only through a loss on the coarse levels' own results (``LKPyramidOutput.levels``), which is what
+can teach them a wide basin. Differentiating only the finest level would give the coarse maps nothing,
+and unrolling through a whole pyramid would keep every level's iterations in memory.
 """
 
 from __future__ import annotations
@@ -37,9 +49,16 @@ import torch
 
 from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.errors import TrainError
-from nsflow_ros.train.ops import sample_windows, scharr_gradients
+from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients
 
-__all__ = ["BackwardMode", "LKOutput", "lk_track", "optimality_condition"]
+__all__ = [
+    "BackwardMode",
+    "LKOutput",
+    "LKPyramidOutput",
+    "lk_track",
+    "lk_track_pyramid",
+    "optimality_condition",
+]
 
 
 class BackwardMode(enum.Enum):
@@ -64,6 +83,26 @@ class LKOutput:
     status: torch.Tensor
     cost: torch.Tensor
     iterations: torch.Tensor
+
+
+@dataclass(frozen=True)
+class LKPyramidOutput:
+    """Result of :func:`lk_track_pyramid`.
+
+    Attributes:
+        flow: the finest level's flow u*, level-0 pixels, differentiable, shape (N, 2), float64.
+        status: the NumPy solver's rule at level 0 (full-resolution windows), shape (N,).
+        cost: final level-0 S(u*), shape (N,), no gradient.
+        iterations: LM iterations summed over levels, shape (N,), int64.
+        levels: each level's :class:`LKOutput`, level 0 first, with ``flow`` scaled to level-0 pixels
+            (differentiable w.r.t. that level's maps) and ``status`` the same rule on that level's image.
+    """
+
+    flow: torch.Tensor
+    status: torch.Tensor
+    cost: torch.Tensor
+    iterations: torch.Tensor
+    levels: tuple[LKOutput, ...]
 
 
 def _stack_level(desc2: torch.Tensor) -> torch.Tensor:
@@ -261,6 +300,56 @@ def _as_map(desc: torch.Tensor, name: str) -> torch.Tensor:
     return desc
 
 
+def _check_inputs(
+    desc1: torch.Tensor,
+    desc2: torch.Tensor,
+    points: torch.Tensor,
+    flow0: torch.Tensor | None,
+    mode: BackwardMode,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(D1, D2, points, flow0) as (C, H, W) maps and float64 (N, 2) tensors without gradient."""
+    d1 = _as_map(desc1, "desc1")
+    d2 = _as_map(desc2, "desc2")
+    if d1.shape != d2.shape:
+        raise TrainError(f"descriptor maps differ: desc1 {tuple(d1.shape)}, desc2 {tuple(d2.shape)}")
+    if d1.dtype != d2.dtype:
+        raise TrainError(f"descriptor maps differ in dtype: {d1.dtype} vs {d2.dtype}")
+    if points.dim() != 2 or points.shape[1] != 2:
+        raise TrainError(f"points must have shape (N, 2), got {tuple(points.shape)}")
+    n = points.shape[0]
+    pts = points.detach().to(torch.float64)
+    if flow0 is None:
+        u0 = torch.zeros((n, 2), dtype=torch.float64, device=pts.device)
+    else:
+        if tuple(flow0.shape) != (n, 2):
+            raise TrainError(f"flow0 must have shape ({n}, 2) like points, got {tuple(flow0.shape)}")
+        u0 = flow0.detach().to(torch.float64)
+    if not (torch.isfinite(pts).all() and torch.isfinite(u0).all()):
+        raise TrainError("points and flow0 must be finite")
+    if not isinstance(mode, BackwardMode):
+        raise TrainError(f"mode must be a BackwardMode, got {mode!r}")
+    return d1, d2, pts, u0
+
+
+def _track_level(
+    d1: torch.Tensor,
+    d2: torch.Tensor,
+    pts: torch.Tensor,
+    u0: torch.Tensor,
+    cfg: LMConfig,
+    mode: BackwardMode,
+    residual_tol: float | None,
+    min_curvature: float | None,
+) -> LKOutput:
+    """Algorithm 1 on one level with the chosen backward (``cfg.levels`` is ignored)."""
+    if mode is BackwardMode.IMPLICIT:
+        u, status, cost, iters = _ImplicitLK.apply(d1, d2, pts, u0, cfg, residual_tol, min_curvature)
+        return LKOutput(u, status, cost, iters)
+    u, cost, hess, iters = _lm_solve(d1, d2, pts, u0, cfg)
+    status = _valid(pts, u.detach(), hess.detach(), tuple(d1.shape[1:]), d1.shape[0], cfg)
+    return LKOutput(u, status, cost.detach(), iters)
+
+
 def lk_track(
     desc1: torch.Tensor,
     desc2: torch.Tensor,
@@ -300,30 +389,61 @@ def lk_track(
     """
     cfg = config or LMConfig(levels=1)
     if cfg.levels != 1:
-        raise TrainError(f"lk_track is single-scale: config.levels must be 1, got {cfg.levels}")
-    d1 = _as_map(desc1, "desc1")
-    d2 = _as_map(desc2, "desc2")
-    if d1.shape != d2.shape:
-        raise TrainError(f"descriptor maps differ: desc1 {tuple(d1.shape)}, desc2 {tuple(d2.shape)}")
-    if d1.dtype != d2.dtype:
-        raise TrainError(f"descriptor maps differ in dtype: {d1.dtype} vs {d2.dtype}")
-    if points.dim() != 2 or points.shape[1] != 2:
-        raise TrainError(f"points must have shape (N, 2), got {tuple(points.shape)}")
-    n = points.shape[0]
-    pts = points.detach().to(torch.float64)
-    if flow0 is None:
-        u0 = torch.zeros((n, 2), dtype=torch.float64, device=pts.device)
-    else:
-        if tuple(flow0.shape) != (n, 2):
-            raise TrainError(f"flow0 must have shape ({n}, 2) like points, got {tuple(flow0.shape)}")
-        u0 = flow0.detach().to(torch.float64)
-    if not (torch.isfinite(pts).all() and torch.isfinite(u0).all()):
-        raise TrainError("points and flow0 must be finite")
-    if not isinstance(mode, BackwardMode):
-        raise TrainError(f"mode must be a BackwardMode, got {mode!r}")
-    if mode is BackwardMode.IMPLICIT:
-        u, status, cost, iters = _ImplicitLK.apply(d1, d2, pts, u0, cfg, residual_tol, min_curvature)
-        return LKOutput(u, status, cost, iters)
-    u, cost, hess, iters = _lm_solve(d1, d2, pts, u0, cfg)
-    status = _valid(pts, u.detach(), hess.detach(), tuple(d1.shape[1:]), d1.shape[0], cfg)
-    return LKOutput(u, status, cost.detach(), iters)
+        raise TrainError(
+            f"lk_track is single-scale: config.levels must be 1, got {cfg.levels} (see lk_track_pyramid)"
+        )
+    d1, d2, pts, u0 = _check_inputs(desc1, desc2, points, flow0, mode)
+    return _track_level(d1, d2, pts, u0, cfg, mode, residual_tol, min_curvature)
+
+
+def lk_track_pyramid(
+    desc1: torch.Tensor,
+    desc2: torch.Tensor,
+    points: torch.Tensor,
+    flow0: torch.Tensor | None = None,
+    config: LMConfig | None = None,
+    mode: BackwardMode = BackwardMode.IMPLICIT,
+    residual_tol: float | None = None,
+    min_curvature: float | None = 0.0,
+) -> LKPyramidOutput:
+    """Track coarse to fine through the descriptor pyramid, as ``nsflow_ros.track`` does, differentiably.
+
+    Args:
+        desc1: frame-1 full-resolution descriptor map; its coarser levels are built here.
+        desc2: frame-2 map, same shape.
+        points: keypoints x in frame 1, level-0 pixels.
+        flow0: initial flow in level-0 pixels (zeros when None); no gradient.
+        config: solver settings, ``config.levels`` levels (fewer if the image is too small, as in the
+            core); ``LMConfig()`` when None.
+        mode: the backward. IMPLICIT differentiates each level at its own converged flow and detaches the
+            next level's start (see the module docstring); UNROLL records every level's iterations and the
+            chain between levels.
+        residual_tol: as in :func:`lk_track`, per level.
+        min_curvature: as in :func:`lk_track`, per level.
+
+    Returns:
+        an :class:`LKPyramidOutput`; ``flow`` matches ``nsflow_ros.track(..., config)``.
+
+    Raises:
+        TrainError: on mismatched maps or wrong point/flow shapes.
+
+    Shape:
+        desc1, desc2: (C, H, W) or (1, C, H, W). points, flow0: (N, 2).
+    """
+    cfg = config or LMConfig()
+    d1, d2, pts, u0 = _check_inputs(desc1, desc2, points, flow0, mode)
+    pyr1 = pyramid(d1, cfg.levels)
+    pyr2 = pyramid(d2, cfg.levels)
+    nlev = len(pyr1)
+    u = u0 / 2.0 ** (nlev - 1)
+    outputs: list[LKOutput] = []
+    iterations = torch.zeros(pts.shape[0], dtype=torch.int64, device=pts.device)
+    for lev in range(nlev - 1, -1, -1):
+        s = 2.0**lev
+        start = u.detach() if mode is BackwardMode.IMPLICIT else u
+        res = _track_level(pyr1[lev], pyr2[lev], pts / s, start, cfg, mode, residual_tol, min_curvature)
+        iterations = iterations + res.iterations
+        outputs.append(LKOutput(res.flow * s, res.status, res.cost, res.iterations))
+        u = res.flow * 2.0
+    final = outputs[-1]
+    return LKPyramidOutput(final.flow, final.status, final.cost, iterations, tuple(reversed(outputs)))

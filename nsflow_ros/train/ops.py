@@ -1,8 +1,11 @@
-"""Torch twins of the solver's map operations: Scharr derivatives and exact bilinear window sampling.
+"""Torch twins of the solver's map operations: Scharr derivatives, exact bilinear window sampling and
+the pyramid's downsampling.
 
-Both mirror the NumPy core exactly (``nsflow_ros.core.pyramid.descriptor_gradients`` and
-``nsflow_ros.core.solver.sample_windows``): normalised Scharr kernels with replicated borders, and
-bilinear interpolation whose sample coordinates are clamped to [0, W-1] x [0, H-1] (= replicated border).
+All mirror the NumPy core exactly (``nsflow_ros.core.pyramid.descriptor_gradients``,
+``nsflow_ros.core.solver.sample_windows`` and ``nsflow_ros.core.pyramid.build_pyramid``): normalised Scharr
+kernels with replicated borders, ``cv2.pyrDown`` with ``BORDER_REPLICATE`` (the border the core passes,
+not OpenCV's default reflect-101), and bilinear interpolation whose sample coordinates are clamped to
+[0, W-1] x [0, H-1] (= replicated border).
 Every pixel of a window shares the centre's fractional offset, so a window is interpolated from one
 (window+1)^2 integer patch; the result is differentiable w.r.t. the maps and (through the fractional
 offset) w.r.t. the centres.
@@ -15,7 +18,10 @@ from torch.nn import functional as F  # noqa: N812 - the usual torch alias
 
 from nsflow_ros.train.errors import TrainError
 
-__all__ = ["sample_windows", "scharr_gradients"]
+__all__ = ["MIN_LEVEL_SIZE", "pyr_down", "pyramid", "sample_windows", "scharr_gradients"]
+
+# build_pyramid stops before a level whose smaller side would be below this many pixels.
+MIN_LEVEL_SIZE = 8
 
 
 def _scharr_kernels(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -79,3 +85,53 @@ def sample_windows(maps: torch.Tensor, centers: torch.Tensor, window: int) -> to
     b = frac[:, 1, None, None, None]
     horiz = patch[..., :-1] + a * (patch[..., 1:] - patch[..., :-1])  # (M, K, window+1, window)
     return horiz[..., :-1, :] + b * (horiz[..., 1:, :] - horiz[..., :-1, :])
+
+
+def pyr_down(desc: torch.Tensor) -> torch.Tensor:
+    """One coarser pyramid level: ``cv2.pyrDown(desc, borderType=cv2.BORDER_REPLICATE)`` per channel.
+
+    The 5x5 Gaussian [1 4 6 4 1] / 16 (separable), borders replicated, then every second row and
+    column from the first: output size ((H + 1) // 2, (W + 1) // 2), as OpenCV's.
+
+    Args:
+        desc: the finer level.
+
+    Returns:
+        the coarser level, differentiable w.r.t. ``desc`` (the filter is linear).
+
+    Shape:
+        desc: (C, H, W). Returns (C, (H + 1) // 2, (W + 1) // 2).
+    """
+    if desc.dim() != 3:
+        raise TrainError(f"pyr_down expects a (C, H, W) map, got shape {tuple(desc.shape)}")
+    c, h, w = desc.shape
+    k = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], dtype=desc.dtype, device=desc.device) / 16.0
+    padded = F.pad(desc[:, None], (2, 2, 2, 2), mode="replicate")  # (C, 1, H+4, W+4)
+    rows = F.conv2d(padded, k.reshape(1, 1, 5, 1), stride=(2, 1))
+    out = F.conv2d(rows, k.reshape(1, 1, 1, 5), stride=(1, 2))
+    return out.reshape(c, (h + 1) // 2, (w + 1) // 2)
+
+
+def pyramid(desc: torch.Tensor, levels: int) -> list[torch.Tensor]:
+    """The solver's descriptor pyramid in torch, level 0 first (``nsflow_ros.core.pyramid.build_pyramid``).
+
+    Args:
+        desc: the full-resolution map.
+        levels: levels wanted; as in the core, a level whose smaller side would drop below
+            :data:`MIN_LEVEL_SIZE` is not built, so the result may have fewer.
+
+    Returns:
+        the maps, level 0 (``desc`` itself) first.
+
+    Shape:
+        desc: (C, H, W).
+    """
+    if levels < 1:
+        raise TrainError(f"levels must be >= 1, got {levels}")
+    out = [desc]
+    for _ in range(1, levels):
+        h, w = out[-1].shape[1:]
+        if min(h, w) // 2 < MIN_LEVEL_SIZE:
+            break
+        out.append(pyr_down(out[-1]))
+    return out
