@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from nsflow_ros.evaluation import convergence, efficiency, pairs, sequences, trackable
+from nsflow_ros.evaluation import capture, convergence, efficiency, pairs, sequences, trackable
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.section import Section
@@ -43,6 +43,11 @@ ANALYSES: list[Analysis] = [
     Analysis("pairs", "tracking error on HPatches-style viewpoint / illumination pairs", pairs.run),
     Analysis("trackable", "trackable-region ratio from a 15 px initial error (paper Table I)", trackable.run),
     Analysis("convergence", "error against iteration from a 5 px initial error", convergence.run),
+    Analysis(
+        capture.KEY,
+        "share within 1 px tracked from zero flow over 5-30 px: photo shifts, EuRoC-baseline stereo",
+        capture.run,
+    ),
     Analysis(
         efficiency.KEY, "parameters, FLOPs, encoder and whole-tracker milliseconds (Table II)", efficiency.run
     ),

@@ -15,7 +15,7 @@ from nsflow_ros.evaluation.registry import ANALYSES, Analysis, select
 from nsflow_ros.evaluation.report import headline_table, machine_info, now, run_analyses, write_report
 from nsflow_ros.evaluation.section import HeadlineRow, Section
 
-MINE = "pairs,trackable,convergence"
+MINE = "pairs,trackable,convergence,capture"
 
 
 def test_quick_run_writes_report_with_headline_table_figures_and_json(tmp_path, capsys):
@@ -27,11 +27,11 @@ def test_quick_run_writes_report_with_headline_table_figures_and_json(tmp_path, 
     assert head in report
     assert f"nsflow-evaluate --quick --out {out} --only {MINE} --no-progress" in report
     assert "Quick mode" in report and "onnxruntime" in report and "CPUs" in report
-    for png in ("pairs_boxplot.png", "trackable_heatmap.png", "convergence.png"):
+    for png in ("pairs_boxplot.png", "trackable_heatmap.png", "convergence.png", "capture.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"]({png})" in report
     results = json.loads((out / "results.json").read_text())  # strict JSON: no NaN/inf literals
-    assert set(results["sections"]) == {"pairs", "trackable", "convergence"}
+    assert set(results["sections"]) == {"pairs", "trackable", "convergence", "capture"}
     assert results["headline"] and not results["failures"]
     assert not list(out.glob(".*partial*"))
     assert "wrote" in capsys.readouterr().out
@@ -93,7 +93,7 @@ def test_headline_table_marks_missing_values_and_unmet_targets():
 
 def test_registry_keys_are_unique_and_listed(capsys):
     keys = [a.key for a in ANALYSES]
-    assert len(keys) == len(set(keys)) and {"pairs", "trackable", "convergence"} <= set(keys)
+    assert len(keys) == len(set(keys)) and {"pairs", "trackable", "convergence", "capture"} <= set(keys)
     assert cli.main(["--list"]) == 0
     listing = capsys.readouterr().out
     assert all(k in listing for k in keys)

@@ -1,0 +1,454 @@
+"""Capture from zero flow: how far can a method bring a point it starts on, at the deployed pyramid depth.
+
+The tracker starts most solves with no knowledge of the motion (the first track of a point, stereo
+left -> right without a previous disparity), so what matters is the share of points a method brings
+within 1 px of the truth from zero initial flow, over the displacements a 20 Hz camera and a stereo rig
+produce. Two sources, each without and with a lighting change (both frames independently perturbed at
+full strength by :func:`~nsflow_ros.data.perturb.perturb_pair`):
+
+* **photo shifts**: pairs rendered from the held-out photos (:mod:`nsflow_ros.evaluation.pairs`), frame
+  2 the crop of frame 1 moved by 5-30 px in a random direction (plus a mild homography of a couple of
+  pixels), so every point has an exact displacement of about the nominal one;
+* **stereo**: left / right pairs of the sample sequence's room (:mod:`nsflow_ros.data.sample`) rendered
+  through EuRoC's two cameras (the EuRoC baseline, 11 cm, unrectified as VINS tracks them), with the
+  exact disparity of every point from the scene geometry; points the right camera does not see are left
+  out. The room's depths give disparities of about 10-16 px.
+
+Keypoints are GFTT corners of frame 1 whose true position lies 10 px inside frame 2. Every method tracks
+every keypoint from zero flow at the depth the tracker deploys (4 levels: the LM solver's, OpenCV's
+maxLevel 3 as VINS calls it) and at one level fewer; a lost point counts as not captured. The share
+within 1 px is reported per source, condition, depth and displacement (5 px bins).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nsflow_ros.data.perturb import perturb_pair
+from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
+from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.methods import KLT, KLT_CLAHE, NSFLOW, EvalMethod, PairMethod
+from nsflow_ros.evaluation.pairs import (
+    MARGIN,
+    endpoint_errors,
+    inside,
+    keypoints,
+    random_homography,
+    render_pair,
+    true_flow,
+)
+from nsflow_ros.evaluation.section import HeadlineRow, Section
+
+__all__ = [
+    "BIN_EDGES",
+    "CONDITIONS",
+    "KEY",
+    "SOURCES",
+    "CaptureConfig",
+    "CapturePair",
+    "capture_errors",
+    "photo_pairs",
+    "run",
+    "shift_homography",
+    "stereo_pairs",
+]
+
+KEY = "capture"
+CONDITIONS = ("none", "light")
+SOURCES = ("photo shifts", "stereo")
+BIN_EDGES = (2.5, 7.5, 12.5, 17.5, 22.5, 27.5, 32.5)
+"""Displacement bins (px) of the per-displacement table and plot, centred on 5, 10, ..., 30."""
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """Settings of the capture analysis.
+
+    Attributes:
+        width, height: size of the photo pairs in pixels.
+        photos: held-out photos.
+        displacements: nominal shifts of the photo pairs (px).
+        per_displacement: photo pairs per photo and displacement.
+        max_points: GFTT keypoints per photo pair (at most).
+        min_distance: GFTT minimum distance (px).
+        stereo_frames: stereo pairs, evenly spaced over the sample sequence.
+        stereo_duration: seconds of sample sequence to draw them from.
+        stereo_points: GFTT keypoints per left image (at most).
+        sequence_seed: seed of the sample sequence (scene and flight).
+    """
+
+    width: int = 480
+    height: int = 360
+    photos: tuple[str, ...] = HELDOUT_IMAGES
+    displacements: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
+    per_displacement: int = 1
+    max_points: int = 500
+    min_distance: float = 8.0
+    stereo_frames: int = 8
+    stereo_duration: float = 8.0
+    stereo_points: int = 300
+    sequence_seed: int = 0
+
+    @classmethod
+    def quick(cls) -> CaptureConfig:
+        """Tiny sizes for tests and CI."""
+        return cls(
+            width=240, height=180, photos=HELDOUT_IMAGES[:1], displacements=(5.0, 15.0, 30.0),
+            max_points=80, stereo_frames=1, stereo_duration=0.6, stereo_points=80,
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class CapturePair:
+    """Two frames, keypoints in the first and their exact displacement into the second.
+
+    Attributes:
+        source: one of :data:`SOURCES`.
+        condition: "none" or "light".
+        label: the pair in words ("coffee, 15 px", "stereo frame 40").
+        image1, image2: (H, W) uint8 frames.
+        points: (N, 2) keypoints in frame 1.
+        flow: (N, 2) their exact displacement into frame 2.
+    """
+
+    source: str
+    condition: str
+    label: str
+    image1: np.ndarray
+    image2: np.ndarray
+    points: np.ndarray
+    flow: np.ndarray
+
+
+def shift_homography(rng: np.random.Generator, width: int, height: int, shift: float) -> np.ndarray:
+    """A translation by ``shift`` px in a random direction after a mild random homography (level 0.3).
+
+    Returns:
+        P, (3, 3) float64, frame-1 pixel -> frame-2 pixel.
+    """
+    ang = rng.uniform(0.0, 2.0 * np.pi)
+    move = np.array([[1.0, 0.0, shift * np.cos(ang)], [0.0, 1.0, shift * np.sin(ang)], [0.0, 0.0, 1.0]])
+    return move @ random_homography(rng, width, height, 0.3)
+
+
+def _keep(pts: np.ndarray, flow: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    keep = inside(pts + flow, width, height, MARGIN)
+    return pts[keep], flow[keep]
+
+
+def photo_pairs(cfg: CaptureConfig, seed: int = 0) -> list[CapturePair]:
+    """The photo-shift pairs, each without and with a lighting change (same geometry and points).
+
+    Args:
+        cfg: sizes.
+        seed: base seed.
+
+    Returns:
+        ``2 * len(photos) * len(displacements) * per_displacement`` pairs.
+    """
+    out = []
+    for k, name in enumerate(cfg.photos):
+        photo = load_photo(name)
+        for di, shift in enumerate(cfg.displacements):
+            for i in range(cfg.per_displacement):
+                rng = np.random.default_rng([seed, 21, k, di, i])
+                p = shift_homography(rng, cfg.width, cfg.height, shift)
+                f1, f2 = render_pair(photo, rng, cfg.width, cfg.height, p)
+                pts = keypoints(f1, cfg.max_points, cfg.min_distance)
+                pts, gt = _keep(pts, true_flow(pts, p), cfg.width, cfg.height)
+                label = f"{name}, {shift:g} px"
+                out.append(CapturePair(SOURCES[0], "none", label, f1, f2, pts, gt))
+                l1, l2 = perturb_pair(f1, f2, np.random.default_rng([seed, 22, k, di, i]), 1.0)
+                out.append(CapturePair(SOURCES[0], "light", label, l1, l2, pts, gt))
+    return out
+
+
+def stereo_pairs(sequence: Any, cfg: CaptureConfig, seed: int = 0) -> list[CapturePair]:
+    """Left / right pairs of a stereo sample sequence with exact disparities, without and with light.
+
+    Args:
+        sequence: a stereo :class:`~nsflow_ros.data.sample.SampleSequence`.
+        cfg: how many frames and points.
+        seed: seed of the lighting change.
+
+    Returns:
+        ``2 * cfg.stereo_frames`` pairs (fewer when the sequence is shorter).
+
+    Raises:
+        EvaluationError: the sequence has no second camera.
+    """
+    if len(sequence.cameras) < 2:
+        raise EvaluationError("the capture analysis needs a stereo sample sequence (two cameras)")
+    n = len(sequence)
+    frames = sorted({round(float(v)) for v in np.linspace(0, n - 1, max(1, min(cfg.stereo_frames, n)))})
+    out = []
+    for i in frames:
+        left, right = sequence.image(i, 0), sequence.image(i, 1)
+        h, w = left.shape[:2]
+        pts = keypoints(left, cfg.stereo_points, cfg.min_distance)
+        flow, visible = sequence.flow(i, i, pts, 0, 1)
+        pts, flow = _keep(pts[visible], flow[visible], w, h)
+        label = f"stereo frame {i}"
+        out.append(CapturePair(SOURCES[1], "none", label, left, right, pts, flow))
+        l1, l2 = perturb_pair(left, right, np.random.default_rng([seed, 23, i]), 1.0)
+        out.append(CapturePair(SOURCES[1], "light", label, l1, l2, pts, flow))
+    return out
+
+
+def capture_errors(
+    methods: list[PairMethod], pair: CapturePair, fewer_levels: int = 0
+) -> dict[str, np.ndarray]:
+    """Each method's endpoint errors (inf where lost) tracking the pair's keypoints from zero flow.
+
+    Args:
+        methods: evaluation methods (:class:`~nsflow_ros.evaluation.methods.EvalMethod`).
+        pair: frames, keypoints and exact displacements.
+        fewer_levels: run each method on this many pyramid levels fewer than its own.
+
+    Returns:
+        method name -> (N,) errors.
+
+    Raises:
+        EvaluationError: a method that is not an evaluation method, or too few levels to remove.
+    """
+    out = {}
+    for m in methods:
+        if not isinstance(m, EvalMethod):
+            raise EvaluationError(f"capture needs an evaluation method, got {type(m).__name__} {m.name!r}")
+        if m.levels - fewer_levels < 1:
+            raise EvaluationError(f"{m.name}: {m.levels} levels cannot be reduced by {fewer_levels}")
+        f1, f2 = m.prepare(pair.image1), m.prepare(pair.image2)
+        res = m.track_frames(f1, f2, pair.points, None, m.levels - fewer_levels)
+        out[m.name] = endpoint_errors(res, pair.flow)
+    return out
+
+
+def load_stereo_sequence(ctx: EvalContext, cfg: CaptureConfig) -> Any:
+    """The stereo sample sequence (poses and scene only: frames are rendered when asked), made once.
+
+    The cache folder is ``ctx.extra["capture"]["cache_dir"]``, by default ``cache/`` beside
+    ``ctx.out_dir`` (shared with the sequences analysis).
+
+    Raises:
+        EvaluationError: the sequence cannot be made there.
+    """
+    from nsflow_ros.data.errors import DataError
+    from nsflow_ros.data.sample import make_sample_sequence
+
+    opts = ctx.extra.get(KEY, {})
+    cache = Path(opts.get("cache_dir", ctx.out_dir.parent / "cache"))
+    name = f"sample-seed{cfg.sequence_seed}-{cfg.stereo_duration:g}s-stereo-meta"
+    try:
+        return make_sample_sequence(
+            cache / name, seed=cfg.sequence_seed, duration=cfg.stereo_duration, stereo=True, formats=(),
+            progress=False,
+        )  # fmt: skip
+    except (DataError, OSError) as err:
+        raise EvaluationError(f"cannot make the stereo sample sequence under {cache}: {err}") from err
+
+
+def _share(errors: list[np.ndarray]) -> float:
+    e = np.concatenate(errors) if errors else np.zeros(0)
+    return float(np.mean(e < 1.0)) if e.size else float("nan")
+
+
+def _bin_shares(errors: list[np.ndarray], displacement: list[np.ndarray]) -> list[float]:
+    e = np.concatenate(errors) if errors else np.zeros(0)
+    d = np.concatenate(displacement) if displacement else np.zeros(0)
+    out = []
+    for lo, hi in itertools.pairwise(BIN_EDGES):
+        sel = (d >= lo) & (d < hi)
+        out.append(float(np.mean(e[sel] < 1.0)) if sel.any() else float("nan"))
+    return out
+
+
+def _centres() -> list[float]:
+    return [(lo + hi) / 2 for lo, hi in itertools.pairwise(BIN_EDGES)]
+
+
+def _plot(bins: dict, names: list[str], fewer_set: tuple[int, ...], path: Path) -> None:
+    fig = new_figure(11.0, 7.5)
+    axes = fig.subplots(len(SOURCES), len(CONDITIONS), sharex=True, sharey=True)
+    colours = ["#d62728", "#ff7f0e", "#1f77b4", "#2ca02c", "#9467bd", "#8c564b"]
+    x = _centres()
+    for r, source in enumerate(SOURCES):
+        for c, cond in enumerate(CONDITIONS):
+            ax = axes[r, c]
+            for j, n in enumerate(names):
+                for f in fewer_set:
+                    ys = np.asarray(bins[(source, cond, f)][n])
+                    have = np.isfinite(ys)  # bins without keypoints are skipped, not drawn as gaps
+                    ax.plot(np.asarray(x)[have], 100 * ys[have], color=colours[j % len(colours)], marker="o",
+                            ms=3,
+                            ls="-" if f == 0 else "--", lw=1.6 if f == 0 else 1.0,
+                            label=n if f == 0 else f"{n}, one level fewer")  # fmt: skip
+            ax.set_title(f"{source}, {'no lighting change' if cond == 'none' else 'lighting change'}",
+                         fontsize=9)  # fmt: skip
+            ax.set_ylim(-3, 103)
+            ax.grid(True, alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("true displacement (px, 5 px bins)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("share within 1 px (%)")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(names), fontsize=7, frameon=False)
+    fig.suptitle("Capture from zero flow: solid = deployed levels, dashed = one level fewer", fontsize=10)
+    fig.tight_layout(rect=(0, 0.07, 1, 0.97))
+    save_figure(fig, path)
+
+
+def _levels_text(methods: list[PairMethod], fewer: int = 0) -> str:
+    depths = sorted({m.levels - fewer for m in methods})
+    if len(depths) == 1:
+        return f"{depths[0]} level{'s' if depths[0] != 1 else ''}"
+    return ", ".join(f"{m.name} {m.levels - fewer}" for m in methods) + " levels"
+
+
+def _condition(cond: str) -> str:
+    return "no lighting change" if cond == "none" else "lighting change"
+
+
+def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
+    """The ``capture`` section: share within 1 px from zero flow per method, source, condition, depth.
+
+    ``ctx.extra["capture"]`` may hold ``cache_dir`` (where the stereo sample sequence is made).
+
+    Args:
+        ctx: the evaluation context (methods, quick, out_dir, progress, seed).
+        cfg: settings; ``CaptureConfig.quick()`` in quick mode, else ``CaptureConfig()``.
+
+    Returns:
+        the section (``capture.png``, the tables, headline rows).
+
+    Raises:
+        EvaluationError: no methods, or the sample sequence cannot be made.
+    """
+    cfg = cfg or (CaptureConfig.quick() if ctx.quick else CaptureConfig())
+    if not ctx.methods:
+        raise EvaluationError("capture needs at least one method")
+    names = [m.name for m in ctx.methods]
+    fewer_set = (0, 1) if min(m.levels for m in ctx.methods) > 1 else (0,)
+    pairs = photo_pairs(cfg, ctx.seed) + stereo_pairs(load_stereo_sequence(ctx, cfg), cfg, ctx.seed)
+
+    errors: dict[tuple[str, str, int], dict[str, list[np.ndarray]]] = {}
+    displacement: dict[tuple[str, str], list[np.ndarray]] = {}
+    for pair in ctx.bar(pairs, desc=KEY, unit="pair"):
+        displacement.setdefault((pair.source, pair.condition), []).append(np.linalg.norm(pair.flow, axis=1))
+        for f in fewer_set:
+            per = errors.setdefault((pair.source, pair.condition, f), {n: [] for n in names})
+            for n, e in capture_errors(ctx.methods, pair, f).items():
+                per[n].append(e)
+
+    share = {key: {n: _share(v) for n, v in per.items()} for key, per in errors.items()}
+    bins = {
+        key: {n: _bin_shares(v, displacement[key[:2]]) for n, v in per.items()} for key, per in errors.items()
+    }
+    pooled = {
+        (cond, f): {n: _share([e for s in SOURCES for e in errors[(s, cond, f)][n]]) for n in names}
+        for cond in CONDITIONS
+        for f in fewer_set
+    }
+    fig_path = ctx.out_dir / f"{KEY}.png"
+    _plot(bins, names, fewer_set, fig_path)
+
+    depth, fewer_depth = _levels_text(ctx.methods), _levels_text(ctx.methods, 1)
+    clean = [p for p in pairs if p.condition == "none"]  # the lit copies share geometry and points
+    points = {s: sum(len(p.points) for p in clean if p.source == s) for s in SOURCES}
+    n_pairs = {s: sum(1 for p in clean if p.source == s) for s in SOURCES}
+    disp = {s: np.concatenate([np.zeros(0), *displacement[(s, "none")]]) for s in SOURCES}
+    stereo_d = disp[SOURCES[1]] if disp[SOURCES[1]].size else np.full(1, np.nan)
+    lines = [
+        f"Tracked from zero flow. Photo shifts: {n_pairs[SOURCES[0]]} pairs of {cfg.width}x{cfg.height} px "
+        f"from the held-out photos ({', '.join(cfg.photos)}) moved by "
+        f"{', '.join(f'{d:g}' for d in cfg.displacements)} px in random directions, {points[SOURCES[0]]} "
+        f"GFTT keypoints. Stereo: {n_pairs[SOURCES[1]]} left / right pairs of the sample sequence (seed "
+        f"{cfg.sequence_seed}) through EuRoC's cameras, {points[SOURCES[1]]} keypoints seen by both, "
+        f"disparities {np.min(stereo_d):.1f}-{np.max(stereo_d):.1f} px "
+        f"(median {np.median(stereo_d):.1f}). Each pair once without and once with a full-strength "
+        f"lighting change of both frames. Every method at {depth} (the tracker's deployed depth)"
+        + (f" and at {fewer_depth} (one fewer)" if 1 in fewer_set else "")
+        + ". Share of keypoints within 1 px of the truth (a lost point is not)."
+        + (" **Quick mode: tiny sizes, figures not meaningful.**" if ctx.quick else ""),
+        "",
+        "| source | condition | levels | " + " | ".join(names) + " |",
+        "|---|---|---|" + "---|" * len(names),
+    ]
+    for s in SOURCES:
+        for cond in CONDITIONS:
+            for f in fewer_set:
+                tag = depth if f == 0 else f"{fewer_depth} (one fewer)"
+                cells = " | ".join(f"{100 * share[(s, cond, f)][n]:.1f} %" for n in names)
+                lines.append(f"| {s} | {cond} | {tag} | {cells} |")
+    lines += [
+        "",
+        "Share within 1 px per true displacement (5 px bins; `-`: no keypoint in the bin):",
+        "",
+        "| source | condition | levels | method | " + " | ".join(f"{c:g} px" for c in _centres()) + " |",
+        "|---|---|---|---|" + "---|" * len(_centres()),
+    ]
+    for s in SOURCES:
+        for cond in CONDITIONS:
+            for f in fewer_set:
+                for n in names:
+                    vals = bins[(s, cond, f)][n]
+                    cells = " | ".join("-" if np.isnan(v) else f"{100 * v:.0f} %" for v in vals)
+                    tag = "deployed" if f == 0 else "one fewer"
+                    lines.append(f"| {s} | {cond} | {tag} | {n} | {cells} |")
+    lines += ["", f"![capture from zero flow]({fig_path.name})", ""]
+
+    headline = []
+    for s in SOURCES:
+        for cond in CONDITIONS:
+            sh = share[(s, cond, 0)]
+            rivals = [KLT] + ([KLT_CLAHE] if cond == "light" and KLT_CLAHE in sh else [])
+            target = f">= {KLT}" + "".join(f" and > {r}" for r in rivals[1:])
+            met = None
+            if NSFLOW in sh and KLT in sh:
+                met = bool(sh[NSFLOW] >= sh[KLT] and all(sh[NSFLOW] > sh[r] for r in rivals[1:]))
+            headline.append(HeadlineRow(
+                f"capture from zero flow, {s}, share < 1 px, {_condition(cond)} ({depth})",
+                {n: f"{100 * v:.1f}%" for n, v in sh.items()}, target, met,
+            ))  # fmt: skip
+    if 1 in fewer_set:
+        for cond in CONDITIONS:
+            vals = {n: f"{100 * v:.1f}%" for n, v in pooled[(cond, 1)].items()}
+            klt4 = 100 * pooled[(cond, 0)].get(KLT, np.nan)
+            met = None
+            if NSFLOW in names and KLT in names:
+                met = bool(pooled[(cond, 1)][NSFLOW] >= pooled[(cond, 0)][KLT])
+            headline.append(HeadlineRow(
+                f"capture from zero flow, both sources, share < 1 px, {_condition(cond)}, one level fewer "
+                f"({fewer_depth})",
+                vals, f"stretch: NSFlow here >= {KLT} at {depth} ({klt4:.1f}%)",
+                met,
+            ))  # fmt: skip
+    data = {
+        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
+        "levels": {m.name: m.levels for m in ctx.methods},
+        "pairs": n_pairs,
+        "points": points,
+        "bin_edges_px": list(BIN_EDGES),
+        "share_within_1px": [
+            {"source": s, "condition": c, "levels_fewer": f, **share[(s, c, f)]}
+            for s in SOURCES for c in CONDITIONS for f in fewer_set
+        ],
+        "share_within_1px_by_displacement": [
+            {"source": s, "condition": c, "levels_fewer": f, **bins[(s, c, f)]}
+            for s in SOURCES for c in CONDITIONS for f in fewer_set
+        ],
+        "pooled_within_1px": [
+            {"condition": c, "levels_fewer": f, **pooled[(c, f)]} for c in CONDITIONS for f in fewer_set
+        ],
+        "stereo_disparity_px": {
+            "min": float(np.min(stereo_d)), "median": float(np.median(stereo_d)),
+            "max": float(np.max(stereo_d)),
+        },
+    }  # fmt: skip
+    return Section(KEY, "Capture from zero flow (photo shifts and EuRoC-baseline stereo)", "\n".join(lines),
+                   [fig_path], headline, data)  # fmt: skip
