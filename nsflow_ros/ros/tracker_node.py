@@ -608,12 +608,16 @@ def _program(argv0: str | None) -> str:
 
 
 def _check_ros_args(ros_args: list[str]) -> None:
-    """Check what rcl would reject with a long message: a params file that cannot be read.
+    """Check what rcl would reject with a long message: a malformed -p, a params file that cannot be read.
 
     Raises:
-        ParameterError: naming the file.
+        ParameterError: naming the argument or the file.
     """
     for k, arg in enumerate(ros_args):
+        if arg in ("-p", "--param"):
+            value = ros_args[k + 1] if k + 1 < len(ros_args) else ""
+            if ":=" not in value or value.startswith(":="):
+                raise ParameterError(f"{arg} {value}: expected NAME:=VALUE, e.g. -p max_cnt:=150")
         if arg == "--params-file":
             if k + 1 >= len(ros_args):
                 raise ParameterError("--params-file needs a file name")
@@ -622,9 +626,31 @@ def _check_ros_args(ros_args: list[str]) -> None:
                 what = "is not a file" if path.exists() else "does not exist"
                 raise ParameterError(f"--params-file {path}: {what} (expected a ROS 2 parameters YAML file)")
             try:
-                path.read_bytes()
+                text = path.read_text(errors="replace")
             except OSError as err:
                 raise ParameterError(f"--params-file {path}: cannot read it ({err.strerror})") from err
+            _check_yaml(path, text)
+
+
+def _check_yaml(path: Path, text: str) -> None:
+    """A params file must be YAML mapping node names to ``ros__parameters``."""
+    try:
+        import yaml
+    except ImportError:  # rcl checks it then
+        return
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        where = getattr(err, "problem_mark", None)
+        line = f" at line {where.line + 1}" if where is not None else ""
+        raise ParameterError(f"--params-file {path}: not valid YAML{line}") from err
+    if not isinstance(data, dict) or not all(
+        isinstance(v, dict) and "ros__parameters" in v for v in data.values()
+    ):
+        raise ParameterError(
+            f"--params-file {path}: expected 'node_name: {{ros__parameters: {{...}}}}' entries "
+            "(see config/tracker_params.yaml)"
+        )
 
 
 def _rcl_message(err: Exception) -> str:

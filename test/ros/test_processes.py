@@ -79,9 +79,16 @@ def test_help_from_the_command_line():
         (["-p", "max_cnt:=abc"], "parameter max_cnt: got 'abc' (string), expected an integer"),
         (["-p", "use_imu_prediction:=2"], "use_imu_prediction: got 2 (integer), expected a boolean"),
         (["--params-file", "/missing.yaml"], "--params-file /missing.yaml: does not exist"),
+        (["-p", "max_cnt"], "-p max_cnt: expected NAME:=VALUE"),
+        (["--params-file", "BAD_YAML"], "bad.yaml: not valid YAML at line 3"),
+        (["--params-file", "NOT_PARAMS"], "expected 'node_name: {ros__parameters: {...}}' entries"),
     ],
 )
-def test_type_slips_are_one_line_errors(args, expected):
+def test_type_slips_are_one_line_errors(args, expected, tmp_path):
+    (tmp_path / "bad.yaml").write_text("a:\n  b: [1,\n")
+    (tmp_path / "plain.yaml").write_text("max_cnt: 3\n")
+    names = {"BAD_YAML": str(tmp_path / "bad.yaml"), "NOT_PARAMS": str(tmp_path / "plain.yaml")}
+    args = [names.get(a, a) for a in args]
     cmd = _tracker("--ros-args", "-p", "method:=klt", *args)
     out = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=60)
     assert out.returncode == 1
