@@ -62,7 +62,6 @@ ROS = [
     "ros-jazzy-geometry-msgs",
     "ros-jazzy-diagnostic-msgs",
     "ros-jazzy-rosgraph-msgs",
-    "ros-jazzy-diagnostic-msgs",
     "ros-jazzy-rmw-fastrtps-cpp",
 ]
 
