@@ -81,6 +81,7 @@ setup(
         "onnx>=1.15",
         "rosbags>=0.11,!=0.11.6",
         "tqdm",
+        "pyyaml",  # params-file checks of the tracker (rclpy needs it too)
         "scikit-image>=0.22",
         "matplotlib>=3.7",
         *ROS,

@@ -27,6 +27,7 @@ ROSDEP_KEYS = {
     "rosbags": "python3-rosbags-pip",
     "lz4": "python3-rosbags-pip",  # a dependency of rosbags (its ROS 1 chunk compression)
     "tqdm": "python3-tqdm",
+    "yaml": "python3-yaml",
     "matplotlib": "python3-matplotlib",
     "skimage": "python3-skimage",
     "pytest": "python3-pytest",
