@@ -16,7 +16,7 @@ from nsflow_ros import files
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import PairMethod
 
-__all__ = ["EvalContext", "atomic_write", "new_figure", "save_figure"]
+__all__ = ["EvalContext", "atomic_write", "axis_label", "new_figure", "save_figure"]
 
 T = TypeVar("T")
 
@@ -104,6 +104,11 @@ def new_figure(width: float = 8.0, height: float = 4.5) -> Any:
     fig = Figure(figsize=(width, height))
     FigureCanvasAgg(fig)
     return fig
+
+
+def axis_label(name: str) -> str:
+    """A method's label for a crowded axis: "OpenCV KLT + CLAHE" -> "OpenCV KLT\n+ CLAHE"."""
+    return name.replace(" + ", "\n+ ")
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> Path:

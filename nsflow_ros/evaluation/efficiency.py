@@ -29,7 +29,7 @@ from nsflow_ros.bench import time_encoder, timing_stats
 from nsflow_ros.core.encoder import Encoder, IntensityEncoder
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
-from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.context import EvalContext, axis_label, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW
 from nsflow_ros.evaluation.section import HeadlineRow, Section
@@ -214,15 +214,16 @@ def _figure(enc: dict[str, dict[str, dict[str, float]]], trk: dict[str, dict[str
     ax1.set_title("encoder alone (onnxruntime, CPU)")
     ax1.legend(fontsize=8)
     ax1.grid(axis="y", alpha=0.3)
-    names = list(trk)
+    names = [axis_label(n) for n in trk]
     bottom = np.zeros(len(names))
     for stage in ("encode", "track", "detect"):
-        vals = np.array([trk[m][stage]["median_ms"] for m in names])
+        vals = np.array([trk[m][stage]["median_ms"] for m in trk])
         ax2.bar(names, vals, 0.6, bottom=bottom, label=stage)
         bottom += vals
     # the rest of the frame: gray conversion, undistortion, velocities, the mask
-    other = np.maximum(np.array([trk[m]["total"]["median_ms"] for m in names]) - bottom, 0.0)
+    other = np.maximum(np.array([trk[m]["total"]["median_ms"] for m in trk]) - bottom, 0.0)
     ax2.bar(names, other, 0.6, bottom=bottom, label="other", color="0.7")
+    ax2.tick_params(axis="x", labelsize=8)
     ax2.set_ylabel("ms per frame (median per stage)")
     ax2.set_title(f"whole tracker per frame, {size[0]}x{size[1]}")
     ax2.legend(fontsize=8)

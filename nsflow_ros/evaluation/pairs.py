@@ -36,7 +36,7 @@ from nsflow_ros.core.errors import CoreError
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
-from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.context import EvalContext, axis_label, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, KLT, KLT_CLAHE, NSFLOW, PairMethod, PairResult
 from nsflow_ros.evaluation.section import HeadlineRow, Section
@@ -329,7 +329,7 @@ def _box_plot(errors: dict[str, dict[str, np.ndarray]], names: list[str], path: 
             e = np.concatenate([errors[s][name] for s in SUBSETS]) if panel == "all" else errors[panel][name]
             tracked = float(np.mean(np.isfinite(e))) if e.size else float("nan")
             data.append(np.clip(np.nan_to_num(e, posinf=PLOT_CEILING), 1e-3, PLOT_CEILING))
-            labels.append(f"{name}\ntracked {tracked:.0%}")
+            labels.append(f"{axis_label(name)}\ntracked {tracked:.0%}")
         ax.boxplot(data, whis=(5, 95), showfliers=False, medianprops={"color": "crimson"})
         ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=7)
         ax.set_yscale("log")

@@ -224,7 +224,7 @@ def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
             err = tm.grid(name)
             cls = np.where(np.isnan(err), np.nan, np.digitize(np.nan_to_num(err, nan=0.0), THRESHOLDS) + 0.5)
             axes[r, c].imshow(cls, cmap=cmap, norm=norm, interpolation="nearest")
-            axes[r, c].set_title(f"{name}: @1 {ratios[name][0]:.0%} @3 {ratios[name][2]:.0%}", fontsize=8)
+            axes[r, c].set_title(f"{name}\n@1 {ratios[name][0]:.0%} @3 {ratios[name][2]:.0%}", fontsize=8)
         for ax in axes[r]:
             ax.set_xticks([])
             ax.set_yticks([])
