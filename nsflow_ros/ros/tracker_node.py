@@ -689,22 +689,24 @@ def main(args: list[str] | None = None) -> int:
         print(f"{NODE_NAME}: error: {err}", file=sys.stderr)
         return 1
     keep_large_buffers()  # per-frame buffers stay on the heap (nsflow_ros.allocator)
-    use_large_image_transport()
+    profile = use_large_image_transport()
     with StopSignals() as stop:
         try:
             init_without_signal_handlers(argv)
         except Exception as err:
             print(f"{NODE_NAME}: error: bad ROS arguments: {_rcl_message(err)}", file=sys.stderr)
             return 1
-        return _run(stop)
+        return _run(stop, profile)
 
 
-def _run(stop: StopSignals) -> int:
+def _run(stop: StopSignals, profile: Path | None) -> int:
     node: TrackerNode | None = None
     executor: SingleThreadedExecutor | None = None
     code = 0
     try:
         node = TrackerNode()
+        if profile is not None:
+            node.get_logger().info(f"Fast DDS transports from {profile} (FASTRTPS_DEFAULT_PROFILES_FILE)")
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         # Short waits: a signal only sets a flag, seen here within 0.2 s.
