@@ -68,3 +68,17 @@ def test_guards(setup):
 
     with pytest.raises(EvaluationError, match="LM or KLT"):
         cv.convergence_curves([Other()], pair, pts, flow0, iterations=2)
+
+
+def test_quick_run_tables_the_basin_at_one_level_and_the_deployed_depth_and_one_fewer(tmp_path):
+    from nsflow_ros.evaluation.context import EvalContext
+    from nsflow_ros.evaluation.methods import KLT_CLAHE, NSFLOW
+
+    ctx = EvalContext(methods=default_methods(), quick=True, out_dir=tmp_path, progress=False)
+    sec = cv.run(ctx)
+    assert {r["levels"] for r in sec.data["capture_within_1px"]} == {1, 3, 4}
+    none, light = sec.headline
+    assert none.target == "< LM (intensity)"
+    assert light.target == f"< {CLASSICAL} and < {KLT_CLAHE}"
+    mean = sec.data["mean_clipped"]["light"]
+    assert light.met == (mean[NSFLOW][5] < mean[CLASSICAL][5] and mean[NSFLOW][5] < mean[KLT_CLAHE][5])

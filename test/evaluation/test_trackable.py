@@ -55,3 +55,24 @@ def test_guards():
     bad = HomographyPair("x", "trackable", 1, img, np.zeros((40, 41), np.uint8), np.eye(3))
     with pytest.raises(EvaluationError, match=r"\(40, 40\) and \(40, 41\)"):
         tr.trackable_map([], bad, np.random.default_rng(0))
+
+
+def test_quick_run_reports_the_deployed_depth_and_one_fewer_with_computed_targets(methods, tmp_path):
+    from nsflow_ros.evaluation.context import EvalContext
+    from nsflow_ros.evaluation.methods import BASELINES, NSFLOW
+
+    ctx = EvalContext(methods=methods, quick=True, out_dir=tmp_path, progress=False)
+    sec = tr.run(ctx)
+    assert set(sec.data["levels"].values()) == {4}
+    med, fewer = sec.data["median"], sec.data["median_one_level_fewer"]
+    rows = sec.headline
+    assert [r.metric.endswith("(4 levels)") for r in rows] == [True, True, False, False]
+    assert rows[2].metric.endswith("(3 levels: one fewer)") and rows[2].target == "" and rows[2].met is None
+    ns = med["none"][NSFLOW][0]
+    assert rows[0].met == (ns > med["none"]["LM (intensity)"][0] and ns >= 0.85)
+    best = max(med["light"][b][0] for b in BASELINES)
+    assert rows[1].met == (med["light"][NSFLOW][0] >= 1.5 * best)
+    assert rows[3].values[NSFLOW] == f"{fewer['light'][NSFLOW][0]:.1%}"
+    with pytest.raises(EvaluationError, match="cannot be reduced"):
+        tr.trackable_map(methods, tr.make_trackable_pairs(tr.TrackableConfig.quick())[0][1],
+                         np.random.default_rng(0), stride=20, fewer_levels=4)  # fmt: skip
