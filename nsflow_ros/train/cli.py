@@ -15,9 +15,24 @@ import argparse
 import shlex
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 __all__ = ["build_parser", "main"]
+
+
+def _init_error(text: str) -> tuple[str, float]:
+    """``normal:S``, ``uniform:R`` or ``zero`` -> (mode, size)."""
+    mode, _, size = text.partition(":")
+    if mode == "zero" and not size:
+        return mode, 0.0
+    try:
+        value = float(size)
+    except ValueError:
+        value = -1.0
+    if mode not in ("normal", "uniform") or not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected normal:S, uniform:R or zero, got {text!r}")
+    return mode, value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,6 +63,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="robust loss on the endpoint error (default cauchy)",
     )
     p.add_argument("--delta", type=float, default=1.0, help="robust loss scale in px (default 1)")
+    p.add_argument(
+        "--levels", type=int, default=1,
+        help="pyramid levels of the training solver, solved coarse to fine as the tracker does (default 1)",
+    )
+    p.add_argument(
+        "--coarse-loss", type=float, default=0.0, metavar="W",
+        help="weight of each coarse level's loss, robust scale --delta x 2^level (default 0: finest only)",
+    )
+    p.add_argument(
+        "--init-error", type=_init_error, default=("normal", 2.5), metavar="MODE[:PX]",
+        help="initial flow of training points: normal:S = GT + N(0, S^2) per axis, uniform:R = GT + an error "
+        "of length uniform in [0, R], zero = zero flow (default normal:2.5)",
+    )
+    p.add_argument(
+        "--translation", type=float, default=8.0,
+        help="largest common shift of the training homographies per axis, px (default 8)",
+    )
     p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default 1e-3)")
     p.add_argument("--val-every", type=int, default=1000, help="steps per epoch (validation + figure)")
     p.add_argument("--val-per-image", type=int, default=3, help="validation pairs per held-out photo")
@@ -86,6 +118,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
 
     from nsflow_ros import LMConfig, load_encoder
     from nsflow_ros.train.card import write_model_card
+    from nsflow_ros.train.data import PairConfig
     from nsflow_ros.train.evaluate import compare, format_table, heldout_pairs
     from nsflow_ros.train.export import export_onnx
     from nsflow_ros.train.figures import plot_validation
@@ -104,6 +137,11 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         mode=BackwardMode(opts.mode),
         rho=opts.rho,
         huber_delta=opts.delta,
+        lm=replace(TrainConfig().lm, levels=opts.levels),
+        coarse_weight=opts.coarse_loss,
+        pair=PairConfig(
+            init_mode=opts.init_error[0], init_sigma=opts.init_error[1], translation=opts.translation
+        ),
         val_every=opts.val_every,
         threads=opts.threads,
         val_per_image=opts.val_per_image,

@@ -32,6 +32,7 @@ from nsflow_ros.train.errors import TrainError
 
 __all__ = [
     "HELDOUT_IMAGES",
+    "INIT_MODES",
     "TRAIN_IMAGES",
     "Pair",
     "PairConfig",
@@ -40,6 +41,9 @@ __all__ = [
     "perturb_illumination",
     "render_views",
 ]
+
+
+INIT_MODES = ("normal", "uniform", "zero")
 
 
 def load_image(name: str) -> np.ndarray:
@@ -68,7 +72,12 @@ class PairConfig:
         max_points: GFTT corners per pair (at most).
         min_distance: GFTT minimum distance between corners.
         window: solver window; points whose window (in frame 1 or at the GT target) leaves the image drop.
-        init_sigma: std of the Gaussian noise added to the GT flow to make the initial flow, pixels.
+        init_sigma: size of the initial error in pixels (its meaning depends on ``init_mode``).
+        init_mode: how training pairs' initial flow is made: "normal" = GT + N(0, init_sigma^2) per axis
+            (the shipped model's); "uniform" = GT + an error whose length is uniform in [0, init_sigma]
+            in a random direction (each point is solved on its own, so this is zero flow on
+            displacements up to init_sigma, spread evenly over that range); "zero" = zero flow (the
+            displacement is the homography's: set ``translation`` for the range).
     """
 
     width: int = 320
@@ -79,6 +88,13 @@ class PairConfig:
     min_distance: float = 7.0
     window: int = 11
     init_sigma: float = 2.5
+    init_mode: str = "normal"
+
+    def __post_init__(self) -> None:
+        if self.init_mode not in INIT_MODES:
+            raise TrainError(f"PairConfig.init_mode must be one of {INIT_MODES}, got {self.init_mode!r}")
+        if self.init_sigma < 0:
+            raise TrainError(f"PairConfig.init_sigma must be >= 0, got {self.init_sigma}")
 
 
 @dataclass(frozen=True)
@@ -203,7 +219,7 @@ def make_pair(
         cfg: pair settings; ``PairConfig()`` when None.
         strength: illumination perturbation strength (0 = none).
         init_error: when given, the initial flow is GT plus an error of exactly this length in a random
-            direction (evaluation); otherwise GT plus N(0, cfg.init_sigma^2) noise (training).
+            direction (evaluation); otherwise as ``cfg.init_mode`` says (training).
 
     Returns:
         the :class:`Pair` (possibly with zero points).
@@ -225,8 +241,14 @@ def make_pair(
     keep = inside(pts) & inside(target)
     pts, target = pts[keep], target[keep]
     gt = target - pts
-    if init_error is None:
+    if init_error is None and cfg.init_mode == "normal":
         flow0 = gt + rng.normal(0.0, cfg.init_sigma, gt.shape)
+    elif init_error is None and cfg.init_mode == "zero":
+        flow0 = np.zeros_like(gt)
+    elif init_error is None:
+        ang = rng.uniform(0.0, 2 * np.pi, len(gt))
+        length = rng.uniform(0.0, cfg.init_sigma, len(gt))
+        flow0 = gt + length[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
     else:
         ang = rng.uniform(0.0, 2 * np.pi, len(gt))
         flow0 = gt + init_error * np.stack([np.cos(ang), np.sin(ang)], 1)

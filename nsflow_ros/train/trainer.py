@@ -15,7 +15,7 @@ from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, load_image, ma
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.evaluate import heldout_pairs
 from nsflow_ros.train.figures import plot_loss, plot_validation
-from nsflow_ros.train.lk_layer import BackwardMode, lk_track
+from nsflow_ros.train.lk_layer import BackwardMode, lk_track, lk_track_pyramid
 from nsflow_ros.train.loss import flow_loss
 from nsflow_ros.train.model import Encoder, EncoderSpec
 
@@ -34,9 +34,15 @@ class TrainConfig:
         seed: seeds torch and the pair generator.
         lr: Adam learning rate.
         mode: LK layer backward.
-        lm: solver settings in the training forward (single level). ``min_eigen=0``: the loss masks only
+        lm: solver settings in the training forward. ``levels=1`` (the shipped model's) solves at full
+            resolution only; more levels solve coarse to fine through the descriptor pyramid as the tracker
+            does (:func:`~nsflow_ros.train.lk_layer.lk_track_pyramid`). ``min_eigen=0``: the loss masks only
             lost points (outside the image, non-finite), not flat windows - a fresh encoder's descriptors
             are nearly flat everywhere and would otherwise mask every point and stall training.
+        coarse_weight: weight of each coarse level's loss (0 = the finest result only). A coarse level's
+            result (scaled to level-0 pixels) is compared with the ground truth in that level's own pixels
+            (error / 2^level, same robust penalty and scale): it only has to land inside the next level's
+            basin. With the implicit backward this term is the only gradient the coarse maps get.
         pair: pair settings.
         huber_delta: scale of the robust loss in pixels.
         rho: the robust loss (see :func:`~nsflow_ros.train.loss.flow_loss`).
@@ -59,6 +65,7 @@ class TrainConfig:
             levels=1, max_iterations=30, eps=1e-3, min_eigen=0.0, lambda_scale=0.0
         )
     )
+    coarse_weight: float = 0.0
     pair: PairConfig = field(default_factory=PairConfig)
     huber_delta: float = 1.0
     rho: str = "huber"
@@ -98,8 +105,18 @@ def encode_pair(model: Encoder, pair: Pair) -> tuple[torch.Tensor, torch.Tensor]
 def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: TrainConfig) -> float | None:
     """One optimisation step on one pair; returns the loss, or None when no point was usable."""
     d1, d2 = encode_pair(model, pair)
-    res = lk_track(d1, d2, torch.from_numpy(pair.points), torch.from_numpy(pair.flow0), cfg.lm, mode=cfg.mode)
-    loss, used = flow_loss(res.flow, torch.from_numpy(pair.flow_gt), res.status, cfg.huber_delta, cfg.rho)
+    pts, flow0, gt = (torch.from_numpy(a) for a in (pair.points, pair.flow0, pair.flow_gt))
+    if cfg.lm.levels == 1:
+        res = lk_track(d1, d2, pts, flow0, cfg.lm, mode=cfg.mode)
+        loss, used = flow_loss(res.flow, gt, res.status, cfg.huber_delta, cfg.rho)
+    else:
+        out = lk_track_pyramid(d1, d2, pts, flow0, cfg.lm, mode=cfg.mode)
+        loss, used = flow_loss(out.flow, gt, out.status, cfg.huber_delta, cfg.rho)
+        if cfg.coarse_weight > 0:
+            for lev, res in enumerate(out.levels[1:], start=1):
+                s = 2.0**lev
+                term = flow_loss(res.flow / s, gt / s, res.status, cfg.huber_delta, cfg.rho)[0]
+                loss = loss + cfg.coarse_weight * term
     if used == 0:
         return None
     opt.zero_grad(set_to_none=True)
@@ -136,8 +153,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     Returns:
         the trained model (final weights, no selection on validation data) and the run's records.
     """
-    if cfg.lm.levels != 1:
-        raise TrainError(f"training runs the single-level solver: lm.levels must be 1, got {cfg.lm.levels}")
+    if cfg.coarse_weight < 0:
+        raise TrainError(f"coarse_weight must be >= 0, got {cfg.coarse_weight}")
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)

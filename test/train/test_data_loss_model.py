@@ -54,6 +54,22 @@ def test_initial_error_has_the_requested_length():
     np.testing.assert_allclose(np.linalg.norm(pair.flow0 - pair.flow_gt, axis=1), 5.0)
 
 
+def test_training_initial_flow_modes():
+    src, rng = load_image("astronaut"), np.random.default_rng(2)
+    pair = make_pair(src, rng, PairConfig(init_mode="uniform", init_sigma=30.0), strength=0.0)
+    err = np.linalg.norm(pair.flow0 - pair.flow_gt, axis=1)
+    assert len(err) > 50 and err.max() <= 30.0 and err.min() < 5.0 and np.mean(err > 15.0) > 0.3
+    pair = make_pair(src, rng, PairConfig(init_mode="zero", translation=20.0), strength=0.0)
+    assert np.array_equal(pair.flow0, np.zeros_like(pair.flow_gt)) and np.abs(pair.flow_gt).max() > 1.0
+    # The default stays the shipped model's: GT + N(0, 2.5^2) per axis.
+    pair = make_pair(src, np.random.default_rng(4), PairConfig(), strength=0.0)
+    assert 2.0 < np.std(pair.flow0 - pair.flow_gt) < 3.0
+    with pytest.raises(TrainError, match="init_mode must be one of"):
+        PairConfig(init_mode="gauss")
+    with pytest.raises(TrainError, match="init_sigma must be >= 0"):
+        PairConfig(init_sigma=-1.0)
+
+
 def test_perturbation_changes_illumination_but_not_zero_strength():
     img = load_image("camera")[:120, :160]
     rng = np.random.default_rng(0)

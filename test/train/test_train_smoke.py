@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -46,6 +47,27 @@ def test_loss_decreases_on_a_repeated_pair():
     assert all(v is not None for v in losses)
     first, last = np.mean(losses[:5]), np.mean(losses[-10:])
     assert last < 0.9 * first, f"loss did not decrease: first {first:.4f}, last {last:.4f}"
+
+
+def test_coarse_to_fine_step_trains_the_coarse_levels_only_through_their_loss():
+    from dataclasses import replace
+
+    torch.manual_seed(0)
+    pair_cfg = PairConfig(width=160, height=120, max_points=60, init_mode="uniform", init_sigma=12.0)
+    pair = make_pair(load_image("astronaut"), np.random.default_rng(1), pair_cfg, strength=0.5)
+    grads = {}
+    for weight in (0.0, 1.0):
+        cfg = TrainConfig(lm=replace(TrainConfig().lm, levels=3), coarse_weight=weight, pair=pair_cfg)
+        torch.manual_seed(0)
+        model = Encoder(cfg.spec)
+        opt = torch.optim.SGD(model.parameters(), lr=0.0)  # lr 0: keep the weights, read the gradients
+        value = train_step(model, opt, pair, cfg)
+        assert value is not None and np.isfinite(value)
+        grads[weight] = torch.cat([p.grad.flatten() for p in model.parameters()])
+    assert float(grads[0.0].abs().sum()) > 0
+    # The coarse levels' loss adds a gradient of its own (the starts are detached: nothing else reaches them).
+    rel = float(torch.linalg.vector_norm(grads[1.0] - grads[0.0]) / torch.linalg.vector_norm(grads[0.0]))
+    assert rel > 0.05
 
 
 @pytest.mark.parametrize("spec", [EncoderSpec(d=4), EncoderSpec(d=3, in_channels=3, head="relu")])
@@ -101,3 +123,21 @@ def test_cli_runs_end_to_end(tmp_path, capsys):
 def test_cli_reports_known_errors(tmp_path, capsys):
     assert main(["--steps", "1", "--d", "0", "--out", str(tmp_path / "x")]) == 1
     assert "EncoderSpec.d" in capsys.readouterr().err
+    assert main(["--steps", "1", "--coarse-loss", "-1", "--out", str(tmp_path / "x")]) == 1
+    assert "coarse_weight must be >= 0" in capsys.readouterr().err
+    for bad in ("gauss:2", "uniform", "normal:-1"):
+        with pytest.raises(SystemExit) as exc:
+            main(["--init-error", bad])
+        assert exc.value.code == 2
+        assert "expected normal:S, uniform:R or zero" in capsys.readouterr().err
+
+
+def test_cli_trains_coarse_to_fine(tmp_path):
+    out = tmp_path / "run"
+    args = "--steps 2 --d 2 --levels 3 --coarse-loss 0.5 --init-error uniform:20 --translation 12"
+    args += " --val-every 2 --eval-per-image 1 --val-per-image 1 --no-progress --threads 1"
+    assert main([*args.split(), "--out", str(out)]) == 0
+    assert load_encoder(out / "nsflow_encoder.onnx").channels == 2
+    config = json.loads((out / "run.json").read_text())["config"]
+    assert "'levels': 3" in config["lm"] and config["coarse_weight"] == "0.5"
+    assert "'init_mode': 'uniform'" in config["pair"] and "'init_sigma': 20.0" in config["pair"]
