@@ -132,7 +132,18 @@ def _run_one(
                 f"the tracker node ({method}) did not come up; its log {log} ends with:\n{tail}"
             )
         opts = ReplayOptions(seq.ros2_dir, ["/cam0/image_raw"], perturb=level, seed=seed, rate=rate)
-        sent = publish_stream(node, replay_stream(opts), rate=rate, clock=False, progress=False)
+        # the publisher first, matched with the tracker's subscription both ways, so the first frame is
+        # not lost (a reader drops samples of a writer it has not matched yet)
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import Image
+
+        pub = node.create_publisher(Image, "/cam0/image_raw", qos_profile_sensor_data)
+        _wait_for(lambda: pub.get_subscription_count() > 0, 30.0, proc)
+        time.sleep(0.5)
+        sent = publish_stream(
+            node, replay_stream(opts), rate=rate, clock=False, progress=False,
+            publishers={"/cam0/image_raw": pub},
+        )
         # let the last frames through the tracker before stopping it
         _wait_for(lambda: len(collector.frames) >= sent, 5.0)
         time.sleep(0.3)

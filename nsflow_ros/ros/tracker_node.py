@@ -483,14 +483,15 @@ class TrackerNode(Node):
                 self.get_logger().info(f"{message} in the last {window['seconds']:.1f} s")
             return
         line = (
-            f"{message}: {window['frames_received']} frames received, {window['frames_processed']} "
-            f"processed, {window['dropped']} dropped in the last {window['seconds']:.1f} s"
+            f"{message} (last {window['seconds']:.1f} s: {window['frames_received']} frames received, "
+            f"{window['frames_processed']} processed, {window['dropped']} dropped"
         )
         if window["latency_p50"] is not None:
             line += (
                 f"; {window['features']:.0f} features/frame, latency p50 {window['latency_p50']:.1f} ms, "
                 f"p90 {window['latency_p90']:.1f} ms"
             )
+        line += ")"
         if level == DiagnosticStatus.WARN:
             self.get_logger().warning(line)
         else:
