@@ -143,3 +143,17 @@ def test_unknown_setting_or_layout_at_construction(tmp_path):
         FrontEndSession(cfg, {"maxcnt": 3})
     with pytest.raises(ConfigError, match="layout"):
         FrontEndSession(cfg, {"method": "classical"}, layout="ros1")
+
+
+def test_switches_reach_the_running_tracker(tmp_path, pan):
+    s = _session(tmp_path)
+    tracker = s.tracker
+    assert s.tracker.settings.flow_back and not s.tracker.settings.reject_with_f
+    notes = s.update(flow_back=0, reject_with_f=1, F_threshold=3.0, show_track=1)
+    assert s.tracker is tracker  # applied in place: the tracks go on
+    st = s.tracker.settings
+    assert not st.flow_back and st.reject_with_f and st.F_threshold == 3.0 and s.show_track
+    assert notes == ["F_threshold is now 3.0", "flow_back is now False", "reject_with_f is now True",
+                     "show_track is now True"]
+    assert s.update(flow_back=0) == []  # no change, nothing to say
+    assert s.update(reject_with_f=-1) == ["reject_with_f is now False"]  # the layout's default again
