@@ -136,7 +136,10 @@ class TrackerNode(Node):
         for ps in PARAMETERS:
             # dynamic typing so that a slip (-p F_threshold:=1) reaches spec.coerce and gets a clear answer
             desc = ParameterDescriptor(
-                description=ps.full_description, read_only=not ps.live, dynamic_typing=True
+                description=ps.full_description,
+                additional_constraints=f"{ps.kind} (checked by the node)",
+                read_only=not ps.live,
+                dynamic_typing=True,
             )
             p[ps.name] = ps.coerce(self.declare_parameter(ps.name, ps.default, desc).value)
         self._params = p
