@@ -455,6 +455,11 @@ def main(args: list[str] | None = None) -> int:
         help="comma-separated tracking methods of the whole-tracker benchmark (default "
         "nsflow,nsflow_lk,classical,klt; klt is always run as the baseline)",
     )
+    parser.add_argument(
+        "--node-seconds", type=non_negative_float, default=20.0,
+        help="seconds of the stereo sample replayed at camera rate (20 Hz) into a tracker node process over "
+        "DDS, for nsflow and klt: pairs received / processed / dropped and latency (default 20; 0 = skip)",
+    )
     parser.add_argument("--no-stages", action="store_true",
                         help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
     parser.add_argument(
@@ -479,6 +484,12 @@ def main(args: list[str] | None = None) -> int:
             res["tracker"] = run_tracker_benchmark(
                 opts.tracker_seconds, methods, model=opts.model, threads=opts.threads, progress=not opts.json
             )
+        if opts.node_seconds > 0:
+            from nsflow_ros.ros.bench_live import run_live_benchmark
+
+            res["node_live"] = run_live_benchmark(
+                opts.node_seconds, ("nsflow", "klt"), progress=not opts.json
+            )
         if not opts.no_stages:
             res.update(
                 run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json)
@@ -501,6 +512,11 @@ def main(args: list[str] | None = None) -> int:
         return 0
     if "tracker" in res:
         print(format_tracker_table(res["tracker"]))
+        print()
+    if "node_live" in res:
+        from nsflow_ros.ros.bench_live import format_live_table
+
+        print(format_live_table(res["node_live"]))
         print()
     if "setup" in res:
         print(format_table(res))

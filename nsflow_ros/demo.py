@@ -30,7 +30,7 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.stamps import stamp_to_ns
 
-__all__ = ["main", "run_demo"]
+__all__ = ["main", "run_demo", "run_live"]
 
 
 class _Collector:
@@ -93,10 +93,44 @@ def _read_summary(path: Path) -> dict[str, Any]:
         return {}
 
 
-def _run_one(
-    ctx: Any, seq: Any, config: Path, method: str, level: str, seed: int, rate: float, log: Path
+def run_live(
+    ctx: Any,
+    seq: Any,
+    config: Path,
+    method: str,
+    log: Path,
+    *,
+    level: str = "none",
+    seed: int = 0,
+    rate: float = 1.0,
+    topics: tuple[str, ...] = ("/cam0/image_raw",),
+    show_track: bool = True,
 ) -> tuple[dict[str, Any], Any]:
+    """Replay ``seq`` over ROS 2 into a ``tracker`` node process started for it, and collect its output.
+
+    The replay publishes from this process (context ``ctx``) at ``rate`` with sensor-data QoS, as a
+    camera driver would; the tracker runs as its own process with the VINS config ``config``.
+
+    Args:
+        ctx: an initialised rclpy context.
+        seq: a :class:`~nsflow_ros.data.sample.SampleSequence` with its ROS 2 bag.
+        config: VINS config file (mono or stereo: ``topics`` must be its image topics).
+        method: tracking method.
+        log: the tracker's log file; its summary goes beside it (``.summary.json``).
+        level, seed: illumination perturbation level and seed.
+        rate: replay speed factor (1.0 = camera rate).
+        topics: image topics to replay.
+        show_track: have the tracker publish its debug image.
+
+    Returns:
+        (track figures of camera 0 plus the tracker's own counters, the middle debug image or None).
+
+    Raises:
+        NSFlowError: the tracker node did not come up.
+    """
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
 
     from nsflow_ros.replay import ReplayOptions, replay_stream
     from nsflow_ros.ros.replay_node import publish_stream
@@ -109,43 +143,33 @@ def _run_one(
     summary_file = log.with_suffix(".summary.json")
     summary_file.unlink(missing_ok=True)
     cmd = [
-        sys.executable,
-        "-m",
-        "nsflow_ros.ros.tracker_node",
-        "--ros-args",
-        "-p",
-        f"config_file:={config}",
-        "-p",
-        f"method:={method}",
-        "-p",
-        "show_track:=1",
-        "-p",
-        f"summary_file:={summary_file}",
+        sys.executable, "-m", "nsflow_ros.ros.tracker_node", "--ros-args",
+        "-p", f"config_file:={config}",
+        "-p", f"method:={method}",
+        "-p", f"show_track:={int(show_track)}",
+        "-p", f"summary_file:={summary_file}",
     ]
     with log.open("wb") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+    sent = 0
     try:
         node = collector.node
-        if not _wait_for(lambda: node.count_subscribers("/cam0/image_raw") > 0, 60.0, proc):
+        if not _wait_for(lambda: all(node.count_subscribers(t) > 0 for t in topics), 60.0, proc):
             tail = log.read_text(errors="replace")[-2000:]
             raise NSFlowError(
                 f"the tracker node ({method}) did not come up; its log {log} ends with:\n{tail}"
             )
-        opts = ReplayOptions(seq.ros2_dir, ["/cam0/image_raw"], perturb=level, seed=seed, rate=rate)
-        # the publisher first, matched with the tracker's subscription both ways, so the first frame is
+        opts = ReplayOptions(seq.ros2_dir, list(topics), perturb=level, seed=seed, rate=rate)
+        # the publishers first, matched with the tracker's subscriptions both ways, so the first frame is
         # not lost (a reader drops samples of a writer it has not matched yet)
-        from rclpy.qos import qos_profile_sensor_data
-        from sensor_msgs.msg import Image
-
-        pub = node.create_publisher(Image, "/cam0/image_raw", qos_profile_sensor_data)
-        _wait_for(lambda: pub.get_subscription_count() > 0, 30.0, proc)
+        pubs = {t: node.create_publisher(Image, t, qos_profile_sensor_data) for t in topics}
+        _wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 30.0, proc)
         time.sleep(0.5)
-        sent = publish_stream(
-            node, replay_stream(opts), rate=rate, clock=False, progress=False,
-            publishers={"/cam0/image_raw": pub},
-        )
+        sent = publish_stream(node, replay_stream(opts), rate=rate, clock=False, progress=False,
+                              publishers=pubs)
+        frames_sent = sent // len(topics)
         # let the last frames through the tracker before stopping it
-        _wait_for(lambda: len(collector.frames) >= sent, 5.0)
+        _wait_for(lambda: len(collector.frames) >= frames_sent, 5.0)
         time.sleep(0.3)
     finally:
         if proc.poll() is None:
@@ -159,12 +183,11 @@ def _run_one(
     with collector.lock:
         frames, debug = dict(collector.frames), dict(collector.debug)
     figures = _stats(frames, seq)
-    figures["frames_sent"] = sent
+    figures["frames_sent"] = sent // len(topics)
     # what the tracker itself saw: frames that reached it and frames it tracked (its summary file)
-    node = _read_summary(summary_file)
-    figures["tracker_received"] = node.get("frames_received")
-    figures["tracker_processed"] = node.get("frames_processed")
-    figures["tracker_dropped"] = node.get("frames_dropped")
+    counters = _read_summary(summary_file)
+    for key in ("frames_received", "frames_processed", "frames_dropped", "latency_ms_p50", "latency_ms_p90"):
+        figures[f"tracker_{key.removeprefix('frames_')}"] = counters.get(key)
     mid = sorted(debug)[len(debug) // 2] if debug else None
     return figures, (debug[mid] if mid is not None else None)
 
@@ -212,8 +235,9 @@ def run_demo(
         for level in levels:
             for method in methods:
                 print(f"[demo] {method:9s} perturbation {level:5s}: replaying over ROS 2 ...", flush=True)
-                figs, dbg = _run_one(
-                    ctx, seq, config, method, level, seed, rate, out_dir / f"tracker_{method}_{level}.log"
+                figs, dbg = run_live(
+                    ctx, seq, config, method, out_dir / f"tracker_{method}_{level}.log",
+                    level=level, seed=seed, rate=rate,
                 )
                 results.setdefault(level, {})[method] = figs
                 if dbg is not None:

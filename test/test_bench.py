@@ -32,7 +32,7 @@ def test_benchmark_measures_every_stage_beside_opencv(tmp_path):
 
 def test_cli_json_and_errors(tmp_path, capsys):
     model = conv_encoder(tmp_path / "m.onnx", c_in=1, d=1)
-    stages_only = ["--tracker-seconds", "0"]
+    stages_only = ["--tracker-seconds", "0", "--node-seconds", "0"]
     assert main(["--frames", "3", "--points", "20", "--model", str(model), "--json", *stages_only]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["setup"]["descriptor_channels"] == 1

@@ -51,7 +51,7 @@ def test_bad_method_or_duration_is_an_error(tmp_path):
 
 
 def test_cli_runs_only_the_tracker_part_as_json(capsys):
-    args = ["--tracker-seconds", "0.2", "--no-stages", "--threads", "1"]
+    args = ["--tracker-seconds", "0.2", "--no-stages", "--node-seconds", "0", "--threads", "1"]
     assert main([*args, "--methods", "klt", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["tracker"]["mono"]) == {"klt"} and "setup" not in out
