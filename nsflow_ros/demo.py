@@ -1,11 +1,12 @@
 """The main job (``make demo`` / ``nsflow-demo``): the whole system on built-in data, over real ROS 2 topics.
 
 1. makes (or reuses) a synthetic EuRoC-like sample sequence (ROS 2 mcap bag) with exact ground truth;
-2. for each illumination perturbation level (none / small / large) and each method (NSFlow, classical),
+2. for each illumination perturbation level (none / small / large) and each method (NSFlow, NSFlow
+   descriptors through OpenCV's LK, and VINS's own KLT front-end),
    starts the ``tracker`` node as its own process, replays the sequence to it over DDS, and receives its
    ``/feature_tracker/feature`` point clouds and ``image_track`` debug images in a collector node;
 3. prints frames, features per frame, mean track length and the tracking error of every carried-over
-   feature against the ground-truth optical flow, NSFlow beside the classical mode;
+   feature against the ground-truth optical flow, with the frames the tracker received and processed;
 4. writes the debug images as a PNG contact sheet and the figures as JSON.
 """
 
@@ -188,7 +189,9 @@ def run_live(
     counters = _read_summary(summary_file)
     for key in ("frames_received", "frames_processed", "frames_dropped", "latency_ms_p50", "latency_ms_p90"):
         figures[f"tracker_{key.removeprefix('frames_')}"] = counters.get(key)
-    mid = sorted(debug)[len(debug) // 2] if debug else None
+    # the debug image of the sequence's middle frame (or the nearest one drawn): the same frame for every run
+    target = int(seq.stamps_ns[len(seq) // 2])
+    mid = min(debug, key=lambda t: abs(t - target)) if debug else None
     return figures, (debug[mid] if mid is not None else None)
 
 
@@ -199,7 +202,7 @@ def run_demo(
     seed: int = 0,
     rate: float = 1.0,
     levels: tuple[str, ...] = ("none", "small", "large"),
-    methods: tuple[str, ...] = ("nsflow", "classical"),
+    methods: tuple[str, ...] = ("nsflow", "nsflow_lk", "klt"),
 ) -> dict[str, Any]:
     """Run the demo; see the module docstring. Returns the figures per level and method."""
     import rclpy
@@ -216,9 +219,11 @@ def run_demo(
     try:
         share_file(DEFAULT_MODEL)
     except ResourceError:
-        if "nsflow" in methods:
-            methods = tuple(m for m in methods if m != "nsflow")
-            notes.append(f"no trained encoder at {DEFAULT_MODEL}: NSFlow skipped, classical mode only")
+        from nsflow_ros.core.methods import METHODS
+
+        if any(METHODS[m].learned for m in methods):
+            methods = tuple(m for m in methods if not METHODS[m].learned)
+            notes.append(f"no trained encoder at {DEFAULT_MODEL}: the learned methods are skipped")
     print(f"[demo] sample sequence ({duration:.0f} s, 752x480 mono, seed {seed}) ...", flush=True)
     seq = make_sample_sequence(
         out_dir / "sample", seed=seed, duration=duration, stereo=False, formats=("ros2",), progress=True
@@ -254,7 +259,7 @@ def run_demo(
     }
     atomic_write(out_dir / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
     if sheet:
-        img = contact_sheet(sheet, cols=len(methods), labels=labels)
+        img = contact_sheet(sheet, cols=len(methods), labels=labels, legend=True)
         atomic_write(out_dir / "tracks.png", lambda p: _write_png(p, img))
     return summary
 
@@ -291,8 +296,9 @@ def main(args: list[str] | None = None) -> int:
         prog=program_name("nsflow-demo"),
         description="The whole system on built-in data over real ROS 2 topics: makes a synthetic EuRoC-like "
         "sequence, replays it with no, small and large illumination perturbation to the tracker node "
-        "(NSFlow and the classical mode), and prints frames, features per frame, track length and the "
-        "tracking error against the exact ground-truth flow; writes a contact sheet and the figures.",
+        "(NSFlow, NSFlow descriptors through OpenCV's LK, VINS's KLT), and prints frames, features per "
+        "frame, track length and the tracking error against the exact ground-truth flow; writes a "
+        "contact sheet and the figures.",
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
     p.add_argument(

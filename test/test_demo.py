@@ -24,3 +24,20 @@ def test_replay_reaches_tracker_node_and_features_come_back(tmp_path):
     row = next(line for line in table.splitlines() if line.startswith("none") and "classical" in line)
     counts = [fig["frames_sent"], fig["tracker_received"], fig["tracker_processed"]]
     assert row.split()[2:5] == [str(n) for n in counts]
+
+
+def test_contact_sheet_has_a_legend_and_labels_on_dark_boxes():
+    import numpy as np
+
+    from nsflow_ros.offline import contact_sheet
+
+    white = np.full((480, 752, 3), 255, np.uint8)
+    sheet = contact_sheet([white, white], cols=2, labels=["nsflow", "klt"], legend=True)
+    assert sheet.shape[1] == 2 * 376
+    assert sheet.shape[0] == round(480 * 376 / 752) + 30  # the tiles, then the legend strip
+    # the label box is dark even on a white image, its text white
+    box = sheet[2:20, 2:40]
+    assert box.min() < 60 and box.max() > 200
+    # the legend strip shows the track-length colours: blue (new) to red (20+ frames)
+    strip = sheet[-30:]
+    assert (strip[..., 0] > 200).any() and (strip[..., 2] > 200).any()
