@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import threading
 import time
 
@@ -135,3 +136,80 @@ def test_publish_stream_reaches_a_subscriber(seq):
     img = got["img"][0]
     assert (img.width, img.height, img.encoding) == (752, 480, "mono8")
     assert np.frombuffer(bytes(img.data), np.uint8).size == 752 * 480
+
+
+def test_replay_waits_for_a_subscriber_started_late(seq, capsys):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
+
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(100, 200)))
+    msgs = list(replay_stream(ReplayOptions(seq.asl_dir, ["/cam0/image_raw", "/imu0"], duration=0.5)))
+    first = next(m for m in msgs if m.topic == "/cam0/image_raw")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    got: list = []
+    sent: list[int] = []
+    ex = SingleThreadedExecutor(context=ctx)
+    try:
+        pub = rclpy.create_node("late_source", context=ctx)
+        worker = threading.Thread(
+            target=lambda: sent.append(
+                publish_stream(pub, msgs, rate=1.0, clock=False, progress=True, total_s=0.5,
+                               wait_subscribers=1, wait_timeout=30.0)
+            )
+        )
+        worker.start()
+        time.sleep(1.5)  # the tracker starts well after the replay
+        assert not sent, "published before anyone subscribed"
+        sub = rclpy.create_node("late_sink", context=ctx)
+        sub.create_subscription(Image, "/cam0/image_raw", got.append, qos_profile_sensor_data)
+        ex.add_node(sub)
+        spin = threading.Thread(target=ex.spin, daemon=True)
+        spin.start()
+        worker.join(30)
+        time.sleep(0.5)
+    finally:
+        ex.shutdown()
+        rclpy.shutdown(context=ctx)
+    assert sent == [len(msgs)]
+    stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in got]
+    assert stamps and stamps[0] == first.stamp_ns  # frame 0 reached the late subscriber
+    bar = capsys.readouterr().err
+    assert "0.4/0.5 s" in bar and not re.search(r"\d\.\d{4,}", bar), bar[-300:]
+
+
+def test_replay_gives_up_waiting_after_the_timeout(seq):
+    import rclpy
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = rclpy.create_node("lonely_source", context=ctx)
+        msgs = list(replay_stream(ReplayOptions(seq.asl_dir, ["/imu0"], duration=0.1)))
+        t0 = time.monotonic()
+        sent = publish_stream(node, msgs, rate=0, clock=False, progress=False, wait_subscribers=1,
+                              wait_timeout=0.5)
+        waited = time.monotonic() - t0
+    finally:
+        rclpy.shutdown(context=ctx)
+    assert sent == len(msgs)
+    assert 0.5 <= waited < 5.0
+
+
+def test_cli_remaps_repeat_and_the_old_form_still_works(seq, tmp_path, capsys):
+    from rosbags.highlevel import AnyReader
+
+    def topics(bag):
+        with AnyReader([bag]) as reader:
+            return sorted(c.topic for c in reader.connections)
+
+    new = ["--remap", "/cam0/image_raw:=/left", "--remap", "/imu0:=/imu"]
+    assert replay_main([str(seq.asl_dir), *new, "--write-bag", str(tmp_path / "a")]) == 0
+    assert "deprecated" not in capsys.readouterr().err
+    assert topics(tmp_path / "a") == ["/imu", "/left"]
+    old = ["--remap", "/cam0/image_raw:=/left", "/imu0:=/imu"]
+    assert replay_main([str(seq.asl_dir), *old, "--write-bag", str(tmp_path / "b")]) == 0
+    assert "repeat --remap FROM:=TO" in capsys.readouterr().err
+    assert topics(tmp_path / "b") == ["/imu", "/left"]
