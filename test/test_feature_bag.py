@@ -1,0 +1,140 @@
+"""The VINS feature bag: every image tracked, read back and decoded as VINS-Fusion's feature callback does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+
+from nsflow_ros.core.tracker import FeatureTracker
+from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.sample import make_sample_sequence
+from nsflow_ros.data.sources import SensorSource
+from nsflow_ros.feature_bag import FEATURE_TOPIC, bag_format, write_feature_bag
+from nsflow_ros.replay import ReplayOptions
+from nsflow_ros.resources import share_file
+from nsflow_ros.ros.replay_node import main as replay_main
+from nsflow_ros.vins.config import load_vins_config
+from nsflow_ros.vins.messages import decode_fusion
+
+STEREO_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    root = tmp_path_factory.mktemp("feature_bag") / "seq"
+    return make_sample_sequence(root, seed=4, duration=0.5, formats=("asl", "ros1"), progress=False)
+
+
+def _read(bag):
+    """(feature messages as (bag time, header stamp, decoded frame, channel count), IMU bag times)."""
+    feats, imu = [], []
+    with AnyReader([bag]) as reader:
+        for conn, t, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == FEATURE_TOPIC:
+                assert conn.msgtype == "sensor_msgs/msg/PointCloud"
+                points = np.array([[p.x, p.y, p.z] for p in msg.points]).reshape(-1, 3)
+                channels = np.array([np.asarray(c.values) for c in msg.channels])
+                channels = channels.reshape(len(msg.channels), -1)
+                stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                feats.append((t, stamp, decode_fusion(points, channels), len(msg.channels)))
+            else:
+                assert conn.msgtype == "sensor_msgs/msg/Imu"
+                imu.append(t)
+    return feats, imu
+
+
+def test_mono_ros1_bag_holds_every_frame_as_vins_fusion_reads_it(seq, tmp_path):
+    out = tmp_path / "features.bag"
+    summary = write_feature_bag(ReplayOptions(seq.asl_dir), out, method="klt", progress=False)
+    assert summary.format == "ros1" and summary.frames == len(seq) and summary.unpaired == 0
+    feats, imu = _read(out)
+
+    # one message per image, stamped (header and bag time) with the image's stamp
+    assert [f[0] for f in feats] == [f[1] for f in feats] == [int(s) for s in seq.stamps_ns]
+    assert all(f[3] == 9 for f in feats)  # the estimator reads channels 6-8 when there are more than 5
+    source_imu = [r.stamp_ns for r in SensorSource(seq.asl_dir, topics=["/imu0"]).records()]
+    assert imu == source_imu and summary.imu == len(imu) > 0
+
+    # the same features the tracker makes from the same images, point for point
+    tracker = FeatureTracker.from_vins_config(
+        load_vins_config(share_file("config/euroc/euroc_mono_imu_config.yaml")), {"method": "klt"}
+    )
+    previous: set[int] = set()
+    carried = 0
+    for (_, _, frame, _), rec in zip(feats, SensorSource(seq.asl_dir, topics=["/cam0/image_raw"]).records(),
+                                     strict=True):
+        cam = tracker.process(rec.stamp_ns * 1e-9, rec.gray()).cameras[0]
+        assert sorted(frame) == sorted(int(i) for i in cam.ids)
+        for k, fid in enumerate(cam.ids):
+            ((camera_id, row),) = frame[int(fid)]  # one observation per id in mono
+            assert camera_id == 0 and row[2] == 1.0
+            np.testing.assert_allclose(row[:2], cam.undistorted[k], atol=1e-6)
+            np.testing.assert_allclose(row[3:5], cam.pixels[k], atol=1e-3)
+            np.testing.assert_allclose(row[5:7], cam.velocities[k], atol=1e-3)
+        carried += len(previous & set(frame))
+        previous = set(frame)
+    assert carried > 100  # ids persist from frame to frame: tracks, not fresh detections
+
+
+def test_stereo_ros2_bag_orders_camera_0_before_camera_1(seq, tmp_path):
+    out = tmp_path / "features"
+    summary = write_feature_bag(
+        ReplayOptions(seq.ros1_path), out, config=share_file(STEREO_CONFIG), method="klt", progress=False
+    )
+    assert summary.format == "ros2" and (out / "metadata.yaml").is_file()
+    feats, imu = _read(out)
+    assert [f[1] for f in feats] == [int(s) for s in seq.stamps_ns] and len(imu) == summary.imu
+    right = 0
+    for _, _, frame, _ in feats:
+        for observations in frame.values():
+            cams = [c for c, _ in observations]
+            assert cams in ([0], [0, 1])  # no right-only id; left first (the estimator asserts it)
+            right += len(cams) - 1
+    assert right > 50 * len(feats)
+
+
+def test_feature_bag_is_deterministic(seq, tmp_path):
+    opts = ReplayOptions(seq.asl_dir, perturb="large", seed=3)
+    a = write_feature_bag(opts, tmp_path / "a.bag", method="klt", progress=False)
+    b = write_feature_bag(opts, tmp_path / "b.bag", method="klt", progress=False)
+    assert a.frames == b.frames == len(seq)
+    raw = []
+    for bag in (tmp_path / "a.bag", tmp_path / "b.bag"):
+        with AnyReader([bag]) as reader:
+            raw.append([bytes(r) for c, _, r in reader.messages() if c.topic == FEATURE_TOPIC])
+    assert raw[0] == raw[1]
+    plain = write_feature_bag(ReplayOptions(seq.asl_dir), tmp_path / "c.bag", method="klt", progress=False)
+    with AnyReader([tmp_path / "c.bag"]) as reader:
+        unperturbed = [bytes(r) for c, _, r in reader.messages() if c.topic == FEATURE_TOPIC]
+    assert plain.frames == a.frames and unperturbed != raw[0]  # the perturbation reaches the tracker
+
+
+def test_a_damaged_source_keeps_the_frames_before_the_damage(seq, tmp_path):
+    from nsflow_ros.errors import NSFlowError
+
+    damaged = tmp_path / "damaged.bag"
+    data = seq.ros1_path.read_bytes()
+    damaged.write_bytes(data[: len(data) // 2])
+    with pytest.raises(NSFlowError, match=r"the \d+ frames before it were tracked and written"):
+        write_feature_bag(ReplayOptions(damaged), tmp_path / "f.bag", method="klt", progress=False)
+    feats, _ = _read(tmp_path / "f.bag")
+    assert 0 < len(feats) < len(seq)
+
+
+def test_format_follows_the_name_unless_asked(tmp_path):
+    assert bag_format(tmp_path / "x.bag") == "ros1"
+    assert bag_format(tmp_path / "x") == "ros2"
+    assert bag_format(tmp_path / "x.bag", "ros2") == "ros2"
+    with pytest.raises(DataError, match=r"ROS 1 bag is a file ending in \.bag"):
+        bag_format(tmp_path / "x", "ros1")
+
+
+def test_cli_writes_the_bag_and_refuses_to_overwrite(seq, tmp_path, capsys):
+    args = [str(seq.asl_dir), "--features-bag", str(tmp_path / "f.bag"), "--method", "klt", "--no-progress"]
+    assert replay_main(args) == 0
+    assert f"{len(seq)} feature messages on {FEATURE_TOPIC}" in capsys.readouterr().out
+    assert replay_main(args) == 1
+    assert "exists already" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.bag"]  # no temporary left behind
