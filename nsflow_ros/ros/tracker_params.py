@@ -87,12 +87,14 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         "method", "nsflow",
         "Tracking method: 'nsflow' (learned descriptors + Levenberg-Marquardt LK, the paper's tracker), "
-        "'classical' (the image intensity through the same solver) or 'klt' (OpenCV calcOpticalFlowPyrLK "
-        "as VINS-Fusion calls it: 21x21 window, maxLevel 3, 30 iterations / eps 0.01). A change restarts "
-        "the tracks (ids keep counting up).", True),
+        "'nsflow_lk' (the same descriptors as uint8 through OpenCV's pyramidal LK, faster), 'classical' "
+        "(the image intensity through the LM solver) or 'klt' (OpenCV calcOpticalFlowPyrLK as VINS-Fusion "
+        "calls it: 21x21 window, maxLevel 3, 30 iterations / eps 0.01). A change restarts the tracks (ids "
+        "keep counting up).", True),
     ParamSpec(
         "model_path", "",
-        "ONNX encoder for method 'nsflow'; '' = the model shipped in the package's models/ folder. A change "
+        "ONNX encoder of the learned methods ('nsflow', 'nsflow_lk'); '' = the model shipped in the "
+        "package's models/ folder. A change "
         "restarts the tracks.", True),
     ParamSpec("max_cnt", -1, f"Most features kept per image (VINS max_cnt, >= 1). {_FROM_CONFIG}", True, 150),
     ParamSpec(
