@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_float, program_name
+from nsflow_ros.core.methods import METHODS
 from nsflow_ros.data.records import RawMessage
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.replay import ReplayOptions, parse_remaps, replay_stream
@@ -261,9 +262,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--method",
-        choices=("nsflow", "classical", "klt"),
+        choices=tuple(METHODS),
         default="nsflow",
-        help="tracker for --offline / --features-bag (default nsflow)",
+        help="tracker for --offline / --features-bag: "
+        + "; ".join(f"{name} = {entry.summary}" for name, entry in METHODS.items())
+        + " (default nsflow)",
     )
     return p
 
