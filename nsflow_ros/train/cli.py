@@ -77,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
         "of length uniform in [0, R], zero = zero flow (default normal:2.5)",
     )
     p.add_argument(
+        "--scene-share", type=float, default=0.0, metavar="P",
+        help="share of training pairs rendered from the sample scenes (stereo and temporal pairs with exact "
+        "flow) instead of photo homographies (default 0)",
+    )
+    p.add_argument(
         "--translation", type=float, default=8.0,
         help="largest common shift of the training homographies per axis, px (default 8)",
     )
@@ -139,6 +144,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         huber_delta=opts.delta,
         lm=replace(TrainConfig().lm, levels=opts.levels),
         coarse_weight=opts.coarse_loss,
+        scene_share=opts.scene_share,
         pair=PairConfig(
             init_mode=opts.init_error[0], init_sigma=opts.init_error[1], translation=opts.translation
         ),

@@ -36,8 +36,10 @@ __all__ = [
     "TRAIN_IMAGES",
     "Pair",
     "PairConfig",
+    "initial_flow",
     "load_image",
     "make_pair",
+    "perturb_frames",
     "perturb_illumination",
     "render_views",
 ]
@@ -195,13 +197,37 @@ def perturb_illumination(image: np.ndarray, rng: np.random.Generator, strength: 
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
-def _perturb_pair(
+def perturb_frames(
     img1: np.ndarray, img2: np.ndarray, rng: np.random.Generator, strength: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Perturb both frames independently with ``nsflow_ros.data.perturb.perturb_pair`` (the project's shared
     training perturbation), strength clipped to [0, 1]."""
     strength = float(np.clip(strength, 0.0, 1.0))
     return perturb_pair(img1, img2, rng, strength)
+
+
+def initial_flow(
+    gt: np.ndarray, rng: np.random.Generator, cfg: PairConfig, init_error: float | None = None
+) -> np.ndarray:
+    """The initial flow of a pair's points.
+
+    Args:
+        gt: (N, 2) ground-truth flow.
+        rng: random generator.
+        cfg: ``init_mode`` and ``init_sigma`` (see :class:`PairConfig`).
+        init_error: when given, GT plus an error of exactly this length in a random direction
+            (evaluation), whatever ``cfg`` says.
+
+    Returns:
+        (N, 2) float64 initial flow.
+    """
+    if init_error is None and cfg.init_mode == "normal":
+        return gt + rng.normal(0.0, cfg.init_sigma, gt.shape)
+    if init_error is None and cfg.init_mode == "zero":
+        return np.zeros_like(gt)
+    ang = rng.uniform(0.0, 2 * np.pi, len(gt))
+    length = rng.uniform(0.0, cfg.init_sigma, len(gt)) if init_error is None else init_error
+    return gt + np.asarray(length)[..., None] * np.stack([np.cos(ang), np.sin(ang)], 1)
 
 
 def make_pair(
@@ -228,7 +254,7 @@ def make_pair(
     if src.ndim != 2 or src.dtype != np.uint8:
         raise TrainError(f"source photo must be (H, W) uint8, got {src.shape} {src.dtype}")
     f1, f2, p = render_views(src, rng, cfg)
-    f1, f2 = _perturb_pair(f1, f2, rng, strength)
+    f1, f2 = perturb_frames(f1, f2, rng, strength)
     pts = detect_corners(f1, cfg.max_points, min_distance=cfg.min_distance)
     target = cv2.perspectiveTransform(pts[None], p)[0] if len(pts) else pts.copy()
     r = cfg.window // 2
@@ -241,15 +267,4 @@ def make_pair(
     keep = inside(pts) & inside(target)
     pts, target = pts[keep], target[keep]
     gt = target - pts
-    if init_error is None and cfg.init_mode == "normal":
-        flow0 = gt + rng.normal(0.0, cfg.init_sigma, gt.shape)
-    elif init_error is None and cfg.init_mode == "zero":
-        flow0 = np.zeros_like(gt)
-    elif init_error is None:
-        ang = rng.uniform(0.0, 2 * np.pi, len(gt))
-        length = rng.uniform(0.0, cfg.init_sigma, len(gt))
-        flow0 = gt + length[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
-    else:
-        ang = rng.uniform(0.0, 2 * np.pi, len(gt))
-        flow0 = gt + init_error * np.stack([np.cos(ang), np.sin(ang)], 1)
-    return Pair(f1, f2, pts, gt, flow0, p)
+    return Pair(f1, f2, pts, gt, initial_flow(gt, rng, cfg, init_error), p)

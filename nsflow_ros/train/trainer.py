@@ -18,6 +18,7 @@ from nsflow_ros.train.figures import plot_loss, plot_validation
 from nsflow_ros.train.lk_layer import BackwardMode, lk_track, lk_track_pyramid
 from nsflow_ros.train.loss import flow_loss
 from nsflow_ros.train.model import Encoder, EncoderSpec
+from nsflow_ros.train.scenes import ScenePool, make_scene_pair
 
 __all__ = ["TrainConfig", "TrainResult", "encode_pair", "train", "train_step", "validate"]
 
@@ -43,7 +44,12 @@ class TrainConfig:
             result (scaled to level-0 pixels) is compared with the ground truth in that level's own pixels
             (error / 2^level, same robust penalty and scale): it only has to land inside the next level's
             basin. With the implicit backward this term is the only gradient the coarse maps get.
-        pair: pair settings.
+        pair: pair settings (photo and scene pairs alike).
+        scene_share: share of training pairs rendered from the sample scenes
+            (:mod:`~nsflow_ros.train.scenes`: stereo at the EuRoC baseline and temporal pairs, exact flow);
+            the rest are photo homographies. 0 = photos only (the shipped model's data).
+        scene_cache: folder of the scenes' sample-sequence metadata (made once, reused);
+            None = ``cache`` beside ``out``.
         huber_delta: scale of the robust loss in pixels.
         rho: the robust loss (see :func:`~nsflow_ros.train.loss.flow_loss`).
         val_every: steps between validations (one "epoch").
@@ -67,6 +73,8 @@ class TrainConfig:
     )
     coarse_weight: float = 0.0
     pair: PairConfig = field(default_factory=PairConfig)
+    scene_share: float = 0.0
+    scene_cache: Path | None = None
     huber_delta: float = 1.0
     rho: str = "huber"
     val_every: int = 500
@@ -155,12 +163,17 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     """
     if cfg.coarse_weight < 0:
         raise TrainError(f"coarse_weight must be >= 0, got {cfg.coarse_weight}")
+    if not 0.0 <= cfg.scene_share <= 1.0:
+        raise TrainError(f"scene_share must be in [0, 1], got {cfg.scene_share}")
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     sources = [load_image(n) for n in cfg.images]
+    pool = None
+    if cfg.scene_share > 0:
+        pool = ScenePool(cfg.scene_cache or out.parent / "cache", seed=cfg.seed)
     model = Encoder(cfg.spec)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     val_lm = LMConfig(levels=1, max_iterations=30)  # one level from 5 px needs the longer limit
@@ -213,8 +226,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     run_validation()
     model.train()
     while (cfg.steps is None or step < cfg.steps) and time.monotonic() < deadline:
-        src = sources[int(rng.integers(len(sources)))]
-        pair = make_pair(src, rng, cfg.pair, strength=float(rng.uniform(0.0, 1.0)))
+        if pool is not None and rng.uniform() < cfg.scene_share:
+            pair = make_scene_pair(pool, rng, cfg.pair, strength=float(rng.uniform(0.0, 1.0)))
+        else:
+            src = sources[int(rng.integers(len(sources)))]
+            pair = make_pair(src, rng, cfg.pair, strength=float(rng.uniform(0.0, 1.0)))
         if len(pair.points) < 4:
             continue
         value = train_step(model, opt, pair, cfg)

@@ -125,6 +125,8 @@ def test_cli_reports_known_errors(tmp_path, capsys):
     assert "EncoderSpec.d" in capsys.readouterr().err
     assert main(["--steps", "1", "--coarse-loss", "-1", "--out", str(tmp_path / "x")]) == 1
     assert "coarse_weight must be >= 0" in capsys.readouterr().err
+    assert main(["--steps", "1", "--scene-share", "1.5", "--out", str(tmp_path / "x")]) == 1
+    assert "scene_share must be in [0, 1], got 1.5" in capsys.readouterr().err
     for bad in ("gauss:2", "uniform", "normal:-1"):
         with pytest.raises(SystemExit) as exc:
             main(["--init-error", bad])

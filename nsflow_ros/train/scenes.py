@@ -1,0 +1,152 @@
+"""Training pairs rendered from the project's synthetic sample scenes: real 3D motion with exact flow.
+
+Beside the photo homographies (:mod:`~nsflow_ros.train.data`), these pairs look like the tracker's
+input: EuRoC-like 752x480 frames of a textured room (:mod:`nsflow_ros.data.sample`) with depth
+discontinuities, occlusions and textureless walls, as left/right stereo pairs at the EuRoC baseline or
+as two frames of the left camera a few frames apart. The flow of every keypoint is exact
+(``SampleSequence.flow``: ray casting, occluded points dropped).
+
+Rendering a frame costs ~0.4 s, more than a training step, so a :class:`ScenePool` renders a fixed set of
+frame pairs once (GFTT corners of the first frame and their exact flows included); every training pair
+is then a random crop of one of them (the same crop of both frames, so the flow stays exact) with its own
+illumination change and initial flow. The evaluation's stereo pairs come from sequence seed 0; the pool
+uses other seeds (other rooms and flights from the same generator).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nsflow_ros.core.detector import detect_corners
+from nsflow_ros.train.data import Pair, PairConfig, initial_flow, perturb_frames
+from nsflow_ros.train.errors import TrainError
+
+__all__ = ["SCENE_SEEDS", "RenderedPair", "ScenePool", "make_scene_pair"]
+
+SCENE_SEEDS = (1, 2)
+"""Sample-sequence seeds of the training scenes (the evaluation uses seed 0)."""
+
+
+@dataclass(frozen=True)
+class RenderedPair:
+    """Two rendered frames with GFTT corners of the first and their exact, visible flow.
+
+    Attributes:
+        kind: "stereo" (left -> right, same instant) or "temporal" (left camera, frame i -> i + k).
+        image1, image2: (H, W) uint8 frames.
+        points: (N, 2) corners in frame 1.
+        flow: (N, 2) exact flow of the corners into frame 2 (only visible ones are kept).
+    """
+
+    kind: str
+    image1: np.ndarray
+    image2: np.ndarray
+    points: np.ndarray
+    flow: np.ndarray
+
+
+class ScenePool:
+    """A fixed set of rendered frame pairs from sample sequences.
+
+    Args:
+        root: folder for the sample sequences' metadata (made once, reused).
+        seeds: sample-sequence seeds.
+        frames: rendered frame pairs per seed, spread evenly over the flight, alternately stereo and
+            temporal.
+        duration: seconds of flight per sequence.
+        max_gap: temporal pairs are frames i and i + k with k uniform in [1, max_gap] (20 Hz camera).
+        points: GFTT corners per rendered frame.
+        seed: seed of the frame gaps.
+
+    Raises:
+        TrainError: a sequence cannot be made, or no pair has corners.
+    """
+
+    def __init__(
+        self,
+        root: Path,
+        seeds: tuple[int, ...] = SCENE_SEEDS,
+        frames: int = 12,
+        duration: float = 6.0,
+        max_gap: int = 4,
+        points: int = 800,
+        seed: int = 0,
+    ) -> None:
+        from nsflow_ros.data.errors import DataError
+        from nsflow_ros.data.sample import make_sample_sequence
+
+        rng = np.random.default_rng([seed, 0x5CE])
+        pairs: list[RenderedPair] = []
+        for s in seeds:
+            try:
+                seq = make_sample_sequence(
+                    Path(root) / f"sample-seed{s}-{duration:g}s-stereo-meta",
+                    seed=s,
+                    duration=duration,
+                    stereo=True,
+                    formats=(),
+                    progress=False,
+                )
+            except (DataError, OSError) as err:
+                raise TrainError(f"cannot make the sample sequence of seed {s} under {root}: {err}") from err
+            n = len(seq)
+            for k, i in enumerate(np.linspace(0, n - 1 - max_gap, frames).round().astype(int)):
+                stereo = k % 2 == 0
+                j = int(i) if stereo else int(i) + int(rng.integers(1, max_gap + 1))
+                left = seq.image(int(i), 0)
+                other = seq.image(j, 1 if stereo else 0)
+                pts = detect_corners(left, points, min_distance=6.0)
+                if len(pts) == 0:
+                    continue
+                flow, visible = seq.flow(int(i), j, pts, 0, 1 if stereo else 0)
+                keep = visible & np.isfinite(flow).all(1)
+                kind = "stereo" if stereo else "temporal"
+                pairs.append(RenderedPair(kind, left, other, pts[keep], flow[keep]))
+        if not any(len(p.points) for p in pairs):
+            raise TrainError(f"the sample scenes of seeds {seeds} gave no corners")
+        self.pairs = pairs
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+
+def make_scene_pair(
+    pool: ScenePool, rng: np.random.Generator, cfg: PairConfig | None = None, strength: float = 1.0
+) -> Pair:
+    """A training pair: a random crop of a random pooled pair, lighting change, initial flow.
+
+    Args:
+        pool: the rendered pairs.
+        rng: random generator (pair, crop, perturbation, points, initial flow).
+        cfg: crop size, points, window and initial flow settings (``PairConfig()`` when None).
+        strength: illumination perturbation strength (0 = none).
+
+    Returns:
+        the :class:`Pair` (its ``homography`` is NaN: the motion is not one); possibly without points.
+    """
+    cfg = cfg or PairConfig()
+    src = pool.pairs[int(rng.integers(len(pool.pairs)))]
+    h, w = src.image1.shape
+    if cfg.width > w or cfg.height > h:
+        raise TrainError(f"crop {cfg.width}x{cfg.height} is larger than the rendered frames {w}x{h}")
+    x0 = int(rng.integers(0, w - cfg.width + 1))
+    y0 = int(rng.integers(0, h - cfg.height + 1))
+    f1 = src.image1[y0 : y0 + cfg.height, x0 : x0 + cfg.width]
+    f2 = src.image2[y0 : y0 + cfg.height, x0 : x0 + cfg.width]
+    f1, f2 = perturb_frames(f1, f2, rng, strength)
+    pts = src.points - (x0, y0)
+    r = cfg.window // 2
+
+    def inside(q: np.ndarray) -> np.ndarray:
+        return (
+            (q[:, 0] >= r) & (q[:, 0] <= cfg.width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= cfg.height - 1 - r)
+        )
+
+    keep = np.flatnonzero(inside(pts) & inside(pts + src.flow))
+    if len(keep) > cfg.max_points:
+        keep = np.sort(rng.choice(keep, cfg.max_points, replace=False))
+    pts, gt = pts[keep], src.flow[keep]
+    return Pair(f1, f2, pts, gt, initial_flow(gt, rng, cfg), np.full((3, 3), np.nan))
