@@ -3,10 +3,13 @@
 This is the only part of the project that imports torch (``pip install 'nsflow_ros[train]'``); the core
 and the ROS nodes never do. Modules, one concept each:
 
-* :mod:`~nsflow_ros.train.ops` - Scharr derivative maps and exact bilinear window sampling in torch;
-* :mod:`~nsflow_ros.train.lk_layer` - the LM Lucas-Kanade layer with implicit or unrolled backward;
+* :mod:`~nsflow_ros.train.ops` - Scharr derivative maps, exact bilinear window sampling and the
+  descriptor pyramid (``cv2.pyrDown`` twin) in torch;
+* :mod:`~nsflow_ros.train.lk_layer` - the LM Lucas-Kanade layer with implicit or unrolled backward, at one
+  level or coarse to fine through the pyramid;
 * :mod:`~nsflow_ros.train.model` - the encoder CNN;
 * :mod:`~nsflow_ros.train.data` - homography pairs of real photos with exact flow and illumination changes;
+* :mod:`~nsflow_ros.train.scenes` - stereo and temporal pairs rendered from the sample scenes, exact flow;
 * :mod:`~nsflow_ros.train.loss` - the robust endpoint-error loss;
 * :mod:`~nsflow_ros.train.trainer` - the training loop; :mod:`~nsflow_ros.train.cli` - ``nsflow-train``;
 * :mod:`~nsflow_ros.train.export` - ONNX export; :mod:`~nsflow_ros.train.evaluate` - NSFlow vs classical;
@@ -29,7 +32,7 @@ except ImportError as err:  # pragma: no cover - depends on the environment
 
 from nsflow_ros.train.evaluate import compare, heldout_pairs
 from nsflow_ros.train.export import export_onnx
-from nsflow_ros.train.lk_layer import BackwardMode, LKOutput, lk_track
+from nsflow_ros.train.lk_layer import BackwardMode, LKOutput, LKPyramidOutput, lk_track, lk_track_pyramid
 from nsflow_ros.train.model import Encoder, EncoderSpec
 from nsflow_ros.train.trainer import TrainConfig, train
 
@@ -38,11 +41,13 @@ __all__ = [
     "Encoder",
     "EncoderSpec",
     "LKOutput",
+    "LKPyramidOutput",
     "TrainConfig",
     "TrainError",
     "compare",
     "export_onnx",
     "heldout_pairs",
     "lk_track",
+    "lk_track_pyramid",
     "train",
 ]
