@@ -15,11 +15,13 @@ from nsflow_ros.core.encoder import (
     to_gray,
 )
 from nsflow_ros.core.errors import CoreError, EncoderError
+from nsflow_ros.core.methods import METHODS, SolveKind, TrackingMethod, klt_track, make_method
 from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, descriptor_gradients
 from nsflow_ros.core.solver import IterationRecord, LMConfig, TrackResult, sample_windows, track
 
 __all__ = [
     "DEFAULT_MODEL",
+    "METHODS",
     "CoreError",
     "DescriptorPyramid",
     "Encoder",
@@ -28,11 +30,15 @@ __all__ = [
     "IterationRecord",
     "LMConfig",
     "OnnxEncoder",
+    "SolveKind",
     "TrackResult",
+    "TrackingMethod",
     "build_pyramid",
     "descriptor_gradients",
     "detect_corners",
+    "klt_track",
     "load_encoder",
+    "make_method",
     "sample_windows",
     "to_gray",
     "track",
