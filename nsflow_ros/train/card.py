@@ -23,6 +23,10 @@ def write_model_card(
     figures: dict[str, str],
     notes: str = "",
     loss: str = "cauchy",
+    levels: int = 1,
+    coarse_weight: float = 0.0,
+    init: str = "ground truth + N(0, 2.5^2) px",
+    scene_share: float = 0.0,
 ) -> Path:
     """Write the Markdown model card.
 
@@ -38,9 +42,29 @@ def write_model_card(
         figures: caption -> PNG path relative to the card.
         notes: extra Markdown (design measurements, caveats).
         loss: the robust loss used (``--rho``).
+        levels: pyramid levels of the training solve (``--levels``).
+        coarse_weight: weight of each coarse level's loss (``--coarse-loss``).
+        init: the training points' initial flow in words (``--init-error``).
+        scene_share: share of pairs rendered from the sample scenes (``--scene-share``).
     """
     head = {"sigmoid": "sigmoid (descriptors in (0, 1))", "relu": "ReLU", "none": "none (linear)"}[spec.head]
     c_in = "gray (1 channel)" if spec.in_channels == 1 else "RGB (3 channels)"
+    if levels == 1:
+        layer = "single-level LM"
+    else:
+        layer = f"{levels}-level coarse-to-fine LM through the descriptor pyramid (as the tracker solves)"
+    coarse = (
+        f" plus {coarse_weight:g} x the same penalty of each coarse level's error in that level's pixels"
+        if levels > 1 and coarse_weight > 0
+        else ""
+    )
+    scenes = (
+        f" A share of {scene_share:.0%} of the pairs are instead crops of stereo (EuRoC baseline) and\n"
+        "  temporal renders of the sample scenes (`nsflow_ros/train/scenes.py`, sequence seeds 1 and 2; the\n"
+        "  evaluation's stereo pairs use seed 0), exact flow, same illumination changes."
+        if scene_share > 0
+        else ""
+    )
     figs = "\n\n".join(f"![{cap}]({p})\n\n*{cap}*" for cap, p in figures.items())
     text = f"""# NSFlow encoder: `nsflow_encoder.onnx`
 
@@ -68,10 +92,10 @@ the tracker runs its descriptors through the same NumPy LM solver as the classic
 * Data: pairs of views of real photos bundled with scikit-image / matplotlib, related by random
   homographies (exact ground-truth flow), with random illumination changes on each frame (gain, offset,
   local shading, gamma, noise; strength uniform in [0, 1]); GFTT corners on frame 1 (up to 200);
-  initial flow = ground truth + N(0, 2.5^2) px. Held out (never trained on): coffee, chelsea,
-  grace_hopper. See `nsflow_ros/train/data.py`.
-* Layer: single-level LM (window 11, up to 30 iterations, eps 1e-3), implicit backward.
-* Loss: mean {loss} penalty of the endpoint error (scale 1 px) over points that stay in the image;
+  initial flow = {init}. Held out (never trained on): coffee, chelsea,
+  grace_hopper. See `nsflow_ros/train/data.py`.{scenes}
+* Layer: {layer} (window 11, up to 30 iterations per level, eps 1e-3), implicit backward.
+* Loss: mean {loss} penalty of the endpoint error (scale 1 px) over points that stay in the image{coarse};
   Adam, lr 1e-3, one pair per step.
 * Command: `{command}`
 * Run: {steps:,} steps in {seconds / 60:.1f} min wall time on a 2-core CPU (shared with other jobs).

@@ -35,6 +35,15 @@ def _init_error(text: str) -> tuple[str, float]:
     return mode, value
 
 
+def _init_text(mode: str, size: float) -> str:
+    """The training points' initial flow in words, for the model card."""
+    if mode == "normal":
+        return f"ground truth + N(0, {size:g}^2) px"
+    if mode == "uniform":
+        return f"ground truth + an error of length uniform in [0, {size:g}] px in a random direction"
+    return "zero (displacement = the pair's own motion)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from nsflow_ros.argtypes import program_name
 
@@ -207,6 +216,10 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             },
             notes=notes,
             loss=opts.rho,
+            levels=opts.levels,
+            coarse_weight=opts.coarse_loss,
+            init=_init_text(*opts.init_error),
+            scene_share=opts.scene_share,
         )
         print(f"installed {models / 'nsflow_encoder.onnx'} and {models / 'README.md'}")
     return 0

@@ -135,11 +135,14 @@ def test_cli_reports_known_errors(tmp_path, capsys):
 
 
 def test_cli_trains_coarse_to_fine(tmp_path):
-    out = tmp_path / "run"
+    out, models = tmp_path / "run", tmp_path / "models"
     args = "--steps 2 --d 2 --levels 3 --coarse-loss 0.5 --init-error uniform:20 --translation 12"
-    args += " --val-every 2 --eval-per-image 1 --val-per-image 1 --no-progress --threads 1"
-    assert main([*args.split(), "--out", str(out)]) == 0
+    args += " --val-every 2 --eval-per-image 1 --val-per-image 1 --no-progress --threads 1 --install"
+    assert main([*args.split(), "--out", str(out), "--models-dir", str(models)]) == 0
     assert load_encoder(out / "nsflow_encoder.onnx").channels == 2
     config = json.loads((out / "run.json").read_text())["config"]
     assert "'levels': 3" in config["lm"] and config["coarse_weight"] == "0.5"
     assert "'init_mode': 'uniform'" in config["pair"] and "'init_sigma': 20.0" in config["pair"]
+    card = (models / "README.md").read_text()
+    assert "3-level coarse-to-fine LM" in card and "0.5 x the same penalty of each coarse level" in card
+    assert "uniform in [0, 20] px" in card
