@@ -213,3 +213,43 @@ def test_cli_remaps_repeat_and_the_old_form_still_works(seq, tmp_path, capsys):
     assert replay_main([str(seq.asl_dir), *old, "--write-bag", str(tmp_path / "b")]) == 0
     assert "repeat --remap FROM:=TO" in capsys.readouterr().err
     assert topics(tmp_path / "b") == ["/imu", "/left"]
+
+
+def test_console_replay_applies_ros_args_remaps_and_waits(seq):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(100, 200)))
+    exe = Path(sys.executable).parent / "nsflow-replay"
+    cmd = [str(exe), str(seq.asl_dir), "--topics", "/cam0/image_raw", "--duration", "0.3", "--rate", "0",
+           "--no-progress", "--wait-timeout", "60", "--ros-args", "-r", "/cam0/image_raw:=/left"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    got: list = []
+    ex = SingleThreadedExecutor(context=ctx)
+    try:
+        sub = rclpy.create_node("remap_sink", context=ctx)
+        # best effort like the tracker, with room for the whole burst (rate 0 sends all 6 at once)
+        qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.BEST_EFFORT)
+        sub.create_subscription(Image, "/left", got.append, qos)
+        ex.add_node(sub)
+        spin = threading.Thread(target=ex.spin, daemon=True)
+        spin.start()
+        _, err = proc.communicate(timeout=120)
+        time.sleep(0.3)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        ex.shutdown()
+        rclpy.shutdown(context=ctx)
+    assert proc.returncode == 0, err
+    stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in got]
+    assert stamps == [int(s) for s in seq.stamps_ns[:6]]  # from frame 0, on the remapped topic

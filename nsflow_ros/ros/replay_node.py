@@ -50,25 +50,29 @@ def message_class(msgtype: str) -> Any:
         raise NSFlowError(f"message type {msgtype} is not available in this ROS installation") from err
 
 
-def wait_for_subscribers(publishers: Iterable[Any], count: int, timeout: float) -> bool:
+def wait_for_subscribers(publishers: Iterable[Any], count: int, timeout: float, settle: float = 0.5) -> bool:
     """Wait until one of ``publishers`` has matched ``count`` subscriptions, or ``timeout`` seconds passed.
 
     Args:
         publishers: rclpy publishers (e.g. those of the camera topics).
         count: subscriptions to wait for; 0 returns at once.
         timeout: seconds to wait at most.
+        settle: seconds to wait after the match: the publisher sees the subscriber before the subscriber
+            has matched the publisher, and a best-effort sample sent in between is lost.
 
     Returns:
         whether the subscribers matched in time.
     """
+    if count <= 0:
+        return True
     pubs = list(publishers)
     deadline = time.monotonic() + timeout
-    while True:
-        if count <= 0 or any(p.get_subscription_count() >= count for p in pubs):
-            return True
+    while not any(p.get_subscription_count() >= count for p in pubs):
         if time.monotonic() >= deadline:
             return False
         time.sleep(0.02)
+    time.sleep(settle)
+    return True
 
 
 def publish_stream(
