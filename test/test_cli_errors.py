@@ -88,6 +88,11 @@ CASES = {
         "nsflow-replay", lambda s, t: [str(_random_bytes(t / "x.bag")), "--write-bag", str(t / "o")], 1,
         "not a ROS 1 bag",
     ),
+    "replay offline from random bytes named .bag": (
+        "nsflow-replay",
+        lambda s, t: [str(_random_bytes(t / "x.bag")), "--offline", str(t / "o"), "--no-progress"], 1,
+        "not a ROS 1 bag",
+    ),
     "replay topics that match nothing": (
         "nsflow-replay", lambda s, t: [str(s.ros1_path), "--topics", "/nothing", "--write-bag", str(t / "o")],
         1, "/nothing not found",

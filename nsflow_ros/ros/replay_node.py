@@ -338,8 +338,11 @@ def main(args: list[str] | None = None) -> int:
         )
         if opts.offline is not None or opts.features_bag is not None:
             from nsflow_ros.allocator import keep_large_buffers
+            from nsflow_ros.data.sources import SensorSource
 
             _check_tracked_topics(opts)
+            # a file that is no bag at all fails here, before an output exists
+            next(iter(SensorSource(opts.path, topics=opts.topics).raw_messages()), None)
             keep_large_buffers()  # the tracker runs in this process
         if opts.features_bag is not None:
             from nsflow_ros.feature_bag import write_feature_bag
