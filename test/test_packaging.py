@@ -59,7 +59,10 @@ def test_pip_install_in_fresh_venv(tmp_path):
     # run from elsewhere so nothing is imported from the checkout
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "AMENT_PREFIX_PATH")}
     code = (
-        "import rclpy, sensor_msgs.msg, std_msgs.msg, rosgraph_msgs.msg, nsflow_ros, sys;"
+        "import rclpy, sensor_msgs.msg, std_msgs.msg, rosgraph_msgs.msg, geometry_msgs.msg, nsflow_ros, sys;"
+        "import diagnostic_msgs.msg, rcl_interfaces.msg, ament_index_python, onnx, importlib.util;"
+        # the extras stay out of a plain install (with torch the venv grows to about 1.8 GB)
+        "assert [m for m in ('torch', 'evo', 'pytest') if importlib.util.find_spec(m)] == [];"
         "from nsflow_ros.resources import share_dir;"
         "d = share_dir(); print(d); assert (d / 'config').is_dir(), d;"
         "rclpy.init(); n = rclpy.create_node('pip_check'); n.destroy_node(); rclpy.shutdown()"
