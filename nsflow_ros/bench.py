@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.allocator import keep_large_buffers
-from nsflow_ros.argtypes import non_negative_float, positive_int, program_name
+from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_int, program_name
 from nsflow_ros.core import (
     Encoder,
     IntensityEncoder,
@@ -91,15 +91,11 @@ def paper_encoder_onnx(path: Path, c_in: int = 3, d: int = 3, seed: int = 0) -> 
     """Write the paper's encoder architecture with random weights (1,003 parameters for RGB, d=3).
 
     3x3 conv -> 8, 3x3 8 -> 8, 1x1 8 -> 16, 1x1 16 -> d, ReLU after each; dynamic height and width. Used
-    to time the architecture when no trained model is at hand. Needs the ``onnx`` package.
+    to time the architecture when no trained model is at hand.
     """
-    try:
-        import onnx
-        from onnx import TensorProto, helper, numpy_helper
-    except ImportError as err:
-        raise NSFlowError(
-            "the benchmark's random encoder needs onnx: pip install 'nsflow_ros[train]'"
-        ) from err
+    import onnx  # a run-time dependency of the package
+    from onnx import TensorProto, helper, numpy_helper
+
     rng = np.random.default_rng(seed)
     shapes = [(8, c_in, 3, 3), (8, 8, 3, 3), (16, 8, 1, 1), (d, 16, 1, 1)]
     inits, nodes, prev = [], [], "image"
@@ -470,7 +466,7 @@ def main(args: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--node-frames",
-        type=int,
+        type=non_negative_int,
         default=0,
         help="also run the ROS 2 node benchmark (latency, memory after 1,000 / 10,000 frames) on this many "
         "320x240 frames, mono and stereo; 10000 takes several minutes (default 0 = skip)",
