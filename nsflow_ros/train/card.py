@@ -27,6 +27,8 @@ def write_model_card(
     coarse_weight: float = 0.0,
     init: str = "ground truth + N(0, 2.5^2) px",
     scene_share: float = 0.0,
+    basin_weight: float = 0.0,
+    basin_radius: float = 4.0,
 ) -> Path:
     """Write the Markdown model card.
 
@@ -46,6 +48,8 @@ def write_model_card(
         coarse_weight: weight of each coarse level's loss (``--coarse-loss``).
         init: the training points' initial flow in words (``--init-error``).
         scene_share: share of pairs rendered from the sample scenes (``--scene-share``).
+        basin_weight: weight of the basin loss (``--basin-loss``).
+        basin_radius: its largest start offset per level (``--basin-radius``).
     """
     head = {"sigmoid": "sigmoid (descriptors in (0, 1))", "relu": "ReLU", "none": "none (linear)"}[spec.head]
     c_in = "gray (1 channel)" if spec.in_channels == 1 else "RGB (3 channels)"
@@ -58,6 +62,11 @@ def write_model_card(
         if levels > 1 and coarse_weight > 0
         else ""
     )
+    if basin_weight > 0:
+        coarse += (
+            f"; plus {basin_weight:g} x the basin loss (landing error of the solver's first step from a start"
+            f" up to {basin_radius:g} px away, per level; `nsflow_ros/train/basin.py`)"
+        )
     scenes = (
         f" A share of {scene_share:.0%} of the pairs are instead crops of stereo (EuRoC baseline) and\n"
         "  temporal renders of the sample scenes (`nsflow_ros/train/scenes.py`, sequence seeds 1 and 2; the\n"

@@ -86,6 +86,15 @@ def build_parser() -> argparse.ArgumentParser:
         "of length uniform in [0, R], zero = zero flow (default normal:2.5)",
     )
     p.add_argument(
+        "--basin-loss", type=float, default=0.0, metavar="W",
+        help="weight of the basin loss: landing error of the solver's first step from a random start within "
+        "--basin-radius of the answer, on every training level (default 0)",
+    )
+    p.add_argument(
+        "--basin-radius", type=float, default=4.0, metavar="R",
+        help="largest start offset of the basin loss, in each level's pixels (default 4)",
+    )
+    p.add_argument(
         "--scene-share", type=float, default=0.0, metavar="P",
         help="share of training pairs rendered from the sample scenes (stereo and temporal pairs with exact "
         "flow) instead of photo homographies (default 0)",
@@ -154,6 +163,8 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         lm=replace(TrainConfig().lm, levels=opts.levels),
         coarse_weight=opts.coarse_loss,
         scene_share=opts.scene_share,
+        basin_weight=opts.basin_loss,
+        basin_radius=opts.basin_radius,
         pair=PairConfig(
             init_mode=opts.init_error[0], init_sigma=opts.init_error[1], translation=opts.translation
         ),
@@ -220,6 +231,8 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             coarse_weight=opts.coarse_loss,
             init=_init_text(*opts.init_error),
             scene_share=opts.scene_share,
+            basin_weight=opts.basin_loss,
+            basin_radius=opts.basin_radius,
         )
         print(f"installed {models / 'nsflow_encoder.onnx'} and {models / 'README.md'}")
     return 0

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from nsflow_ros.core.solver import LMConfig
+from nsflow_ros.train.basin import basin_loss
 from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, load_image, make_pair
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.evaluate import heldout_pairs
@@ -44,6 +45,9 @@ class TrainConfig:
             result (scaled to level-0 pixels) is compared with the ground truth in that level's own pixels
             (error / 2^level, same robust penalty and scale): it only has to land inside the next level's
             basin. With the implicit backward this term is the only gradient the coarse maps get.
+        basin_weight: weight of the basin loss (:mod:`~nsflow_ros.train.basin`: where the solver's first
+            step lands from a random start near the answer, on every training level); 0 = off.
+        basin_radius: largest start offset of the basin loss, in each level's own pixels.
         pair: pair settings (photo and scene pairs alike).
         scene_share: share of training pairs rendered from the sample scenes
             (:mod:`~nsflow_ros.train.scenes`: stereo at the EuRoC baseline and temporal pairs, exact flow);
@@ -72,6 +76,8 @@ class TrainConfig:
         )
     )
     coarse_weight: float = 0.0
+    basin_weight: float = 0.0
+    basin_radius: float = 4.0
     pair: PairConfig = field(default_factory=PairConfig)
     scene_share: float = 0.0
     scene_cache: Path | None = None
@@ -127,6 +133,9 @@ def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: Trai
                 loss = loss + cfg.coarse_weight * term
     if used == 0:
         return None
+    if cfg.basin_weight > 0:
+        basin = basin_loss(d1, d2, pts, gt, cfg.lm, cfg.basin_radius, cfg.huber_delta, cfg.rho)
+        loss = loss + cfg.basin_weight * basin
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
@@ -163,6 +172,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     """
     if cfg.coarse_weight < 0:
         raise TrainError(f"coarse_weight must be >= 0, got {cfg.coarse_weight}")
+    if cfg.basin_weight < 0 or cfg.basin_radius < 0:
+        raise TrainError(f"basin weight and radius must be >= 0, got {cfg.basin_weight}, {cfg.basin_radius}")
     if not 0.0 <= cfg.scene_share <= 1.0:
         raise TrainError(f"scene_share must be in [0, 1], got {cfg.scene_share}")
     torch.manual_seed(cfg.seed)

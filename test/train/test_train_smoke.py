@@ -127,6 +127,8 @@ def test_cli_reports_known_errors(tmp_path, capsys):
     assert "coarse_weight must be >= 0" in capsys.readouterr().err
     assert main(["--steps", "1", "--scene-share", "1.5", "--out", str(tmp_path / "x")]) == 1
     assert "scene_share must be in [0, 1], got 1.5" in capsys.readouterr().err
+    assert main(["--steps", "1", "--basin-loss", "-1", "--out", str(tmp_path / "x")]) == 1
+    assert "basin weight and radius must be >= 0" in capsys.readouterr().err
     for bad in ("gauss:2", "uniform", "normal:-1"):
         with pytest.raises(SystemExit) as exc:
             main(["--init-error", bad])
@@ -137,12 +139,14 @@ def test_cli_reports_known_errors(tmp_path, capsys):
 def test_cli_trains_coarse_to_fine(tmp_path):
     out, models = tmp_path / "run", tmp_path / "models"
     args = "--steps 2 --d 2 --levels 3 --coarse-loss 0.5 --init-error uniform:20 --translation 12"
+    args += " --basin-loss 1"
     args += " --val-every 2 --eval-per-image 1 --val-per-image 1 --no-progress --threads 1 --install"
     assert main([*args.split(), "--out", str(out), "--models-dir", str(models)]) == 0
     assert load_encoder(out / "nsflow_encoder.onnx").channels == 2
     config = json.loads((out / "run.json").read_text())["config"]
     assert "'levels': 3" in config["lm"] and config["coarse_weight"] == "0.5"
+    assert config["basin_weight"] == "1.0"
     assert "'init_mode': 'uniform'" in config["pair"] and "'init_sigma': 20.0" in config["pair"]
     card = (models / "README.md").read_text()
     assert "3-level coarse-to-fine LM" in card and "0.5 x the same penalty of each coarse level" in card
-    assert "uniform in [0, 20] px" in card
+    assert "uniform in [0, 20] px" in card and "1 x the basin loss" in card

@@ -1,0 +1,122 @@
+"""The basin loss: where the solver's first step lands when it starts away from the answer.
+
+The implicit backward of the LK layer (:mod:`~nsflow_ros.train.lk_layer`) differentiates the flow the
+solver converged to: it moves that minimum, but it cannot see whether the solver would have reached it
+from farther away, i.e. how wide the basin of convergence is. This loss looks at the basin directly:
+for every point and pyramid level, start at the ground truth plus a random offset (length uniform in
+[0, radius] level pixels, random direction), take one step of Algorithm 1 exactly as the solver's first
+iteration does (J and f at the start, (J^T J + lambda^(0) I) du = -J^T f with the solver's lambda^(0)),
+and penalise the distance from where the step lands to the ground truth with the robust loss. It is
+differentiable end to end (one window sample per point and level, autograd through the sampling and the
+2x2 solve), and a small landing error from far starts is what a wide basin and few iterations mean.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from nsflow_ros.core.solver import LMConfig
+from nsflow_ros.train.errors import TrainError
+from nsflow_ros.train.loss import flow_loss
+from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients
+
+__all__ = ["basin_loss", "first_step"]
+
+
+def first_step(
+    desc1: torch.Tensor, desc2: torch.Tensor, points: torch.Tensor, start: torch.Tensor, config: LMConfig
+) -> torch.Tensor:
+    """The solver's first LM step from ``start`` (accepted or not), differentiable w.r.t. both maps.
+
+    Args:
+        desc1: frame-1 map of one level.
+        desc2: frame-2 map of the same level.
+        points: keypoints in that level's pixels.
+        start: starting flows in that level's pixels (no gradient).
+        config: window and lambda^(0) rule (``lambda_init``, ``lambda_scale``).
+
+    Returns:
+        du, the step, in the maps' dtype promoted to float64.
+
+    Shape:
+        desc1, desc2: (C, H, W). points, start: (N, 2). Returns (N, 2).
+    """
+    if desc1.shape != desc2.shape or desc1.dim() != 3:
+        shapes = f"{tuple(desc1.shape)}, {tuple(desc2.shape)}"
+        raise TrainError(f"first_step needs two equal (C, H, W) maps, got {shapes}")
+    n = points.shape[0]
+    win = config.window
+    template = sample_windows(desc1, points, win).reshape(n, -1)
+    dx, dy = scharr_gradients(desc2)
+    s = sample_windows(torch.cat([desc2, dx, dy], 0), points + start.detach(), win).reshape(n, 3, -1)
+    f = s[:, 0] - template
+    jx, jy = s[:, 1], s[:, 2]
+    h11, h12, h22 = ((jx * jx).sum(1).double(), (jx * jy).sum(1).double(), (jy * jy).sum(1).double())
+    g1, g2 = (jx * f).sum(1).double(), (jy * f).sum(1).double()
+    lam = torch.full_like(h11, config.lambda_init)
+    if config.lambda_scale > 0:
+        lam = torch.maximum(lam, config.lambda_scale * torch.maximum(h11, h22))
+    a11, a22 = h11 + lam, h22 + lam
+    det = a11 * a22 - h12 * h12
+    return -torch.stack([a22 * g1 - h12 * g2, a11 * g2 - h12 * g1], 1) / det[:, None]
+
+
+def basin_loss(
+    desc1: torch.Tensor,
+    desc2: torch.Tensor,
+    points: torch.Tensor,
+    flow_gt: torch.Tensor,
+    config: LMConfig,
+    radius: float,
+    delta: float = 1.0,
+    rho: str = "cauchy",
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Mean over pyramid levels of the robust landing error of one step from a random start.
+
+    Args:
+        desc1: frame-1 full-resolution map.
+        desc2: frame-2 full-resolution map.
+        points: keypoints, level-0 pixels.
+        flow_gt: ground-truth flow, level-0 pixels.
+        config: ``levels`` (as the solver builds them), window and lambda^(0) rule.
+        radius: largest start offset in each level's own pixels.
+        delta: robust scale, in each level's pixels.
+        rho: robust penalty (see :func:`~nsflow_ros.train.loss.flow_loss`).
+        generator: torch random generator of the offsets (None = the global one).
+
+    Returns:
+        the loss (a scalar with a graph; 0 when no point is usable).
+
+    Raises:
+        TrainError: on a negative radius or mismatched maps.
+
+    Shape:
+        desc1, desc2: (C, H, W). points, flow_gt: (N, 2).
+    """
+    if radius < 0:
+        raise TrainError(f"radius must be >= 0, got {radius}")
+    pyr1, pyr2 = pyramid(desc1, config.levels), pyramid(desc2, config.levels)
+    pts = points.detach().to(torch.float64)
+    gt = flow_gt.detach().to(torch.float64)
+    n = pts.shape[0]
+    r = config.window // 2
+    total = desc1.new_zeros((), dtype=torch.float64)
+    for lev, (m1, m2) in enumerate(zip(pyr1, pyr2, strict=True)):
+        s = 2.0**lev
+        p_l, gt_l = pts / s, gt / s
+        ang = torch.rand(n, generator=generator, dtype=torch.float64) * (2 * torch.pi)
+        length = torch.rand(n, generator=generator, dtype=torch.float64) * radius
+        start = gt_l + length[:, None] * torch.stack([torch.cos(ang), torch.sin(ang)], 1)
+        h, w = m1.shape[1:]
+        target = p_l + gt_l
+        valid = (
+            (p_l[:, 0] >= r) & (p_l[:, 0] <= w - 1 - r) & (p_l[:, 1] >= r) & (p_l[:, 1] <= h - 1 - r)
+            & (target[:, 0] >= r) & (target[:, 0] <= w - 1 - r)
+            & (target[:, 1] >= r) & (target[:, 1] <= h - 1 - r)
+        )  # fmt: skip
+        if not bool(valid.any()):
+            continue
+        du = first_step(m1, m2, p_l[valid], start[valid], config)
+        total = total + flow_loss(start[valid] + du, gt_l[valid], torch.isfinite(du).all(1), delta, rho)[0]
+    return total / len(pyr1)
