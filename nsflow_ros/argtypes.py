@@ -24,19 +24,23 @@ def _number(text: str) -> float:
     return value
 
 
+def _integer(text: str, minimum: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+    return value
+
+
 def positive_int(text: str) -> int:
     """An integer >= 1.
 
     Raises:
         argparse.ArgumentTypeError: naming the text given.
     """
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
+    return _integer(text, 1)
 
 
 def non_negative_int(text: str) -> int:
@@ -45,13 +49,7 @@ def non_negative_int(text: str) -> int:
     Raises:
         argparse.ArgumentTypeError: naming the text given.
     """
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
+    return _integer(text, 0)
 
 
 def positive_float(text: str) -> float:
