@@ -40,7 +40,7 @@ import numpy as np
 from nsflow_ros.core.encoder import Encoder, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid
-from nsflow_ros.core.solver import LMConfig, TrackResult, sample_windows, track
+from nsflow_ros.core.solver import LMConfig, TrackResult, track
 
 __all__ = [
     "KLT_CRITERIA",
@@ -260,16 +260,15 @@ class LMMethod(TrackingMethod):
             raise CoreError(f"check_iterations must be >= 0, got {check_iterations}")
         self.check_iterations = check_iterations
 
-    def residual_ratio(self, frame1: DescriptorPyramid, pts: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def residual_ratio(result: TrackResult) -> np.ndarray:
         """Residual energy 2 S over the template's contrast energy, per point (0 = a perfect match).
 
         A point tracked onto something else (an occluder, a repeated structure) keeps a residual of the
         order of its template's contrast (ratio ~1); a true match leaves image noise (~0.01-0.1).
         """
-        t = sample_windows(frame1.levels[0], pts, self.lm.window)
-        energy = ((t - t.mean(axis=(1, 2), keepdims=True)) ** 2).sum(axis=(1, 2, 3))
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(energy > 0, 2.0 * cost / energy, np.inf)
+            return np.where(result.contrast > 0, 2.0 * result.cost / result.contrast, np.inf)
 
     def prepare(self, image: np.ndarray, gray: np.ndarray) -> DescriptorPyramid:
         return build_pyramid(self.encoder(self.encoder_input(image, gray)), self.lm.levels)
@@ -285,14 +284,15 @@ class LMMethod(TrackingMethod):
     def track_pair(
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, levels: int | None = None, first_level: np.ndarray | None = None,
-        *, residual_test: bool = False,
+        *, residual_test: bool = False, max_iterations: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        cfg = self.lm if levels is None else replace(self.lm, levels=levels)
+        cfg = replace(self.lm, levels=levels or self.lm.levels,
+                      max_iterations=max_iterations or self.lm.max_iterations)
         flow0 = None if start is None else start - pts
         res = self.run(frame1, frame2, pts, flow0, cfg, first_level=first_level)
         status = res.status
         if residual_test and np.isfinite(self.max_residual) and status.any():
-            status = status & (self.residual_ratio(frame1, pts, res.cost) <= self.max_residual)
+            status = status & (self.residual_ratio(res) <= self.max_residual)
         return np.where(np.isfinite(res.flow), pts + res.flow, pts), status
 
     def solve(
@@ -301,10 +301,8 @@ class LMMethod(TrackingMethod):
     ) -> tuple[np.ndarray, np.ndarray]:
         if kind.is_check:
             # Started at its answer; the full pyramid only when asked (check_levels 0).
-            cfg = replace(self.lm, levels=self.check_levels or self.lm.levels,
-                          max_iterations=self.check_iterations or self.lm.max_iterations)
-            res = self.run(frame1, frame2, pts, None if start is None else start - pts, cfg)
-            return np.where(np.isfinite(res.flow), pts + res.flow, pts), res.status
+            return self.track_pair(frame1, frame2, pts, start, self.check_levels or None,
+                                   max_iterations=self.check_iterations or None)
         if start is not None:  # the IMU prediction, trusted as VINS trusts it
             usable = np.isfinite(start).all(axis=1)
             return self.track_pair(

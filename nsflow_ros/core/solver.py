@@ -149,6 +149,9 @@ class TrackResult:
         status: True where the point was tracked, shape (N,).
         cost: final S(u) = 1/2 ||f||^2 at level 0, shape (N,).
         iterations: LM iterations summed over levels, shape (N,).
+        contrast: the level-0 template's contrast energy, sum over window and channels of the squared
+            deviation from its window mean, shape (N,); 2 cost / contrast measures how well the match
+            explains the template (0 = perfectly).
         history: per-iteration records when ``record=True``, else empty.
     """
 
@@ -156,6 +159,7 @@ class TrackResult:
     status: np.ndarray
     cost: np.ndarray
     iterations: np.ndarray
+    contrast: np.ndarray
     history: list[IterationRecord] = field(default_factory=list)
 
 
@@ -354,11 +358,18 @@ def _solve_level(
     level_index: int,
     iterations: np.ndarray,
     history: list[IterationRecord] | None,
-) -> np.ndarray:
-    """Run Algorithm 1 on one pyramid level for all points; returns the final (N, 8) LM state."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Run Algorithm 1 on one pyramid level for all points.
+
+    Returns the final (N, 8) LM state and each template's contrast energy (sum of squared deviations
+    from its window mean, over all channels).
+    """
     n = pts.shape[0]
     win = cfg.window
     template = _sample_level(level1, pts, win)
+    contrast = np.zeros(n)
+    for t in template:  # (window, N, window, K) per chunk
+        contrast += ((t - t.mean(axis=(0, 2), keepdims=True)) ** 2).sum(axis=(0, 2, 3))
     state = np.empty((n, 8))
     state[:, _U] = u
     state[:, _TERMS] = _normal_equations(level2, pts + u, template, win)
@@ -410,7 +421,7 @@ def _solve_level(
                 idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], _take(t_a, keep)
     state[idx] = s_a
     iterations[idx] += passes
-    return state
+    return state, contrast
 
 
 def _as_pyramid(desc: np.ndarray | DescriptorPyramid, levels: int, name: str) -> DescriptorPyramid:
@@ -477,43 +488,37 @@ def track(
     history: list[IterationRecord] | None = [] if record else None
     if n == 0:
         empty = np.zeros(0)
-        return TrackResult(np.zeros((0, 2)), np.zeros(0, bool), empty, iterations, history or [])
+        return TrackResult(np.zeros((0, 2)), np.zeros(0, bool), empty, iterations, empty, history or [])
 
     nlev = min(cfg.levels, pyr1.num_levels, pyr2.num_levels)
-    ch = pyr1.channels
     if first_level is None:
-        u = flow / 2.0 ** (nlev - 1)
-        for lev in range(nlev - 1, -1, -1):
-            s = 2.0**lev
-            state = _solve_level(
-                pyr1.levels[lev], pyr2.levels[lev], pts / s, u, cfg, lev, iterations, history
-            )
-            u = state[:, _U] * 2.0 if lev > 0 else state[:, _U]
+        first = np.full(n, nlev - 1)
     else:
         first = np.asarray(first_level)
         if first.shape != (n,) or not np.issubdtype(first.dtype, np.integer):
             raise CoreError(f"first_level must be ({n},) integers, got {first.dtype} {first.shape}")
-        # u in level-0 pixels; a point joins at its first level, so coarse passes carry only those
-        # that need them.
-        u = flow.copy()
         first = np.minimum(first, nlev - 1)
-        for lev in range(int(first.max(initial=0)), -1, -1):
-            s = 2.0**lev
-            sel = first >= lev
-            part = sel.all()
-            p_l = pts if part else pts[sel]
-            u_l = (u if part else u[sel]) / s
-            it = iterations if part else np.zeros(int(sel.sum()), np.int64)
-            st = _solve_level(pyr1.levels[lev], pyr2.levels[lev], p_l / s, u_l, cfg, lev, it, history)
-            if part:
-                u = st[:, _U] * s
-            else:
-                u[sel] = st[:, _U] * s
-                iterations[sel] += it
-        state = st  # level 0 holds every point
-        u = state[:, _U]
-    status = _valid(pts, u, state[:, _HESS], pyr1.shape, ch, cfg)
-    return TrackResult(u, status, state[:, _COST], iterations, history or [])
+    # u in level-0 pixels (scaling by powers of two is exact); a point joins at its first level, so
+    # coarse passes carry only those that need them.
+    u = flow.copy()
+    for lev in range(int(first.max(initial=0)), -1, -1):
+        s = 2.0**lev
+        sel = first >= lev
+        part = sel.all()
+        p_l = pts if part else pts[sel]
+        u_l = (u if part else u[sel]) / s
+        it = iterations if part else np.zeros(int(sel.sum()), np.int64)
+        state, contrast = _solve_level(
+            pyr1.levels[lev], pyr2.levels[lev], p_l / s, u_l, cfg, lev, it, history
+        )
+        if part:
+            u = state[:, _U] * s
+        else:
+            u[sel] = state[:, _U] * s
+            iterations[sel] += it
+    # level 0 holds every point
+    status = _valid(pts, u, state[:, _HESS], pyr1.shape, pyr1.channels, cfg)
+    return TrackResult(u, status, state[:, _COST], iterations, contrast, history or [])
 
 
 def _valid(

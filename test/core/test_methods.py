@@ -115,10 +115,10 @@ def test_residual_test_drops_a_point_tracked_onto_something_else(pair):
     truth = seq.truth(0, 1, pts)
     # The true match leaves only noise; an unrelated window keeps a residual of its own contrast.
     good = method.run(fa, fb, pts, truth - pts, LMConfig(levels=1, max_iterations=1))
-    ratio_good = method.residual_ratio(fa, pts, good.cost)
+    ratio_good = method.residual_ratio(good)
     other = np.roll(truth, 7, axis=0)
     bad = method.run(fa, fb, pts, other - pts, LMConfig(levels=1, max_iterations=1))
-    ratio_bad = method.residual_ratio(fa, pts, bad.cost)
+    ratio_bad = method.residual_ratio(bad)
     assert np.median(ratio_good) < 0.1 and np.median(ratio_bad) > 0.5
     # started next to other corners on the finest levels, most points stay there and must be dropped
     new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts, prior=other)
