@@ -11,10 +11,22 @@ import math
 import os
 import sys
 
-__all__ = ["non_negative_float", "non_negative_int", "positive_float", "positive_int", "program_name"]
+__all__ = [
+    "finite_float",
+    "non_negative_float",
+    "non_negative_int",
+    "positive_float",
+    "positive_int",
+    "program_name",
+]
 
 
-def _number(text: str) -> float:
+def finite_float(text: str) -> float:
+    """A finite number.
+
+    Raises:
+        argparse.ArgumentTypeError: naming the text given.
+    """
     try:
         value = float(text)
     except ValueError:
@@ -58,7 +70,7 @@ def positive_float(text: str) -> float:
     Raises:
         argparse.ArgumentTypeError: naming the text given.
     """
-    value = _number(text)
+    value = finite_float(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text}")
     return value
@@ -70,7 +82,7 @@ def non_negative_float(text: str) -> float:
     Raises:
         argparse.ArgumentTypeError: naming the text given.
     """
-    value = _number(text)
+    value = finite_float(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
     return value

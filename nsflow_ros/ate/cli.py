@@ -16,11 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
-from nsflow_ros.argtypes import program_name
+from nsflow_ros.argtypes import finite_float, positive_int, program_name
 from nsflow_ros.ate.align import ALIGN_METHODS
 from nsflow_ros.ate.batch import (
     FAIL_POLICIES,
@@ -58,26 +57,6 @@ writes <out>/ate_table.md, ate_table.csv (same layout) and ate_table_runs.csv (o
 """
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
-
-
-def _finite(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value
-
-
 def _names(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
 
@@ -91,14 +70,14 @@ def _add_common(p: argparse.ArgumentParser, aligns: tuple[str, ...], default_ali
     )
     p.add_argument(
         "--max-diff",
-        type=_finite,
+        type=finite_float,
         default=0.01,
         metavar="S",
         help="largest stamp difference of a matched pair, seconds (default 0.01)",
     )
     p.add_argument(
         "--offset",
-        type=_finite,
+        type=finite_float,
         default=0.0,
         metavar="S",
         help="seconds added to the estimate's stamps before matching (default 0)",
@@ -135,11 +114,11 @@ def build_parser() -> argparse.ArgumentParser:
     ape.add_argument("est", type=Path, help="estimate file or run folder (vio.csv, ...)")
     _add_common(ape, ALIGN_METHODS)
     ape.add_argument(
-        "--n-align", type=_positive_int, metavar="N", help="fit the alignment on the first N matched poses"
+        "--n-align", type=positive_int, metavar="N", help="fit the alignment on the first N matched poses"
     )
     ape.add_argument(
         "--rpe-delta",
-        type=_positive_int,
+        type=positive_int,
         metavar="N",
         help="also report the relative pose error over N matched poses (JSON key 'rpe')",
     )
@@ -161,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(drift, ("se3", "sim3"))
     drift.add_argument(
         "--min-gap",
-        type=_finite,
+        type=finite_float,
         default=1.0,
         metavar="S",
         help="a ground-truth gap longer than this separates segments (default 1 s)",
@@ -183,22 +162,23 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--methods", type=_names, help="comma-separated columns in order (default: all found)")
     batch.add_argument("--levels", type=_names, help="comma-separated column groups in order (default: all)")
     batch.add_argument(
-        "--n-align", type=_positive_int, metavar="N", help="fit the alignment on the first N matched poses"
+        "--n-align", type=positive_int, metavar="N", help="fit the alignment on the first N matched poses"
     )
     batch.add_argument(
         "--fail-if", choices=FAIL_POLICIES, default="any", help="failed repetitions that make a cell F (any)"
     )
     batch.add_argument(
         "--min-coverage",
-        type=_finite,
+        type=finite_float,
         default=0.5,
         metavar="F",
         help="share of the ground truth's duration a run must span (default 0.5)",
     )
     batch.add_argument(
-        "--max-rmse", type=_finite, default=10.0, metavar="M", help="RMSE above which a run diverged (10 m)"
+        "--max-rmse", type=finite_float, default=10.0, metavar="M",
+        help="RMSE above which a run diverged (10 m)",
     )
-    batch.add_argument("--digits", type=_positive_int, default=3, help="decimals in the Markdown table (3)")
+    batch.add_argument("--digits", type=positive_int, default=3, help="decimals in the Markdown table (3)")
     batch.add_argument("--plots", action="store_true", help="also write <out>/ate_plots/<run>.png per run")
     _add_common(batch, ALIGN_METHODS)
     return parser

@@ -31,7 +31,13 @@ import numpy as np
 
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
-from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.context import (
+    EvalContext,
+    condition_label,
+    levels_text,
+    new_figure,
+    save_figure,
+)
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import KLT, KLT_CLAHE, NSFLOW, EvalMethod, PairMethod
 from nsflow_ros.evaluation.pairs import (
@@ -303,17 +309,6 @@ def _plot(bins: dict, names: list[str], fewer_set: tuple[int, ...], path: Path) 
     save_figure(fig, path)
 
 
-def _levels_text(methods: list[PairMethod], fewer: int = 0) -> str:
-    depths = sorted({m.levels - fewer for m in methods})
-    if len(depths) == 1:
-        return f"{depths[0]} level{'s' if depths[0] != 1 else ''}"
-    return ", ".join(f"{m.name} {m.levels - fewer}" for m in methods) + " levels"
-
-
-def _condition(cond: str) -> str:
-    return "no lighting change" if cond == "none" else "lighting change"
-
-
 def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
     """The ``capture`` section: share within 1 px from zero flow per method, source, condition, depth.
 
@@ -357,7 +352,7 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
     fig_path = ctx.out_dir / f"{KEY}.png"
     _plot(bins, names, fewer_set, fig_path)
 
-    depth, fewer_depth = _levels_text(ctx.methods), _levels_text(ctx.methods, 1)
+    depth, fewer_depth = levels_text(ctx.methods), levels_text(ctx.methods, 1)
     clean = [p for p in pairs if p.condition == "none"]  # the lit copies share geometry and points
     points = {s: sum(len(p.points) for p in clean if p.source == s) for s in SOURCES}
     n_pairs = {s: sum(1 for p in clean if p.source == s) for s in SOURCES}
@@ -412,7 +407,7 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
             if NSFLOW in sh and KLT in sh:
                 met = bool(sh[NSFLOW] >= sh[KLT] and all(sh[NSFLOW] > sh[r] for r in rivals[1:]))
             headline.append(HeadlineRow(
-                f"capture from zero flow, {s}, share < 1 px, {_condition(cond)} ({depth})",
+                f"capture from zero flow, {s}, share < 1 px, {condition_label(cond)} ({depth})",
                 {n: f"{100 * v:.1f}%" for n, v in sh.items()}, target, met,
             ))  # fmt: skip
     if 1 in fewer_set:
@@ -423,8 +418,8 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
             if NSFLOW in names and KLT in names:
                 met = bool(pooled[(cond, 1)][NSFLOW] >= pooled[(cond, 0)][KLT])
             headline.append(HeadlineRow(
-                f"capture from zero flow, both sources, share < 1 px, {_condition(cond)}, one level fewer "
-                f"({fewer_depth})",
+                f"capture from zero flow, both sources, share < 1 px, {condition_label(cond)}, "
+                f"one level fewer ({fewer_depth})",
                 vals, f"stretch: NSFlow here >= {KLT} at {depth} ({klt4:.1f}%)",
                 met,
             ))  # fmt: skip

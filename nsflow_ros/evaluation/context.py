@@ -16,7 +16,15 @@ from nsflow_ros import files
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import PairMethod
 
-__all__ = ["EvalContext", "atomic_write", "axis_label", "new_figure", "save_figure"]
+__all__ = [
+    "EvalContext",
+    "atomic_write",
+    "axis_label",
+    "condition_label",
+    "levels_text",
+    "new_figure",
+    "save_figure",
+]
 
 T = TypeVar("T")
 
@@ -109,6 +117,19 @@ def new_figure(width: float = 8.0, height: float = 4.5) -> Any:
 def axis_label(name: str) -> str:
     """A method's label for a crowded axis: "OpenCV KLT + CLAHE" -> "OpenCV KLT\n+ CLAHE"."""
     return name.replace(" + ", "\n+ ")
+
+
+def levels_text(methods: list[PairMethod], fewer: int = 0) -> str:
+    """The pyramid depth of the methods ("4 levels", or each method's when they differ), ``fewer`` less."""
+    depths = sorted({m.levels - fewer for m in methods})
+    if len(depths) == 1:
+        return f"{depths[0]} level{'s' if depths[0] != 1 else ''}"
+    return ", ".join(f"{m.name} {m.levels - fewer}" for m in methods) + " levels"
+
+
+def condition_label(cond: str) -> str:
+    """Words for a lighting condition key: "none" -> "no lighting change", else "lighting change"."""
+    return "no lighting change" if cond == "none" else "lighting change"
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> Path:

@@ -29,7 +29,12 @@ import numpy as np
 
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
-from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.context import (
+    EvalContext,
+    condition_label,
+    new_figure,
+    save_figure,
+)
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import (
     CLASSICAL,
@@ -222,10 +227,6 @@ def _basin_order(item: tuple[tuple[str, int, float], object]) -> tuple[int, int,
     return CONDITIONS.index(cond), lev, err
 
 
-def _condition(cond: str) -> str:
-    return "no lighting change" if cond == "none" else "lighting change"
-
-
 def _pairs(
     cfg: ConvergenceConfig, seed: int
 ) -> list[tuple[str, HomographyPair, np.ndarray, np.ndarray, np.ndarray]]:
@@ -373,7 +374,7 @@ def run(ctx: EvalContext, cfg: ConvergenceConfig | None = None) -> Section:
             met = all(bool(mean[c][NSFLOW][k5] < mean[c][r][k5]) for r in rivals)
         headline.append(
             HeadlineRow(
-                f"convergence: mean error after {k5} iterations, one level, {_condition(c)} (px)",
+                f"convergence: mean error after {k5} iterations, one level, {condition_label(c)} (px)",
                 {n: f"{mean[c][n][k5]:.3f}" for n in names},
                 " and ".join(f"< {r}" for r in rivals),
                 met,

@@ -24,7 +24,13 @@ import numpy as np
 
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
-from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.context import (
+    EvalContext,
+    condition_label,
+    levels_text,
+    new_figure,
+    save_figure,
+)
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import BASELINES, CLASSICAL, NSFLOW, EvalMethod, PairMethod, PairResult
 from nsflow_ros.evaluation.pairs import (
@@ -236,18 +242,6 @@ def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
     save_figure(fig, path)
 
 
-def _levels_text(methods: list[PairMethod], fewer: int = 0) -> str:
-    """The pyramid depth of the methods ("4 levels", or each method's when they differ)."""
-    depths = sorted({m.levels - fewer for m in methods})
-    if len(depths) == 1:
-        return f"{depths[0]} level{'s' if depths[0] != 1 else ''}"
-    return ", ".join(f"{m.name} {m.levels - fewer}" for m in methods) + " levels"
-
-
-def _condition(cond: str) -> str:
-    return "no lighting change" if cond == "none" else "lighting change"
-
-
 def _headline(median: dict[str, dict[str, list[float]]], names: list[str], suffix: str,
               targets: bool) -> list[HeadlineRow]:  # fmt: skip
     rows = []
@@ -264,7 +258,7 @@ def _headline(median: dict[str, dict[str, list[float]]], names: list[str], suffi
             if NSFLOW in names and base:
                 met = bool(ns >= 1.5 * max(base))
         rows.append(HeadlineRow(
-            f"trackable region @1 px, {_condition(cond)}{suffix}",
+            f"trackable region @1 px, {condition_label(cond)}{suffix}",
             {n: f"{median[cond][n][0]:.1%}" for n in names}, target, met,
         ))  # fmt: skip
     return rows
@@ -312,14 +306,14 @@ def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
         for f in fewer_set
     }  # fmt: skip
     grid = "every pixel" if cfg.stride == 1 else f"every {cfg.stride}th pixel in x and y"
-    depth = _levels_text(ctx.methods)
+    depth = levels_text(ctx.methods)
     lines = [
         f"{len(pairs)} pairs of {cfg.width}x{cfg.height} px (held-out photos {', '.join(cfg.photos)}, a "
         "mild homography, without and with full-strength illumination perturbation of both frames); "
         f"{grid} at least {MARGIN} px inside is a keypoint ({sum(len(tm.points) for tm in maps[0])} in "
         f"all), its initial flow off by {cfg.perturbation:g} px in a random direction; {depth} for every "
         "method (what the tracker deploys)"
-        + (f", and {_levels_text(ctx.methods, 1)} (one fewer)" if 1 in fewer_set else "")
+        + (f", and {levels_text(ctx.methods, 1)} (one fewer)" if 1 in fewer_set else "")
         + ". Share of keypoints recovered within 1 / 2 / 3 px (a lost point is not recovered)."
         + (" **Quick mode: tiny sizes, figures not meaningful.**" if ctx.quick else ""),
         "",
@@ -344,7 +338,7 @@ def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
 
     headline = _headline(median[0], names, f" ({depth})", targets=True)
     if 1 in fewer_set:
-        fewer = f" ({_levels_text(ctx.methods, 1)}: one fewer)"
+        fewer = f" ({levels_text(ctx.methods, 1)}: one fewer)"
         headline += _headline(median[1], names, fewer, targets=False)
     data = {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
