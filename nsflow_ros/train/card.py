@@ -52,6 +52,7 @@ def write_model_card(
         basin_radius: its largest start offset per level (``--basin-radius``).
     """
     head = {"sigmoid": "sigmoid (descriptors in (0, 1))", "relu": "ReLU", "none": "none (linear)"}[spec.head]
+    w = spec.width
     c_in = "gray (1 channel)" if spec.in_channels == 1 else "RGB (3 channels)"
     if levels == 1:
         layer = "single-level LM"
@@ -86,8 +87,8 @@ the tracker runs its descriptors through the same NumPy LM solver as the classic
 
 | | |
 |---|---|
-| architecture | 3x3 conv {spec.in_channels}->8, ReLU; 3x3 conv 8->8, ReLU; 1x1 conv 8->16, ReLU; \
-1x1 conv 16->{spec.d}; head {head} |
+| architecture | 3x3 conv {spec.in_channels}->{w}, ReLU; 3x3 conv {w}->{w}, ReLU; \
+1x1 conv {w}->{2 * w}, ReLU; 1x1 conv {2 * w}->{spec.d}; head {head} |
 | padding | 1 px, replicated borders (same rule as the solver's Scharr derivatives and sampling) |
 | normalisation | none (no BatchNorm, nothing to fold) |
 | parameters | {parameters:,} |

@@ -45,7 +45,7 @@ def _init_text(mode: str, size: float) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from nsflow_ros.argtypes import program_name
+    from nsflow_ros.argtypes import positive_int, program_name
 
     p = argparse.ArgumentParser(
         prog=program_name("nsflow-train"),
@@ -63,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="activation of the encoder's last layer (default sigmoid)",
     )
     p.add_argument("--rgb", action="store_true", help="3-channel input (default gray)")
+    p.add_argument(
+        "--width", type=positive_int, default=8,
+        help="channels of the encoder's 3x3 convs, 2x in its 1x1 hidden layer (default 8, the paper's)",
+    )
     p.add_argument(
         "--mode", choices=("implicit", "unroll"), default="implicit",
         help="LK layer backward: implicit differentiation or unrolled iterations (default implicit)",
@@ -149,7 +153,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     from nsflow_ros.train.model import EncoderSpec, count_flops, count_parameters
     from nsflow_ros.train.trainer import TrainConfig, train
 
-    spec = EncoderSpec(d=opts.d, in_channels=3 if opts.rgb else 1, head=opts.head)
+    spec = EncoderSpec(d=opts.d, in_channels=3 if opts.rgb else 1, head=opts.head, width=opts.width)
     cfg = TrainConfig(
         spec=spec,
         out=opts.out,
