@@ -64,6 +64,11 @@ class LMConfig:
             None = half the window (the whole window inside the image). A smaller margin keeps points
             whose window reaches past the edge, as OpenCV's LK does (sampling replicates the border, as
             the encoder's padding does).
+        tail_share: a level's batched loop ends early once at most this share of its points are still
+            iterating after ``tail_passes`` passes; they keep their current flow (a start for the next
+            level, or the result at level 0). 0 = every point iterates until its own stop test or
+            K_max, Algorithm 1 as written (the library default). See "Stragglers" below.
+        tail_passes: the passes a level runs before ``tail_share`` may end it.
         lambda_scale: tau of the per-point initial damping lambda^(0) = max(lambda_init,
             tau * max(diag J^T J)) at the start of each level (Madsen, Nielsen and Tingleff's
             initialisation); 0 = lambda_init for every point.
@@ -86,6 +91,15 @@ class LMConfig:
     fewer iterations on the coarse levels (eps 0.02-0.1, K_max 4-6) saved up to 30 % more time but left
     coarse flows outside the finer level's capture range (tracked points > 1 px off on one test photo:
     3 -> 19).
+
+    Stragglers: in the tracker (752x480 sequence, mono, 4 levels, priors) most points stop after 2-4
+    iterations, yet half the level solves run all 12 passes for a few points that keep taking small
+    accepted steps (their flow moves 0.02 px median, 0.12 px at the 90th percentile, after pass 6),
+    and a pass over 5 points costs about a third of a pass over 150 (NumPy's per-call price). The
+    tracker therefore ends a level once <= 20 % of its points are left after 3 passes
+    (``TrackerSettings.lm``): passes per stereo frame 124 -> 67 and the whole stereo frame 41.4 ->
+    38.1 ms, carried-over share, median errors and stereo errors unchanged within 0.001 (interleaved,
+    200 frames). The library default keeps Algorithm 1's per-point stops.
     """
 
     window: int = 11
@@ -97,6 +111,8 @@ class LMConfig:
     min_eigen: float = 1e-5
     lambda_scale: float = 0.1
     margin: int | None = None
+    tail_share: float = 0.0
+    tail_passes: int = 3
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -115,6 +131,10 @@ class LMConfig:
             raise CoreError(f"LMConfig.min_eigen must be >= 0, got {self.min_eigen}")
         if self.lambda_scale < 0:
             raise CoreError(f"LMConfig.lambda_scale must be >= 0, got {self.lambda_scale}")
+        if not 0.0 <= self.tail_share < 1.0:
+            raise CoreError(f"LMConfig.tail_share must be in [0, 1), got {self.tail_share}")
+        if self.tail_passes < 1:
+            raise CoreError(f"LMConfig.tail_passes must be >= 1, got {self.tail_passes}")
         if self.margin is not None and self.margin < 0:
             raise CoreError(f"LMConfig.margin must be >= 0 or None, got {self.margin}")
 
@@ -384,6 +404,9 @@ def _solve_level(
     # A degenerate 2x2 system gives a non-finite step, which is zeroed.
     with np.errstate(divide="ignore", invalid="ignore"):
         while passes < cfg.max_iterations and idx.size:
+            # The batched pass costs the same fixed price for a handful of points as for all of them.
+            if passes >= cfg.tail_passes and idx.size <= cfg.tail_share * n:
+                break
             passes += 1
             # Closed-form solve of the 2x2 system (H + lambda I) du = -J^T f.
             h11, h12, h22, g1, g2 = s_a[:, 3], s_a[:, 4], s_a[:, 5], s_a[:, 6], s_a[:, 7]

@@ -145,6 +145,26 @@ def test_stops_at_k_max_and_on_tolerance():
     assert loose.iterations.mean() < tight.iterations.mean()
 
 
+def test_tail_share_ends_a_level_once_few_points_are_left():
+    img = texture("astronaut", (160, 120))
+    a, b = warp_pair(img, translation(1.2, 0.7))
+    pts = detect_corners(a, 40, min_distance=8)
+    full = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1, eps=1e-12, max_iterations=7))
+    # every point would iterate to K_max: the cut-off cannot apply while they are all active
+    assert (full.iterations == 7).all()
+    same = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1, eps=1e-12, max_iterations=7, tail_share=0.5))
+    np.testing.assert_array_equal(same.flow, full.flow)
+    # with most points converged early, the few left stop after tail_passes with the flow they have
+    base = LMConfig(levels=1, max_iterations=30)
+    alg1 = track(ENC(a), ENC(b), pts, config=base)
+    slow = alg1.iterations > 8
+    assert 0 < slow.sum() <= 0.4 * len(pts)
+    cut = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1, max_iterations=30, tail_share=0.4, tail_passes=8))
+    assert cut.iterations.max() == 8
+    np.testing.assert_array_equal(cut.flow[~slow], alg1.flow[~slow])
+    assert np.abs(cut.flow - alg1.flow).max() < 0.5
+
+
 def test_initial_flow_is_used(textures):
     h = translation(40.0, -25.0)
     a, b = warp_pair(textures["coffee"], h)
@@ -213,7 +233,8 @@ def test_guards(kwargs, match):
 @pytest.mark.parametrize(
     ("field", "value"),
     [("window", 10), ("window", 1), ("levels", 0), ("max_iterations", 0), ("lambda_init", 0.0),
-     ("nu", 1.0), ("eps", 0.0), ("min_eigen", -1.0)],
+     ("nu", 1.0), ("eps", 0.0), ("min_eigen", -1.0), ("tail_share", 1.0), ("tail_share", -0.1),
+     ("tail_passes", 0)],
 )
 def test_config_validation(field, value):
     with pytest.raises(CoreError, match=field):
