@@ -29,6 +29,8 @@ def write_model_card(
     scene_share: float = 0.0,
     basin_weight: float = 0.0,
     basin_radius: float = 4.0,
+    lr: float = 1e-3,
+    teacher: str | None = None,
 ) -> Path:
     """Write the Markdown model card.
 
@@ -50,6 +52,9 @@ def write_model_card(
         scene_share: share of pairs rendered from the sample scenes (``--scene-share``).
         basin_weight: weight of the basin loss (``--basin-loss``).
         basin_radius: its largest start offset per level (``--basin-radius``).
+        lr: Adam learning rate (``--lr``).
+        teacher: the encoder this one was distilled from (``--teacher``), as a path relative to the
+            card; None = trained end to end through the LK layer.
     """
     head = {"sigmoid": "sigmoid (descriptors in (0, 1))", "relu": "ReLU", "none": "none (linear)"}[spec.head]
     w = spec.width
@@ -75,12 +80,24 @@ def write_model_card(
         if scene_share > 0
         else ""
     )
+    if teacher is None:
+        origin = """trained end to end through this project's differentiable LM Lucas-Kanade layer
+(`nsflow_ros.train`, implicit-function-theorem backward)"""
+        method = f"""* Layer: {layer} (window 11, up to 30 iterations per level, eps 1e-3), implicit backward.
+* Loss: mean {loss} penalty of the endpoint error (scale 1 px) over points that stay in the image{coarse};
+  Adam, lr {lr:g}, one pair per step."""
+    else:
+        origin = f"""distilled from the wider encoder `{teacher}`, which was trained end to end through
+this project's differentiable LM Lucas-Kanade layer (`nsflow_ros.train`)"""
+        method = f"""* Distilled from `{teacher}` (`nsflow_ros/train/distill.py`): per step both frames of a
+  pair are encoded by the teacher (onnxruntime, as deployed) and by this encoder; loss = mean squared
+  difference of the descriptor maps plus that of their x and y forward differences (what the solver
+  reads: residuals and Jacobians). No solver in the loop. Adam, lr {lr:g}, one pair per step."""
     figs = "\n\n".join(f"![{cap}]({p})\n\n*{cap}*" for cap, p in figures.items())
     text = f"""# NSFlow encoder: `nsflow_encoder.onnx`
 
 The learned descriptor CNN of NSFlow ("End-to-End Differentiable Neuro-Symbolic Optical Flow for Visual
-Odometry"), trained end to end through this project's differentiable LM Lucas-Kanade layer
-(`nsflow_ros.train`, implicit-function-theorem backward). `nsflow_ros.load_encoder()` loads it by default;
+Odometry"), {origin}. `nsflow_ros.load_encoder()` loads it by default;
 the tracker runs its descriptors through the same NumPy LM solver as the classical (intensity) mode.
 
 ## Model
@@ -104,9 +121,7 @@ the tracker runs its descriptors through the same NumPy LM solver as the classic
   local shading, gamma, noise; strength uniform in [0, 1]); GFTT corners on frame 1 (up to 200);
   initial flow = {init}. Held out (never trained on): coffee, chelsea,
   grace_hopper. See `nsflow_ros/train/data.py`.{scenes}
-* Layer: {layer} (window 11, up to 30 iterations per level, eps 1e-3), implicit backward.
-* Loss: mean {loss} penalty of the endpoint error (scale 1 px) over points that stay in the image{coarse};
-  Adam, lr 1e-3, one pair per step.
+{method}
 * Command: `{command}`
 * Run: {steps:,} steps in {seconds / 60:.1f} min wall time on a 2-core CPU (shared with other jobs).
 

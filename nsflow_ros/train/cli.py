@@ -44,6 +44,16 @@ def _init_text(mode: str, size: float) -> str:
     return "zero (displacement = the pair's own motion)"
 
 
+def _teacher_text(teacher: Path | None, models: Path) -> str | None:
+    """The teacher as the card names it: its path relative to the card when it lies beside it."""
+    if teacher is None:
+        return None
+    try:
+        return teacher.resolve().relative_to(models.resolve()).as_posix()
+    except ValueError:
+        return teacher.as_posix()
+
+
 def build_parser() -> argparse.ArgumentParser:
     from nsflow_ros.argtypes import positive_int, program_name
 
@@ -63,6 +73,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="activation of the encoder's last layer (default sigmoid)",
     )
     p.add_argument("--rgb", action="store_true", help="3-channel input (default gray)")
+    p.add_argument(
+        "--teacher", type=Path, default=None, metavar="ONNX",
+        help="distil from this trained encoder (regression on its descriptor maps and their x/y "
+        "differences) instead of training through the LK layer; the LK-layer options are then unused",
+    )
     p.add_argument(
         "--width", type=positive_int, default=8,
         help="channels of the encoder's 3x3 convs, 2x in its 1x1 hidden layer (default 8, the paper's)",
@@ -175,6 +190,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         val_every=opts.val_every,
         threads=opts.threads,
         val_per_image=opts.val_per_image,
+        teacher=opts.teacher,
     )
     command = "nsflow-train " + shlex.join(argv)
     result = train(cfg, progress=not opts.no_progress)
@@ -237,6 +253,8 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             scene_share=opts.scene_share,
             basin_weight=opts.basin_loss,
             basin_radius=opts.basin_radius,
+            lr=opts.lr,
+            teacher=_teacher_text(opts.teacher, models),
         )
         print(f"installed {models / 'nsflow_encoder.onnx'} and {models / 'README.md'}")
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import torch
 from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.basin import basin_loss
 from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, load_image, make_pair
+from nsflow_ros.train.distill import Teacher, distill_step
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.evaluate import heldout_pairs
 from nsflow_ros.train.figures import plot_loss, plot_validation
@@ -60,6 +62,10 @@ class TrainConfig:
         val_per_image: validation pairs per held-out photo and condition.
         threads: torch intra-op threads.
         images: training photos.
+        teacher: an ONNX encoder to distil from (:mod:`~nsflow_ros.train.distill`): each step then
+            regresses the encoder's maps of both frames on the teacher's, and the LK-layer settings
+            (``mode``, ``lm``, ``coarse_weight``, ``basin_*``, ``rho``, ``huber_delta``) are not used.
+            None = end-to-end training through the LK layer.
     """
 
     spec: EncoderSpec = field(default_factory=EncoderSpec)
@@ -87,6 +93,7 @@ class TrainConfig:
     val_per_image: int = 3
     threads: int = 2
     images: tuple[str, ...] = TRAIN_IMAGES
+    teacher: Path | None = None
 
 
 @dataclass
@@ -187,6 +194,13 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
         pool = ScenePool(cfg.scene_cache or out.parent / "cache", seed=cfg.seed)
     model = Encoder(cfg.spec)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    # The kind of step is chosen once: through the LK layer, or regression on a teacher's maps.
+    step_fn: Callable[[Pair], float | None]
+    if cfg.teacher is None:
+        step_fn = lambda pair: train_step(model, opt, pair, cfg)  # noqa: E731
+    else:
+        teacher = Teacher(cfg.teacher, cfg.spec.d, cfg.spec.in_channels)
+        step_fn = lambda pair: distill_step(model, opt, pair, teacher)  # noqa: E731
     val_lm = LMConfig(levels=1, max_iterations=30)  # one level from 5 px needs the longer limit
     val_sets = {
         "perturbed": heldout_pairs(cfg.val_per_image, strength=1.0, seed=7),
@@ -244,7 +258,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
             pair = make_pair(src, rng, cfg.pair, strength=float(rng.uniform(0.0, 1.0)))
         if len(pair.points) < 4:
             continue
-        value = train_step(model, opt, pair, cfg)
+        value = step_fn(pair)
         if value is None:
             continue
         step += 1
