@@ -382,14 +382,18 @@ def _solve_level(
     """Run Algorithm 1 on one pyramid level for all points.
 
     Returns the final (N, 8) LM state and each template's contrast energy (sum of squared deviations
-    from its window mean, over all channels).
+    from its window mean, over all channels; level 0 only, zeros on coarser levels).
     """
     n = pts.shape[0]
     win = cfg.window
     template = _sample_level(level1, pts, win)
     contrast = np.zeros(n)
-    for t in template:  # (window, N, window, K) per chunk
-        contrast += ((t - t.mean(axis=(0, 2), keepdims=True)) ** 2).sum(axis=(0, 2, 3))
+    if level_index == 0:  # only level 0's is reported
+        # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count; einsum reduces the strided
+        # (window, N, window, K) layout about 3x faster than mean / sum over axes (0, 2).
+        for t in template:
+            sums = np.einsum("imjk->mk", t)
+            contrast += np.einsum(_SUM, t, t) - (sums * sums).sum(axis=1) / (win * win)
     state = np.empty((n, 8))
     state[:, _U] = u
     state[:, _TERMS] = _normal_equations(level2, pts + u, template, win)
