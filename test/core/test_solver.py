@@ -159,7 +159,8 @@ def test_tail_share_ends_a_level_once_few_points_are_left():
     alg1 = track(ENC(a), ENC(b), pts, config=base)
     slow = alg1.iterations > 8
     assert 0 < slow.sum() <= 0.4 * len(pts)
-    cut = track(ENC(a), ENC(b), pts, config=LMConfig(levels=1, max_iterations=30, tail_share=0.4, tail_passes=8))
+    cfg = LMConfig(levels=1, max_iterations=30, tail_share=0.4, tail_passes=8)
+    cut = track(ENC(a), ENC(b), pts, config=cfg)
     assert cut.iterations.max() == 8
     np.testing.assert_array_equal(cut.flow[~slow], alg1.flow[~slow])
     assert np.abs(cut.flow - alg1.flow).max() < 0.5

@@ -14,6 +14,7 @@ from nsflow_ros.evaluation import efficiency as ef
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, KLT, METHOD_ORDER, NSFLOW, NSFLOW_LK, KLTMethod, LMMethod
+from nsflow_ros.resources import share_file
 
 
 def _grouped_strided_conv(path):
@@ -55,7 +56,9 @@ def test_group_stride_and_gemm_are_counted(tmp_path):
 
 def test_shipped_and_paper_architectures_match_their_stated_sizes(tmp_path):
     shipped = ef.onnx_complexity(load_encoder().path)
-    assert shipped.parameters == 876 and shipped.flops == 129_024_000  # models/README.md: 876, 0.129 G
+    assert shipped.parameters == 166 and shipped.flops == 23_040_000  # models/README.md: 166, 0.023 G
+    teacher = ef.onnx_complexity(share_file("models/nsflow_encoder_w8.onnx"))
+    assert teacher.parameters == 876 and teacher.flops == 129_024_000  # the paper's shape, width 8
     paper = ef.onnx_complexity(paper_encoder_onnx(tmp_path / "paper.onnx", c_in=3, d=3))
     assert paper.parameters == 1003  # bench.paper_encoder_onnx's docstring; the paper reports 1.01e3
 
@@ -80,8 +83,8 @@ def test_quick_run(tmp_path):
     ctx = EvalContext(methods=methods, quick=True, out_dir=tmp_path / "report", progress=False, threads=1)
     sec = ef.run(ctx)
     assert sec.key == "efficiency" and sec.figures[0].is_file()
-    assert sec.data["complexity"]["320x240"]["parameters"] == 876
-    assert sec.data["complexity"]["752x480"]["flops"] == 2 * 840 * 752 * 480
+    assert sec.data["complexity"]["320x240"]["parameters"] == 166
+    assert sec.data["complexity"]["752x480"]["flops"] == 2 * 150 * 752 * 480  # multiply-adds per pixel
     assert list(sec.data["tracker_ms"]) == list(METHOD_ORDER)  # every evaluated method, whole tracker
     for name in METHOD_ORDER:
         st = sec.data["tracker_ms"][name]
@@ -91,4 +94,4 @@ def test_quick_run(tmp_path):
     assert trk[NSFLOW_LK]["encode"]["median_ms"] > trk[KLT]["encode"]["median_ms"]  # it encodes, as NSFlow
     enc = sec.data["encoder_ms"]
     assert enc[NSFLOW]["320x240"]["median_ms"] > enc["intensity"]["320x240"]["median_ms"]
-    assert "| 876 |" in sec.markdown and "efficiency_times.png" in sec.markdown
+    assert "| 166 |" in sec.markdown and "efficiency_times.png" in sec.markdown

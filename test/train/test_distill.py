@@ -39,7 +39,7 @@ def test_loss_shape_guard():
 
 
 def test_teacher_guards(tmp_path, teacher_path):
-    with pytest.raises(TrainError, match="missing.onnx"):
+    with pytest.raises(TrainError, match=r"missing\.onnx"):
         Teacher(tmp_path / "missing.onnx", 2, 1)
     with pytest.raises(TrainError, match="maps 1 -> 2 channels, the student 1 -> 4"):
         Teacher(teacher_path, 4, 1)
@@ -60,8 +60,8 @@ def test_cli_distils_and_writes_the_card(tmp_path, teacher_path):
     out, models = tmp_path / "run", tmp_path / "models"
     args = "--steps 3 --d 2 --width 2 --lr 0.003 --val-every 3 --eval-per-image 1 --val-per-image 1"
     args += " --no-progress --threads 1 --install"
-    code = main([*args.split(), "--teacher", str(teacher_path), "--out", str(out), "--models-dir", str(models)])
-    assert code == 0
+    args += f" --teacher {teacher_path} --out {out} --models-dir {models}"
+    assert main(args.split()) == 0
     assert load_encoder(out / "nsflow_encoder.onnx").channels == 2
     card = (models / "README.md").read_text()
     assert f"Distilled from `{teacher_path.as_posix()}`" in card and "lr 0.003" in card
@@ -69,5 +69,6 @@ def test_cli_distils_and_writes_the_card(tmp_path, teacher_path):
 
 
 def test_cli_rejects_a_teacher_of_other_channels(tmp_path, teacher_path, capsys):
-    assert main(["--steps", "1", "--d", "4", "--teacher", str(teacher_path), "--out", str(tmp_path / "x")]) == 1
+    args = ["--steps", "1", "--d", "4", "--teacher", str(teacher_path), "--out", str(tmp_path / "x")]
+    assert main(args) == 1
     assert "the student 1 -> 4" in capsys.readouterr().err
