@@ -405,32 +405,34 @@ def _solve_level(
     p_a, s_a, lam_a, t_a = pts, state.copy(), lam.copy(), template
     scale = 2.0**level_index
     passes = 0
-    # A degenerate 2x2 system gives a non-finite step, which is zeroed.
     with np.errstate(divide="ignore", invalid="ignore"):
         while passes < cfg.max_iterations and idx.size:
             # The batched pass costs the same fixed price for a handful of points as for all of them.
             if passes >= cfg.tail_passes and idx.size <= cfg.tail_share * n:
                 break
             passes += 1
-            # Closed-form solve of the 2x2 system (H + lambda I) du = -J^T f.
+            # Closed-form solve of the 2x2 system (H + lambda I) du = -J^T f (one column per unknown:
+            # a handful of points costs NumPy's per-call price, so every operation counts).
             h11, h12, h22, g1, g2 = s_a[:, 3], s_a[:, 4], s_a[:, 5], s_a[:, 6], s_a[:, 7]
             a11 = h11 + lam_a
             a22 = h22 + lam_a
-            det = a11 * a22 - h12 * h12
-            du = np.stack([h12 * g2 - a22 * g1, h12 * g1 - a11 * g2], axis=1) / det[:, None]
-            du[~np.isfinite(du)] = 0.0
+            inv = 1.0 / (a11 * a22 - h12 * h12)
+            inv[~np.isfinite(inv)] = 0.0  # a degenerate system takes no step
+            du0 = (h12 * g2 - a22 * g1) * inv
+            du1 = (h12 * g1 - a11 * g2) * inv
             # The stop tests look at u^(k), its J^T f and the step, all known before the candidate.
-            step_small = np.hypot(du[:, 0], du[:, 1]) < cfg.eps * (1.0 + np.hypot(s_a[:, 0], s_a[:, 1]))
-            stop = step_small | (np.abs(s_a[:, _GRAD]).max(axis=1) < cfg.eps)
+            step_small = np.hypot(du0, du1) < cfg.eps * (1.0 + np.hypot(s_a[:, 0], s_a[:, 1]))
+            stop = step_small | (np.maximum(np.abs(g1), np.abs(g2)) < cfg.eps)
             # J at a candidate serves the next iteration, and at level 0 the final degeneracy test; on a
             # coarser level a point that stops now never uses it, so only its cost is evaluated.
             below = s_a[:, _COST] if level_index == 0 else np.where(stop, -np.inf, s_a[:, _COST])
             cand = np.empty_like(s_a)
-            cand[:, _U] = s_a[:, _U] + du
+            np.add(s_a[:, 0], du0, out=cand[:, 0])
+            np.add(s_a[:, 1], du1, out=cand[:, 1])
             cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below=below)
             accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
-            lam_a = np.where(accept, lam_a / cfg.nu, lam_a * cfg.nu)
+            lam_a = lam_a * np.where(accept, 1.0 / cfg.nu, cfg.nu)
             if history is not None:
                 state[idx], lam[idx] = s_a, lam_a
                 was_active = np.zeros(n, bool)
