@@ -79,6 +79,11 @@ def build_parser() -> argparse.ArgumentParser:
         "differences) instead of training through the LK layer; the LK-layer options are then unused",
     )
     p.add_argument(
+        "--init", type=Path, default=None, metavar="CHECKPOINT",
+        help="start from this encoder.pt of an earlier run (same --d / --width / --head) instead of "
+        "random weights",
+    )
+    p.add_argument(
         "--width", type=positive_int, default=8,
         help="channels of the encoder's 3x3 convs, 2x in its 1x1 hidden layer (default 8, the paper's)",
     )
@@ -191,6 +196,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         threads=opts.threads,
         val_per_image=opts.val_per_image,
         teacher=opts.teacher,
+        init=opts.init,
     )
     command = "nsflow-train " + shlex.join(argv)
     result = train(cfg, progress=not opts.no_progress)

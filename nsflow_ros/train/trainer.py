@@ -23,7 +23,7 @@ from nsflow_ros.train.loss import flow_loss
 from nsflow_ros.train.model import Encoder, EncoderSpec
 from nsflow_ros.train.scenes import ScenePool, make_scene_pair
 
-__all__ = ["TrainConfig", "TrainResult", "encode_pair", "train", "train_step", "validate"]
+__all__ = ["TrainConfig", "TrainResult", "encode_pair", "load_checkpoint", "train", "train_step", "validate"]
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,8 @@ class TrainConfig:
             regresses the encoder's maps of both frames on the teacher's, and the LK-layer settings
             (``mode``, ``lm``, ``coarse_weight``, ``basin_*``, ``rho``, ``huber_delta``) are not used.
             None = end-to-end training through the LK layer.
+        init: a checkpoint (``encoder.pt`` of an earlier run, same spec) to start from instead of
+            random weights, e.g. to fine-tune a distilled encoder through the LK layer.
     """
 
     spec: EncoderSpec = field(default_factory=EncoderSpec)
@@ -94,6 +96,20 @@ class TrainConfig:
     threads: int = 2
     images: tuple[str, ...] = TRAIN_IMAGES
     teacher: Path | None = None
+    init: Path | None = None
+
+
+def load_checkpoint(model: Encoder, path: str | Path) -> None:
+    """Load an ``encoder.pt`` into ``model``; a missing file or another encoder shape is a TrainError."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError) as err:
+        raise TrainError(f"cannot read checkpoint {path}: {err}") from err
+    spec = model.spec.as_dict()
+    if not isinstance(ckpt, dict) or ckpt.get("spec") != spec:
+        got = ckpt.get("spec") if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise TrainError(f"checkpoint {path} holds an encoder of spec {got}, this run trains {spec}")
+    model.load_state_dict(ckpt["state"])
 
 
 @dataclass
@@ -193,6 +209,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     if cfg.scene_share > 0:
         pool = ScenePool(cfg.scene_cache or out.parent / "cache", seed=cfg.seed)
     model = Encoder(cfg.spec)
+    if cfg.init is not None:
+        load_checkpoint(model, cfg.init)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     # The kind of step is chosen once: through the LK layer, or regression on a teacher's maps.
     step_fn: Callable[[Pair], float | None]

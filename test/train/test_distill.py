@@ -72,3 +72,27 @@ def test_cli_rejects_a_teacher_of_other_channels(tmp_path, teacher_path, capsys)
     args = ["--steps", "1", "--d", "4", "--teacher", str(teacher_path), "--out", str(tmp_path / "x")]
     assert main(args) == 1
     assert "the student 1 -> 4" in capsys.readouterr().err
+
+
+def test_init_starts_from_a_checkpoint_and_refuses_another_shape(tmp_path, teacher_path, capsys):
+    first = tmp_path / "first"
+    args = "--steps 2 --d 2 --width 2 --val-every 2 --eval-per-image 1 --val-per-image 1"
+    args += " --no-progress --threads 1"
+    assert main([*args.split(), "--teacher", str(teacher_path), "--out", str(first)]) == 0
+    ckpt = torch.load(first / "encoder.pt", weights_only=True)
+    # zero steps from the checkpoint: the exported model is the checkpoint's encoder
+    again = tmp_path / "again"
+    assert main([*args.replace("--steps 2", "--steps 0").split(), "--init", str(first / "encoder.pt"),
+                 "--out", str(again)]) == 0
+    restored = Encoder(EncoderSpec(d=2, width=2))
+    restored.load_state_dict(ckpt["state"])
+    img = np.random.default_rng(0).integers(0, 256, (40, 50), dtype=np.uint8)
+    with torch.no_grad():
+        x = torch.from_numpy(img.astype(np.float32) / 255.0)[None, None]
+        ref = restored(x)[0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(load_encoder(again / "nsflow_encoder.onnx")(img), ref, atol=1e-5)
+    assert main(["--steps", "1", "--d", "2", "--width", "3", "--init", str(first / "encoder.pt"),
+                 "--out", str(tmp_path / "x")]) == 1
+    assert "holds an encoder of spec" in capsys.readouterr().err
+    assert main(["--steps", "1", "--init", str(tmp_path / "none.pt"), "--out", str(tmp_path / "y")]) == 1
+    assert "none.pt" in capsys.readouterr().err
