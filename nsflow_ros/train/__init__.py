@@ -1,4 +1,4 @@
-"""nsflow_ros.train: training the NSFlow encoder end to end through a differentiable LK layer.
+"""nsflow_ros.train: training the NSFlow encoder through a differentiable LK layer, or by distillation.
 
 This is the only part of the project that imports torch (``pip install 'nsflow_ros[train]'``); the core
 and the ROS nodes never do. Modules, one concept each:
@@ -11,6 +11,7 @@ and the ROS nodes never do. Modules, one concept each:
 * :mod:`~nsflow_ros.train.data` - homography pairs of real photos with exact flow and illumination changes;
 * :mod:`~nsflow_ros.train.scenes` - stereo and temporal pairs rendered from the sample scenes, exact flow;
 * :mod:`~nsflow_ros.train.loss` - the robust endpoint-error loss;
+* :mod:`~nsflow_ros.train.distill` - distillation of a narrower encoder from a trained one's maps;
 * :mod:`~nsflow_ros.train.trainer` - the training loop; :mod:`~nsflow_ros.train.cli` - ``nsflow-train``;
 * :mod:`~nsflow_ros.train.export` - ONNX export; :mod:`~nsflow_ros.train.evaluate` - NSFlow vs classical;
 * :mod:`~nsflow_ros.train.figures` - loss / validation PNGs; :mod:`~nsflow_ros.train.card` - the model card.
@@ -30,6 +31,7 @@ except ImportError as err:  # pragma: no cover - depends on the environment
         "(from a git clone: pip install -e '.[train]')"
     ) from err
 
+from nsflow_ros.train.distill import Teacher, distill_loss
 from nsflow_ros.train.evaluate import compare, heldout_pairs
 from nsflow_ros.train.export import export_onnx
 from nsflow_ros.train.lk_layer import BackwardMode, LKOutput, LKPyramidOutput, lk_track, lk_track_pyramid
@@ -42,9 +44,11 @@ __all__ = [
     "EncoderSpec",
     "LKOutput",
     "LKPyramidOutput",
+    "Teacher",
     "TrainConfig",
     "TrainError",
     "compare",
+    "distill_loss",
     "export_onnx",
     "heldout_pairs",
     "lk_track",
