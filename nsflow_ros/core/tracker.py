@@ -127,7 +127,7 @@ class TrackerSettings:
     border: int = 1
     equalize: bool = False
     stereo: bool = False
-    lm: LMConfig = field(default_factory=lambda: LMConfig(levels=4, margin=1, tail_share=0.2))
+    lm: LMConfig = field(default_factory=lambda: LMConfig(levels=4, margin=1, tail_share=0.4, tail_passes=2))
     use_imu_prediction: bool = False
     prediction_min_tracked: int = 10
 
