@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from collections.abc import Callable
@@ -215,10 +216,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     # The kind of step is chosen once: through the LK layer, or regression on a teacher's maps.
     step_fn: Callable[[Pair], float | None]
     if cfg.teacher is None:
-        step_fn = lambda pair: train_step(model, opt, pair, cfg)  # noqa: E731
+        step_fn = functools.partial(train_step, model, opt, cfg=cfg)
     else:
         teacher = Teacher(cfg.teacher, cfg.spec.d, cfg.spec.in_channels)
-        step_fn = lambda pair: distill_step(model, opt, pair, teacher)  # noqa: E731
+        step_fn = functools.partial(distill_step, model, opt, teacher=teacher)
     val_lm = LMConfig(levels=1, max_iterations=30)  # one level from 5 px needs the longer limit
     val_sets = {
         "perturbed": heldout_pairs(cfg.val_per_image, strength=1.0, seed=7),
