@@ -51,7 +51,6 @@ class Teacher:
                 f"teacher {path} maps {self.encoder.input_channels} -> {self.encoder.channels} channels, "
                 f"the student {in_channels} -> {channels}"
             )
-        self.path = str(path)
 
     def __call__(self, image: np.ndarray) -> torch.Tensor:
         """The teacher's (d, H, W) descriptor map of one uint8 image."""
