@@ -17,7 +17,7 @@ from nsflow_ros.core.encoder import (
 from nsflow_ros.core.errors import CoreError, EncoderError
 from nsflow_ros.core.methods import METHODS, SolveKind, TrackingMethod, klt_track, make_method
 from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, descriptor_gradients
-from nsflow_ros.core.solver import IterationRecord, LMConfig, TrackResult, sample_windows, track
+from nsflow_ros.core.solver import IterationRecord, Jacobian, LMConfig, TrackResult, sample_windows, track
 
 __all__ = [
     "DEFAULT_MODEL",
@@ -28,6 +28,7 @@ __all__ = [
     "EncoderError",
     "IntensityEncoder",
     "IterationRecord",
+    "Jacobian",
     "LMConfig",
     "OnnxEncoder",
     "SolveKind",

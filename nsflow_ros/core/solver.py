@@ -3,7 +3,8 @@
 For each point x with flow u the solver minimises S(u) = 1/2 sum_window ||D2(x + u) - D1(x)||^2 over a
 square window and all descriptor channels. One iteration, for every still-active point at once:
 
-1. J and f at u^(k) (J = the x/y derivative maps of D2 sampled at x + u, f = D2(x + u) - D1(x));
+1. J and f at u^(k) (J = the x/y derivative maps of D2 sampled at x + u, the paper's; or with
+   :attr:`Jacobian.ESM` their mean with the template's derivatives at x; f = D2(x + u) - D1(x));
 2. solve (J^T J + lambda I) du = -J^T f in closed form (2x2 per point);
 3. evaluate S at u + du; accept (lambda /= nu) if it dropped, else reject (lambda *= nu);
 4. stop when ||du|| < eps (1 + ||u^(k)||) or ||J^T f||_inf < eps, or after K_max iterations.
@@ -28,6 +29,7 @@ window element is below ``min_eigen``: flat or saturated texture), or when the r
 
 from __future__ import annotations
 
+import enum
 import functools
 from dataclasses import dataclass, field
 
@@ -37,7 +39,22 @@ import numpy as np
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, split_channels
 
-__all__ = ["IterationRecord", "LMConfig", "TrackResult", "sample_windows", "track"]
+__all__ = ["IterationRecord", "Jacobian", "LMConfig", "TrackResult", "sample_windows", "track"]
+
+
+class Jacobian(enum.Enum):
+    """Which derivative the LM step uses for J (the accept test, the stop tests and S are the same).
+
+    * ``FORWARD`` - the paper's: the derivative of D2 at x + u (forward additive Lucas-Kanade).
+    * ``ESM`` - the mean of that and the template's derivative at x (Malis' efficient second-order
+      minimisation, Benhimane and Malis 2004): far from the answer the template's derivative still
+      describes the pattern being sought, so a step points the right way more often; at the answer both
+      derivatives agree and the step is the same. Measured on the evaluation's capture-from-zero-flow
+      photo pairs (4 levels): NSFlow 80.3 -> 86.2 % within 1 px, intensity LM 92.7 -> 95.3 %.
+    """
+
+    FORWARD = "forward"
+    ESM = "esm"
 
 
 @dataclass(frozen=True)
@@ -46,6 +63,10 @@ class LMConfig:
 
     Attributes:
         window: side of the square window in pixels (odd). The paper uses 11.
+        jacobian: the derivative the step uses, :class:`Jacobian` (the paper's ``FORWARD`` by default).
+        coarse_window: window side on the coarser levels (1 and up); None = ``window`` on every level.
+            A wider coarse window sees more of the image around a point while the flow is still far
+            off (VINS's KLT uses 21 on every level); the final level keeps ``window``.
         levels: pyramid levels (1 = single scale, as in training).
         max_iterations: K_max, the iteration limit per level.
         lambda_init: initial damping lambda^(0) (a floor when ``lambda_scale`` > 0), reset at the start
@@ -105,6 +126,8 @@ class LMConfig:
     """
 
     window: int = 11
+    coarse_window: int | None = None
+    jacobian: Jacobian = Jacobian.FORWARD
     levels: int = 3
     max_iterations: int = 12
     lambda_init: float = 1e-2
@@ -119,6 +142,10 @@ class LMConfig:
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
             raise CoreError(f"LMConfig.window must be odd and >= 3, got {self.window}")
+        if self.coarse_window is not None and (self.coarse_window < 3 or self.coarse_window % 2 == 0):
+            raise CoreError(f"LMConfig.coarse_window must be odd and >= 3 or None, got {self.coarse_window}")
+        if not isinstance(self.jacobian, Jacobian):
+            raise CoreError(f"LMConfig.jacobian must be a Jacobian, got {self.jacobian!r}")
         if self.levels < 1:
             raise CoreError(f"LMConfig.levels must be >= 1, got {self.levels}")
         if self.max_iterations < 1:
@@ -139,6 +166,10 @@ class LMConfig:
             raise CoreError(f"LMConfig.tail_passes must be >= 1, got {self.tail_passes}")
         if self.margin is not None and self.margin < 0:
             raise CoreError(f"LMConfig.margin must be >= 0 or None, got {self.margin}")
+
+    def window_at(self, level: int) -> int:
+        """The window side the solver uses on pyramid level ``level`` (0 = full resolution)."""
+        return self.window if level == 0 or self.coarse_window is None else self.coarse_window
 
 
 @dataclass(frozen=True)
@@ -201,6 +232,8 @@ def _remap_is_exact() -> bool:
 _REMAP_MAX_COLS = 32766
 # 1/32 per Scharr factor: J^T J terms take it twice, J^T f once.
 _SCHARR_NORM = np.array([1 / 1024, 1 / 1024, 1 / 1024, 1 / 32, 1 / 32])
+# ESM sums two unnormalised Scharr derivatives: half of each, 1/64 per factor.
+_ESM_NORM = _SCHARR_NORM * np.array([1 / 4, 1 / 4, 1 / 4, 1 / 2, 1 / 2])
 _REPLICATE = cv2.BORDER_REPLICATE
 _LINEAR = cv2.INTER_LINEAR
 
@@ -308,6 +341,23 @@ def _take(template: list[np.ndarray], keep: np.ndarray) -> list[np.ndarray]:
     return [np.compress(keep, t, axis=1) for t in template]
 
 
+def _scharr_xy(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unnormalised Scharr x / y derivatives of (size, M, size, K) patches, window pixels only."""
+    size, k, _, ch = patches.shape
+    flat = patches.reshape(size, k * size, ch) if ch > 1 else patches.reshape(size, k * size)
+    jx = cv2.Scharr(flat, cv2.CV_32F, 1, 0).reshape(patches.shape)[1:-1, :, 1:-1]
+    jy = cv2.Scharr(flat, cv2.CV_32F, 0, 1).reshape(patches.shape)[1:-1, :, 1:-1]
+    return jx, jy
+
+
+def _template_gradients(level: tuple[np.ndarray, ...], pts: np.ndarray, window: int) -> list[np.ndarray]:
+    """The template's unnormalised Scharr derivatives at x, per chunk [dx, dy, dx, dy, ...] (ESM)."""
+    out = []
+    for patch in _sample_level(level, pts, window + 2):
+        out.extend(_scharr_xy(patch))
+    return out
+
+
 _SUM = "imjk,imjk->m"  # per point: sum over window rows, columns and channels
 
 
@@ -317,18 +367,21 @@ def _normal_equations(
     template: list[np.ndarray],
     window: int,
     below: np.ndarray | None = None,
+    template_grad: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """S, J^T J and J^T f per point as (M, 6) columns [S, h11, h12, h22, g1, g2], at ``centers``.
 
-    J is the normalised Scharr derivative of D2 at x + u. Every pixel of a window shares the centre's
-    sub-pixel offset, and filtering commutes with such a shift, so Scharr applied to a bilinearly
-    sampled (window + 2)^2 patch equals sampling the Scharr derivative maps (to float rounding) wherever
-    the window lies inside the image, border pixels included (remap and the filter both replicate).
-    Beyond the image it is the derivative of the replicated map, 0 across the edge; such points end with
-    status False anyway. One remap per 4 channels thus gives D2 and J together, and the pyramid needs no
-    derivative maps. The patches lie side by side in one image, so one ``cv2.Scharr`` call per direction
-    differentiates all of them; only window pixels are kept, whose 3x3 neighbourhoods never cross into
-    the next patch. Sums are additive over channels, so chunks are reduced one at a time.
+    J is the normalised Scharr derivative of D2 at x + u; with ``template_grad`` (the template's
+    derivatives from :func:`_template_gradients`, :attr:`Jacobian.ESM`) the mean of the two. Every pixel
+    of a window shares the centre's sub-pixel offset, and filtering commutes with such a shift, so Scharr
+    applied to a bilinearly sampled (window + 2)^2 patch equals sampling the Scharr derivative maps (to
+    float rounding) wherever the window lies inside the image, border pixels included (remap and the
+    filter both replicate). Beyond the image it is the derivative of the replicated map, 0 across the
+    edge; such points end with status False anyway. One remap per 4 channels thus gives D2 and J together,
+    and the pyramid needs no derivative maps. The patches lie side by side in one image, so one
+    ``cv2.Scharr`` call per direction differentiates all of them; only window pixels are kept, whose 3x3
+    neighbourhoods never cross into the next patch. Sums are additive over channels, so chunks are reduced
+    one at a time.
 
     With ``below`` (the current costs), J^T J and J^T f are computed only where S < below, i.e. for the
     candidates LM will accept, and left 0 elsewhere: the solver discards them for rejected steps, which
@@ -348,20 +401,22 @@ def _normal_equations(
         return sums
     part = rows is not None and rows.size < m
     terms = np.zeros((rows.size, 5)) if part else sums[:, 1:]
-    for p, f in zip(patches, resid, strict=True):
+    for c, (p, f) in enumerate(zip(patches, resid, strict=True)):
         if part:
             p, f = np.take(p, rows, axis=1), np.take(f, rows, axis=1)
-        size_, k, _, ch = p.shape
-        flat = p.reshape(size_, k * size_, ch) if ch > 1 else p.reshape(size_, k * size_)
         # Unnormalised Scharr ([-3 0 3; -10 0 10; -3 0 3]); the 1/32 is applied to the sums below.
-        jx = cv2.Scharr(flat, cv2.CV_32F, 1, 0).reshape(p.shape)[1:-1, :, 1:-1]
-        jy = cv2.Scharr(flat, cv2.CV_32F, 0, 1).reshape(p.shape)[1:-1, :, 1:-1]
+        jx, jy = _scharr_xy(p)
+        if template_grad is not None:
+            tx, ty = template_grad[2 * c], template_grad[2 * c + 1]
+            if part:
+                tx, ty = np.take(tx, rows, axis=1), np.take(ty, rows, axis=1)
+            jx, jy = jx + tx, jy + ty
         terms[:, 0] += np.einsum(_SUM, jx, jx)
         terms[:, 1] += np.einsum(_SUM, jx, jy)
         terms[:, 2] += np.einsum(_SUM, jy, jy)
         terms[:, 3] += np.einsum(_SUM, jx, f)
         terms[:, 4] += np.einsum(_SUM, jy, f)
-    terms *= _SCHARR_NORM
+    terms *= _SCHARR_NORM if template_grad is None else _ESM_NORM
     if part:
         sums[rows, 1:] = terms
     return sums
@@ -387,8 +442,10 @@ def _solve_level(
     from its window mean, over all channels; level 0 only, zeros on coarser levels).
     """
     n = pts.shape[0]
-    win = cfg.window
+    win = cfg.window_at(level_index)
     template = _sample_level(level1, pts, win)
+    # The Jacobian kind is settled here, once per level: ESM carries the template's derivatives.
+    tgrad = _template_gradients(level1, pts, win) if cfg.jacobian is Jacobian.ESM else None
     contrast = np.zeros(n)
     if level_index == 0:  # only level 0's is reported
         # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count; einsum reduces the strided
@@ -398,13 +455,13 @@ def _solve_level(
             contrast += np.einsum(_SUM, t, t) - (sums * sums).sum(axis=1) / (win * win)
     state = np.empty((n, 8))
     state[:, _U] = u
-    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win)
+    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, template_grad=tgrad)
     lam = np.full(n, cfg.lambda_init)
     if cfg.lambda_scale > 0:
         lam = np.maximum(lam, cfg.lambda_scale * np.maximum(state[:, 3], state[:, 5]))
     # Working copies restricted to the still-active points; finished points are written back.
     idx = np.arange(n)
-    p_a, s_a, lam_a, t_a = pts, state.copy(), lam.copy(), template
+    p_a, s_a, lam_a, t_a, g_a = pts, state.copy(), lam.copy(), template, tgrad
     scale = 2.0**level_index
     passes = 0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -431,7 +488,7 @@ def _solve_level(
             cand = np.empty_like(s_a)
             np.add(s_a[:, 0], du0, out=cand[:, 0])
             np.add(s_a[:, 1], du1, out=cand[:, 1])
-            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below=below)
+            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, g_a)
             accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
             lam_a = lam_a * np.where(accept, 1.0 / cfg.nu, cfg.nu)
@@ -450,6 +507,8 @@ def _solve_level(
                 iterations[done] += passes
                 keep = ~stop
                 idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], _take(t_a, keep)
+                if g_a is not None:
+                    g_a = _take(g_a, keep)
     state[idx] = s_a
     iterations[idx] += passes
     return state, contrast

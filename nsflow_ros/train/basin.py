@@ -13,12 +13,15 @@ differentiable end to end (one window sample per point and level, autograd throu
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.errors import TrainError
+from nsflow_ros.train.lk_layer import residual_and_jacobian, stack_level, template_windows
 from nsflow_ros.train.loss import flow_loss
-from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients
+from nsflow_ros.train.ops import pyramid
 
 __all__ = ["basin_loss", "first_step"]
 
@@ -33,7 +36,7 @@ def first_step(
         desc2: frame-2 map of the same level.
         points: keypoints in that level's pixels.
         start: starting flows in that level's pixels (no gradient).
-        config: window and lambda^(0) rule (``lambda_init``, ``lambda_scale``).
+        config: window, Jacobian and lambda^(0) rule (``lambda_init``, ``lambda_scale``).
 
     Returns:
         du, the step, in the maps' dtype promoted to float64.
@@ -44,13 +47,9 @@ def first_step(
     if desc1.shape != desc2.shape or desc1.dim() != 3:
         shapes = f"{tuple(desc1.shape)}, {tuple(desc2.shape)}"
         raise TrainError(f"first_step needs two equal (C, H, W) maps, got {shapes}")
-    n = points.shape[0]
     win = config.window
-    template = sample_windows(desc1, points, win).reshape(n, -1)
-    dx, dy = scharr_gradients(desc2)
-    s = sample_windows(torch.cat([desc2, dx, dy], 0), points + start.detach(), win).reshape(n, 3, -1)
-    f = s[:, 0] - template
-    jx, jy = s[:, 1], s[:, 2]
+    template = template_windows(desc1, points, win, config.jacobian)
+    f, jx, jy = residual_and_jacobian(stack_level(desc2), points + start.detach(), template, win)
     h11, h12, h22 = ((jx * jx).sum(1).double(), (jx * jy).sum(1).double(), (jy * jy).sum(1).double())
     g1, g2 = (jx * f).sum(1).double(), (jy * f).sum(1).double()
     lam = torch.full_like(h11, config.lambda_init)
@@ -79,7 +78,8 @@ def basin_loss(
         desc2: frame-2 full-resolution map.
         points: keypoints, level-0 pixels.
         flow_gt: ground-truth flow, level-0 pixels.
-        config: ``levels`` (as the solver builds them), window and lambda^(0) rule.
+        config: ``levels`` (as the solver builds them), windows (``window_at``), Jacobian and lambda^(0)
+            rule.
         radius: largest start offset in each level's own pixels.
         delta: robust scale, in each level's pixels.
         rho: robust penalty (see :func:`~nsflow_ros.train.loss.flow_loss`).
@@ -100,9 +100,10 @@ def basin_loss(
     pts = points.detach().to(torch.float64)
     gt = flow_gt.detach().to(torch.float64)
     n = pts.shape[0]
-    r = config.window // 2
     total = desc1.new_zeros((), dtype=torch.float64)
     for lev, (m1, m2) in enumerate(zip(pyr1, pyr2, strict=True)):
+        lcfg = replace(config, window=config.window_at(lev), coarse_window=None)
+        r = lcfg.window // 2
         s = 2.0**lev
         p_l, gt_l = pts / s, gt / s
         ang = torch.rand(n, generator=generator, dtype=torch.float64) * (2 * torch.pi)
@@ -117,6 +118,6 @@ def basin_loss(
         )  # fmt: skip
         if not bool(valid.any()):
             continue
-        du = first_step(m1, m2, p_l[valid], start[valid], config)
+        du = first_step(m1, m2, p_l[valid], start[valid], lcfg)
         total = total + flow_loss(start[valid] + du, gt_l[valid], torch.isfinite(du).all(1), delta, rho)[0]
     return total / len(pyr1)

@@ -10,7 +10,8 @@ in their own dtype.
 Backward modes (:class:`BackwardMode`):
 
 * ``IMPLICIT`` - the implicit function theorem at the converged solution u*. The solver stops where
-  F(D1, D2, u) = J(u)^T f(u) = 0 (J = the Scharr derivative maps of D2 sampled at x + u), so
+  F(D1, D2, u) = J(u)^T f(u) = 0 (J = the Scharr derivative maps of D2 sampled at x + u; with
+  ``Jacobian.ESM`` their mean with D1's at x, so F then depends on D1 through J as well), so
   du*/dD = -(dF/du)^-1 dF/dD. dF/du is block diagonal (one 2x2 block per point, each point's F depends on
   its own u only); the blocks are the exact derivative of F, second-order terms included (the change of
   the sampled J and f with u), obtained with autograd on one re-evaluation of F at u*, one block row at a
@@ -43,11 +44,11 @@ and unrolling through a whole pyramid would keep every level's iterations in mem
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
-from nsflow_ros.core.solver import LMConfig
+from nsflow_ros.core.solver import Jacobian, LMConfig
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients
 
@@ -55,9 +56,13 @@ __all__ = [
     "BackwardMode",
     "LKOutput",
     "LKPyramidOutput",
+    "Template",
     "lk_track",
     "lk_track_pyramid",
     "optimality_condition",
+    "residual_and_jacobian",
+    "stack_level",
+    "template_windows",
 ]
 
 
@@ -105,32 +110,81 @@ class LKPyramidOutput:
     levels: tuple[LKOutput, ...]
 
 
-def _stack_level(desc2: torch.Tensor) -> torch.Tensor:
-    """[D | Dx | Dy] of frame 2, (3C, H, W), like one level of the NumPy pyramid."""
-    dx, dy = scharr_gradients(desc2)
-    return torch.cat([desc2, dx, dy], dim=0)
+def stack_level(desc: torch.Tensor) -> torch.Tensor:
+    """[D | Dx | Dy] of a map (frame 2's, or frame 1's for ESM): the maps the solver samples.
+
+    Shape:
+        desc: (C, H, W). Returns (3C, H, W).
+    """
+    dx, dy = scharr_gradients(desc)
+    return torch.cat([desc, dx, dy], dim=0)
+
+
+@dataclass(frozen=True)
+class Template:
+    """The frame-1 side of a solve: what every residual and Jacobian of a point is taken against.
+
+    Attributes:
+        values: D1 over each point's window, flattened, (M, C window^2).
+        grad: for :attr:`Jacobian.ESM` D1's Scharr x / y derivatives there, (M, 2, C window^2); else None.
+    """
+
+    values: torch.Tensor
+    grad: torch.Tensor | None
+
+    def take(self, idx: torch.Tensor) -> Template:
+        """The templates of the points ``idx``."""
+        return Template(self.values[idx], None if self.grad is None else self.grad[idx])
+
+
+def template_windows(desc1: torch.Tensor, pts: torch.Tensor, window: int, jacobian: Jacobian) -> Template:
+    """Sample the frame-1 template at ``pts`` (with its derivatives when the Jacobian needs them).
+
+    Shape:
+        desc1: (C, H, W). pts: (M, 2).
+    """
+    n = pts.shape[0]
+    if jacobian is Jacobian.ESM:
+        s = sample_windows(stack_level(desc1), pts, window).reshape(n, 3, -1)
+        return Template(s[:, 0], s[:, 1:])
+    return Template(sample_windows(desc1, pts, window).reshape(n, -1), None)
+
+
+def residual_and_jacobian(
+    level2: torch.Tensor, centers: torch.Tensor, template: Template, window: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """f = D2(x + u) - D1(x) and the step's J (x and y) at the frame-2 centres x + u.
+
+    J is D2's Scharr derivative there, or with an ESM template the mean of that and D1's at x.
+
+    Shape:
+        level2: (3C, H, W) from :func:`stack_level`. centers: (M, 2). Returns three (M, C window^2).
+    """
+    s = sample_windows(level2, centers, window).reshape(centers.shape[0], 3, -1)
+    f = s[:, 0] - template.values
+    if template.grad is None:
+        return f, s[:, 1], s[:, 2]
+    return f, 0.5 * (s[:, 1] + template.grad[:, 0]), 0.5 * (s[:, 2] + template.grad[:, 1])
 
 
 def _normal_equations(
-    level2: torch.Tensor, centers: torch.Tensor, template: torch.Tensor, window: int
+    level2: torch.Tensor, centers: torch.Tensor, template: Template, window: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """S, J^T J as (h11, h12, h22) and J^T f at the given frame-2 centres; all (M,) / (M, 3) / (M, 2)."""
-    m = centers.shape[0]
-    s = sample_windows(level2, centers, window).reshape(m, 3, -1)
-    f = s[:, 0] - template
-    jx, jy = s[:, 1], s[:, 2]
+    f, jx, jy = residual_and_jacobian(level2, centers, template, window)
     cost = 0.5 * (f * f).sum(1).double()
     hess = torch.stack([(jx * jx).sum(1), (jx * jy).sum(1), (jy * jy).sum(1)], 1).double()
     grad = torch.stack([(jx * f).sum(1), (jy * f).sum(1)], 1).double()
     return cost, hess, grad
 
 
-def _template(desc1: torch.Tensor, pts: torch.Tensor, window: int) -> torch.Tensor:
-    return sample_windows(desc1, pts, window).reshape(pts.shape[0], -1)
-
-
 def optimality_condition(
-    desc1: torch.Tensor, desc2: torch.Tensor, points: torch.Tensor, flow: torch.Tensor, window: int
+    desc1: torch.Tensor,
+    desc2: torch.Tensor,
+    points: torch.Tensor,
+    flow: torch.Tensor,
+    window: int,
+    jacobian: Jacobian = Jacobian.FORWARD,
 ) -> torch.Tensor:
     """F(D1, D2, u) = J(u)^T f(u) per point, zero at a converged solution of the LM solver.
 
@@ -141,6 +195,7 @@ def optimality_condition(
         points: keypoints x in frame 1.
         flow: flow u.
         window: odd window side.
+        jacobian: the J of the solver's step (ESM: the mean of D2's derivatives at x + u and D1's at x).
 
     Returns:
         F, one 2-vector per point, in the maps' dtype.
@@ -148,11 +203,9 @@ def optimality_condition(
     Shape:
         desc1, desc2: (C, H, W). points, flow: (N, 2). Returns (N, 2).
     """
-    n = points.shape[0]
-    template = _template(desc1, points, window)
-    s = sample_windows(_stack_level(desc2), points + flow, window).reshape(n, 3, -1)
-    f = s[:, 0] - template
-    return torch.stack([(s[:, 1] * f).sum(1), (s[:, 2] * f).sum(1)], 1)
+    template = template_windows(desc1, points, window, jacobian)
+    f, jx, jy = residual_and_jacobian(stack_level(desc2), points + flow, template, window)
+    return torch.stack([(jx * f).sum(1), (jy * f).sum(1)], 1)
 
 
 def _lm_solve(
@@ -165,8 +218,8 @@ def _lm_solve(
     """
     win = cfg.window
     n = pts.shape[0]
-    level2 = _stack_level(desc2)
-    template = _template(desc1, pts, win)
+    level2 = stack_level(desc2)
+    template = template_windows(desc1, pts, win, cfg.jacobian)
     cost, hess, grad = _normal_equations(level2, pts + u0, template, win)
     u = u0
     lam = torch.full((n,), cfg.lambda_init, dtype=torch.float64, device=pts.device)
@@ -186,7 +239,7 @@ def _lm_solve(
         du = du / det[:, None]
         du = torch.where(torch.isfinite(du), du, torch.zeros_like(du))
         cand = u_a + du
-        cc, ch, cg = _normal_equations(level2, pts[idx] + cand, template[idx], win)
+        cc, ch, cg = _normal_equations(level2, pts[idx] + cand, template.take(idx), win)
         with torch.no_grad():
             accept = cc < c_a
             step_small = torch.linalg.vector_norm(du, dim=1) < cfg.eps * (
@@ -240,6 +293,7 @@ class _ImplicitLK(torch.autograd.Function):
             status = _valid(points, u, hess, tuple(desc1.shape[1:]), desc1.shape[0], cfg)
         ctx.save_for_backward(desc1, desc2, points, u, status)
         ctx.window = cfg.window
+        ctx.jacobian = cfg.jacobian
         ctx.residual_tol = residual_tol
         ctx.min_curvature = min_curvature
         ctx.mark_non_differentiable(status, cost, iters)
@@ -255,7 +309,7 @@ class _ImplicitLK(torch.autograd.Function):
             d1 = desc1.detach().requires_grad_(need1)
             d2 = desc2.detach().requires_grad_(need2)
             uu = u.detach().requires_grad_(True)
-            fval = optimality_condition(d1, d2, points, uu, ctx.window)  # (N, 2)
+            fval = optimality_condition(d1, d2, points, uu, ctx.window, ctx.jacobian)  # (N, 2)
             # Exact dF/du, block row by block row (F_i depends on u_i only).
             row0 = torch.autograd.grad(fval[:, 0].sum(), uu, retain_graph=True)[0]
             row1 = torch.autograd.grad(fval[:, 1].sum(), uu, retain_graph=True)[0]
@@ -441,7 +495,9 @@ def lk_track_pyramid(
     for lev in range(nlev - 1, -1, -1):
         s = 2.0**lev
         start = u.detach() if mode is BackwardMode.IMPLICIT else u
-        res = _track_level(pyr1[lev], pyr2[lev], pts / s, start, cfg, mode, residual_tol, min_curvature)
+        # Each level solves with its own window (``LMConfig.window_at``), status by the same rule.
+        lcfg = replace(cfg, window=cfg.window_at(lev), coarse_window=None)
+        res = _track_level(pyr1[lev], pyr2[lev], pts / s, start, lcfg, mode, residual_tol, min_curvature)
         iterations = iterations + res.iterations
         outputs.append(LKOutput(res.flow * s, res.status, res.cost, res.iterations))
         u = res.flow * 2.0

@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nsflow_ros import LMConfig  # noqa: E402
+from nsflow_ros import Jacobian, LMConfig  # noqa: E402
 from nsflow_ros.train import TrainError, lk_track  # noqa: E402
 from nsflow_ros.train.basin import basin_loss, first_step  # noqa: E402
 
@@ -25,11 +25,12 @@ def _maps(shift: np.ndarray) -> torch.Tensor:
 POINTS = torch.tensor([[30.0, 30.0], [20.5, 40.2], [40.1, 22.7]], dtype=torch.float64)
 
 
+@pytest.mark.parametrize("jacobian", list(Jacobian))
 @pytest.mark.parametrize("lambda_scale", [0.0, 0.1])
-def test_first_step_is_the_solvers_first_iteration(lambda_scale):
+def test_first_step_is_the_solvers_first_iteration(lambda_scale, jacobian):
     d1, d2 = _maps(np.zeros(2)), _maps(SHIFT)
     start = torch.from_numpy(SHIFT + np.array([[1.0, 0.5], [-0.8, 0.3], [0.2, -1.1]]))
-    cfg = LMConfig(levels=1, max_iterations=1, lambda_init=1e-2, lambda_scale=lambda_scale)
+    cfg = LMConfig(levels=1, max_iterations=1, lambda_init=1e-2, lambda_scale=lambda_scale, jacobian=jacobian)
     du = first_step(d1, d2, POINTS, start, cfg)
     out = lk_track(d1, d2, POINTS, start, cfg)
     assert out.iterations.tolist() == [1, 1, 1]

@@ -7,7 +7,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nsflow_ros import LMConfig, track  # noqa: E402
+from dataclasses import replace  # noqa: E402
+
+from nsflow_ros import Jacobian, LMConfig, track  # noqa: E402
 from nsflow_ros.core.pyramid import build_pyramid  # noqa: E402
 from nsflow_ros.train import BackwardMode, TrainError, lk_track  # noqa: E402
 from nsflow_ros.train.lk_layer import lk_track_pyramid, optimality_condition  # noqa: E402
@@ -16,6 +18,7 @@ from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients  # no
 SHIFT = np.array([0.6, -0.4])
 # lambda_scale=0 as in training (TrainConfig.lm); the starts below reach F = 0 with that damping.
 TIGHT = LMConfig(levels=1, max_iterations=200, eps=1e-10, min_eigen=0.0, lambda_scale=0.0)
+RESIDUAL = {Jacobian.FORWARD: 1e-9, Jacobian.ESM: 1e-7}
 
 
 def _smooth_map(h: int, w: int, shift: np.ndarray) -> np.ndarray:
@@ -41,27 +44,32 @@ def _problem():
     return d1, d2, pts, flow0, weights
 
 
-def _gradients(mode: BackwardMode):
+def _gradients(mode: BackwardMode, jacobian: Jacobian = Jacobian.FORWARD):
     d1, d2, pts, flow0, weights = _problem()
     d1.requires_grad_(True)
     d2.requires_grad_(True)
-    out = lk_track(d1, d2, pts, flow0, TIGHT, mode=mode)
+    cfg = replace(TIGHT, jacobian=jacobian)
+    out = lk_track(d1, d2, pts, flow0, cfg, mode=mode)
     assert bool(out.status.all())
-    residual = optimality_condition(d1.detach(), d2.detach(), pts, out.flow.detach(), TIGHT.window)
-    assert float(residual.abs().max()) < 1e-9, "precondition: the solution must satisfy F = 0"
+    residual = optimality_condition(d1.detach(), d2.detach(), pts, out.flow.detach(), cfg.window, jacobian)
+    # ESM's J is no more the derivative of S than Scharr's: LM stalls ~3e-8 short of F = 0 on these starts.
+    assert float(residual.abs().max()) < RESIDUAL[jacobian], "precondition: the solution must satisfy F = 0"
     (out.flow * weights).sum().backward()
     return d1.grad.clone(), d2.grad.clone(), out
 
 
-def _finite_differences(which: int, entries: list[tuple[int, int, int]], h: float = 1e-6) -> np.ndarray:
+def _finite_differences(
+    which: int, entries: list[tuple[int, int, int]], jacobian: Jacobian = Jacobian.FORWARD, h: float = 1e-6
+) -> np.ndarray:
     d1, d2, pts, flow0, weights = _problem()
+    cfg = replace(TIGHT, jacobian=jacobian)
     out = []
     for c, y, x in entries:
         vals = []
         for sign in (1.0, -1.0):
             maps = [d1.clone(), d2.clone()]
             maps[which][c, y, x] += sign * h
-            res = lk_track(maps[0], maps[1], pts, flow0, TIGHT)
+            res = lk_track(maps[0], maps[1], pts, flow0, cfg)
             vals.append(float((res.flow * weights).sum()))
         out.append((vals[0] - vals[1]) / (2 * h))
     return np.array(out)
@@ -77,21 +85,23 @@ def _check_entries(grad: torch.Tensor, count: int = 24) -> list[tuple[int, int, 
     return [tuple(int(v) for v in np.unravel_index(i, shape)) for i in picked]
 
 
+@pytest.mark.parametrize("jacobian", list(Jacobian))
 @pytest.mark.parametrize("which", [0, 1])
-def test_implicit_gradient_matches_finite_differences(which):
-    g1, g2, out = _gradients(BackwardMode.IMPLICIT)
+def test_implicit_gradient_matches_finite_differences(which, jacobian):
+    g1, g2, out = _gradients(BackwardMode.IMPLICIT, jacobian)
     assert np.allclose(out.flow.detach().numpy(), SHIFT, atol=0.05)
     grad = (g1, g2)[which]
     entries = _check_entries(grad)
-    fd = _finite_differences(which, entries)
+    fd = _finite_differences(which, entries, jacobian)
     an = np.array([float(grad[e]) for e in entries])
     rel = np.linalg.norm(an - fd) / np.linalg.norm(fd)
     assert rel < 1e-3, f"relative error {rel:.2e} (D{which + 1})"
 
 
-def test_implicit_gradient_matches_unrolled():
-    i1, i2, _ = _gradients(BackwardMode.IMPLICIT)
-    u1, u2, _ = _gradients(BackwardMode.UNROLL)
+@pytest.mark.parametrize("jacobian", list(Jacobian))
+def test_implicit_gradient_matches_unrolled(jacobian):
+    i1, i2, _ = _gradients(BackwardMode.IMPLICIT, jacobian)
+    u1, u2, _ = _gradients(BackwardMode.UNROLL, jacobian)
     for a, b in ((i1, u1), (i2, u2)):
         rel = float(torch.linalg.vector_norm(a - b) / torch.linalg.vector_norm(b))
         assert rel < 1e-3, f"implicit vs unrolled relative difference {rel:.2e}"
@@ -105,10 +115,12 @@ def test_unrolled_forward_equals_implicit_forward():
     assert torch.equal(a.iterations, b.iterations)
 
 
-@pytest.mark.parametrize("lambda_scale", [0.0, 0.1])
-def test_forward_matches_numpy_solver(textures32, lambda_scale):
+@pytest.mark.parametrize(
+    ("lambda_scale", "jacobian"), [(0.0, Jacobian.FORWARD), (0.1, Jacobian.FORWARD), (0.1, Jacobian.ESM)]
+)
+def test_forward_matches_numpy_solver(textures32, lambda_scale, jacobian):
     img1, img2, pts, flow0 = textures32
-    cfg = LMConfig(levels=1, lambda_scale=lambda_scale)
+    cfg = LMConfig(levels=1, lambda_scale=lambda_scale, jacobian=jacobian)
     ref = track(img1[..., None], img2[..., None], pts, flow0, cfg)
     out = lk_track(
         torch.from_numpy(img1)[None],
@@ -226,10 +238,19 @@ def test_pyr_down_mirrors_the_numpy_pyramid():
             assert np.abs(t.permute(1, 2, 0).numpy() - ref.level(lev)).max() < 1e-6
 
 
-@pytest.mark.parametrize("levels", [2, 3])
-def test_pyramid_forward_matches_numpy_solver(textures32, levels):
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        LMConfig(levels=2),
+        LMConfig(levels=3),
+        LMConfig(levels=3, jacobian=Jacobian.ESM),
+        LMConfig(levels=2, coarse_window=15, jacobian=Jacobian.ESM),
+    ],
+    ids=["2 levels", "3 levels", "3 levels, ESM", "2 levels, ESM, coarse window 15"],
+)
+def test_pyramid_forward_matches_numpy_solver(textures32, cfg):
     img1, img2, pts, flow0 = textures32
-    cfg = LMConfig(levels=levels)
+    levels = cfg.levels
     ref = track(img1[..., None], img2[..., None], pts, flow0, cfg)
     maps = torch.from_numpy(img1)[None], torch.from_numpy(img2)[None]
     out = lk_track_pyramid(*maps, torch.from_numpy(pts), torch.from_numpy(flow0), cfg)
