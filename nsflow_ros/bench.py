@@ -347,7 +347,7 @@ def run_benchmark(
                 "size": [WIDTH, HEIGHT],
                 "model": model_desc,
                 "descriptor_channels": encoder.channels,
-                "solver": cfg.__dict__,
+                "solver": cfg.as_dict(),
                 "interleaved": True,
             },
         }

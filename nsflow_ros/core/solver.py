@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import enum
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import cv2
 import numpy as np
@@ -166,6 +166,10 @@ class LMConfig:
             raise CoreError(f"LMConfig.tail_passes must be >= 1, got {self.tail_passes}")
         if self.margin is not None and self.margin < 0:
             raise CoreError(f"LMConfig.margin must be >= 0 or None, got {self.margin}")
+
+    def as_dict(self) -> dict[str, int | float | str | None]:
+        """The settings as plain values (the Jacobian by its name), e.g. for a JSON report."""
+        return {f.name: getattr(self, f.name) for f in fields(self)} | {"jacobian": self.jacobian.value}
 
     def window_at(self, level: int) -> int:
         """The window side the solver uses on pyramid level ``level`` (0 = full resolution)."""
@@ -350,12 +354,19 @@ def _scharr_xy(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return jx, jy
 
 
-def _template_gradients(level: tuple[np.ndarray, ...], pts: np.ndarray, window: int) -> list[np.ndarray]:
-    """The template's unnormalised Scharr derivatives at x, per chunk [dx, dy, dx, dy, ...] (ESM)."""
-    out = []
-    for patch in _sample_level(level, pts, window + 2):
-        out.extend(_scharr_xy(patch))
-    return out
+def _templates(
+    level: tuple[np.ndarray, ...], pts: np.ndarray, window: int, jacobian: Jacobian
+) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """The frame-1 templates D1(x) per chunk, and for ESM the (window + 2)^2 patches around them.
+
+    ESM's J is Scharr(D2 patch) + Scharr(D1 patch), halved; Scharr is linear, so the solver filters the
+    sum of the two patches (one filter pass, as for the forward J) and no template derivative is kept.
+    The template is the patch's inner window (the same remap positions, so the same values).
+    """
+    if jacobian is Jacobian.FORWARD:
+        return _sample_level(level, pts, window), None
+    patches = _sample_level(level, pts, window + 2)
+    return [np.ascontiguousarray(p[1:-1, :, 1:-1]) for p in patches], patches
 
 
 _SUM = "imjk,imjk->m"  # per point: sum over window rows, columns and channels
@@ -367,12 +378,12 @@ def _normal_equations(
     template: list[np.ndarray],
     window: int,
     below: np.ndarray | None = None,
-    template_grad: list[np.ndarray] | None = None,
+    template_patch: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """S, J^T J and J^T f per point as (M, 6) columns [S, h11, h12, h22, g1, g2], at ``centers``.
 
-    J is the normalised Scharr derivative of D2 at x + u; with ``template_grad`` (the template's
-    derivatives from :func:`_template_gradients`, :attr:`Jacobian.ESM`) the mean of the two. Every pixel
+    J is the normalised Scharr derivative of D2 at x + u; with ``template_patch`` (:func:`_templates`,
+    :attr:`Jacobian.ESM`) the mean of that and the template's derivative at x. Every pixel
     of a window shares the centre's sub-pixel offset, and filtering commutes with such a shift, so Scharr
     applied to a bilinearly sampled (window + 2)^2 patch equals sampling the Scharr derivative maps (to
     float rounding) wherever the window lies inside the image, border pixels included (remap and the
@@ -404,19 +415,17 @@ def _normal_equations(
     for c, (p, f) in enumerate(zip(patches, resid, strict=True)):
         if part:
             p, f = np.take(p, rows, axis=1), np.take(f, rows, axis=1)
+        if template_patch is not None:  # ESM: differentiate D2 + D1 patches at once (Scharr is linear)
+            tp = template_patch[c]
+            p = p + (np.take(tp, rows, axis=1) if part else tp)
         # Unnormalised Scharr ([-3 0 3; -10 0 10; -3 0 3]); the 1/32 is applied to the sums below.
         jx, jy = _scharr_xy(p)
-        if template_grad is not None:
-            tx, ty = template_grad[2 * c], template_grad[2 * c + 1]
-            if part:
-                tx, ty = np.take(tx, rows, axis=1), np.take(ty, rows, axis=1)
-            jx, jy = jx + tx, jy + ty
         terms[:, 0] += np.einsum(_SUM, jx, jx)
         terms[:, 1] += np.einsum(_SUM, jx, jy)
         terms[:, 2] += np.einsum(_SUM, jy, jy)
         terms[:, 3] += np.einsum(_SUM, jx, f)
         terms[:, 4] += np.einsum(_SUM, jy, f)
-    terms *= _SCHARR_NORM if template_grad is None else _ESM_NORM
+    terms *= _SCHARR_NORM if template_patch is None else _ESM_NORM
     if part:
         sums[rows, 1:] = terms
     return sums
@@ -443,9 +452,8 @@ def _solve_level(
     """
     n = pts.shape[0]
     win = cfg.window_at(level_index)
-    template = _sample_level(level1, pts, win)
-    # The Jacobian kind is settled here, once per level: ESM carries the template's derivatives.
-    tgrad = _template_gradients(level1, pts, win) if cfg.jacobian is Jacobian.ESM else None
+    # The Jacobian kind is settled here, once per level: ESM carries the template's patches.
+    template, tpatch = _templates(level1, pts, win, cfg.jacobian)
     contrast = np.zeros(n)
     if level_index == 0:  # only level 0's is reported
         # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count; einsum reduces the strided
@@ -455,13 +463,13 @@ def _solve_level(
             contrast += np.einsum(_SUM, t, t) - (sums * sums).sum(axis=1) / (win * win)
     state = np.empty((n, 8))
     state[:, _U] = u
-    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, template_grad=tgrad)
+    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, template_patch=tpatch)
     lam = np.full(n, cfg.lambda_init)
     if cfg.lambda_scale > 0:
         lam = np.maximum(lam, cfg.lambda_scale * np.maximum(state[:, 3], state[:, 5]))
     # Working copies restricted to the still-active points; finished points are written back.
     idx = np.arange(n)
-    p_a, s_a, lam_a, t_a, g_a = pts, state.copy(), lam.copy(), template, tgrad
+    p_a, s_a, lam_a, t_a, g_a = pts, state.copy(), lam.copy(), template, tpatch
     scale = 2.0**level_index
     passes = 0
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -20,7 +20,7 @@ from nsflow_ros.core.methods import (
     quantise_descriptors,
 )
 from nsflow_ros.core.pyramid import build_pyramid
-from nsflow_ros.core.solver import LMConfig, track
+from nsflow_ros.core.solver import Jacobian, LMConfig, track
 
 
 @pytest.fixture(scope="module")
@@ -151,6 +151,28 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     back, back_ok = method.solve(SolveKind.FLOW_BACK, fb, fa, new[ok], pts[ok])
     assert calls[-1][1] == 2  # the check starts at its answer on two levels
     assert np.hypot(*(back - pts[ok]).T)[back_ok].max() < 0.5
+
+
+def test_checks_use_the_forward_jacobian_whatever_the_solves_use(pair, monkeypatch):
+    _, a, b = pair
+    method = make_method("classical", lm=LMConfig(levels=4, jacobian=Jacobian.ESM))
+    assert method.check_jacobian is Jacobian.FORWARD
+    fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
+    pts = _corners(a)
+    used = []
+    real = LMMethod.run
+
+    def spy(self, *args, **kw):
+        used.append(args[4].jacobian)
+        return real(self, *args, **kw)
+
+    monkeypatch.setattr(LMMethod, "run", spy)
+    new, ok = method.solve(SolveKind.STEREO, fa, fb, pts)
+    back, back_ok = method.solve(SolveKind.STEREO_BACK, fb, fa, new[ok], pts[ok])
+    assert used == [Jacobian.ESM, Jacobian.FORWARD]
+    assert back_ok.mean() > 0.9 and np.median(np.hypot(*(back - pts[ok]).T)[back_ok]) < 0.1
+    with pytest.raises(CoreError, match="check_jacobian must be a Jacobian"):
+        LMMethod("x", IntensityEncoder(), LMConfig(), check_jacobian="forward")
 
 
 def test_klt_method_makes_vins_calls(pair):

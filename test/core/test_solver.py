@@ -346,17 +346,16 @@ def test_coarse_window_changes_only_the_coarse_levels(textures):
         assert run.status.mean() > 0.9 and np.median(err[run.status]) < 0.05
 
 
-def test_esm_template_gradients_are_the_sampled_derivative_maps():
+def test_esm_template_is_the_inner_window_of_its_patch():
     rng = np.random.default_rng(3)
-    desc = cv2.GaussianBlur(rng.random((40, 50, 4), dtype=np.float32), (0, 0), 1.5)
+    desc = cv2.GaussianBlur(rng.random((40, 50, 6), dtype=np.float32), (0, 0), 1.5)
     level = build_pyramid(desc, 1).levels[0]
     centers = rng.uniform(8, 30, (6, 2))
-    tx, ty = solver_mod._template_gradients(level, centers, 7)
-    dx = cv2.Scharr(desc, cv2.CV_32F, 1, 0, borderType=cv2.BORDER_REPLICATE)
-    dy = cv2.Scharr(desc, cv2.CV_32F, 0, 1, borderType=cv2.BORDER_REPLICATE)
-    # solver layout (window, M, window, K) -> (M, window, window, K)
-    np.testing.assert_allclose(tx.transpose(1, 0, 2, 3), sample_windows(dx, centers, 7), atol=2e-4)
-    np.testing.assert_allclose(ty.transpose(1, 0, 2, 3), sample_windows(dy, centers, 7), atol=2e-4)
+    plain, none = solver_mod._templates(level, centers, 7, Jacobian.FORWARD)
+    esm, patches = solver_mod._templates(level, centers, 7, Jacobian.ESM)
+    assert none is None and [p.shape for p in patches] == [(9, 6, 9, 4), (9, 6, 9, 2)]
+    for a, b in zip(plain, esm, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_esm_normal_equations_use_the_mean_jacobian():
@@ -365,9 +364,11 @@ def test_esm_normal_equations_use_the_mean_jacobian():
     level = build_pyramid(desc, 1).levels[0]
     centers = rng.uniform(8, 30, (5, 2))
     shifted = centers + np.array([0.7, -0.3])
-    template = solver_mod._sample_level(level, centers, 7)
-    tgrad = solver_mod._template_gradients(level, centers, 7)
-    got = solver_mod._normal_equations(level, shifted, template, 7, template_grad=tgrad)
+    template, tpatch = solver_mod._templates(level, centers, 7, Jacobian.ESM)
+    got = solver_mod._normal_equations(level, shifted, template, 7, template_patch=tpatch)
+    below = np.where(np.arange(5) % 2 == 0, got[:, 0] + 1.0, got[:, 0] - 1e-9)  # even rows "accepted"
+    part = solver_mod._normal_equations(level, shifted, template, 7, below, tpatch)
+    np.testing.assert_allclose(part[::2], got[::2], rtol=1e-12)
     d2 = sample_windows(desc, shifted, 7).astype(np.float64)
     f = d2 - sample_windows(desc, centers, 7)
     border = cv2.BORDER_REPLICATE
@@ -411,3 +412,9 @@ def test_esm_captures_more_from_far_starts(textures):
     # Measured: 0.53-0.87 forward, 0.57-0.93 ESM per texture (+5 to +7 points on each).
     forward, esm = np.array(shares[Jacobian.FORWARD]), np.array(shares[Jacobian.ESM])
     assert (esm > forward).all() and esm.mean() > forward.mean() + 0.03, (forward, esm)
+
+
+def test_as_dict_is_plain_values():
+    d = LMConfig(jacobian=Jacobian.ESM, coarse_window=15).as_dict()
+    assert d["jacobian"] == "esm" and d["coarse_window"] == 15 and d["window"] == 11
+    assert set(d) == {f for f in LMConfig.__dataclass_fields__}

