@@ -101,6 +101,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="pyramid levels of the training solver, solved coarse to fine as the tracker does (default 1)",
     )
     p.add_argument(
+        "--jacobian", choices=("forward", "esm"), default="forward",
+        help="J of the training solver's step: the paper's (D2's derivative) or ESM (its mean with D1's, "
+        "as the tracker solves); default forward",
+    )
+    p.add_argument(
         "--coarse-loss", type=float, default=0.0, metavar="W",
         help="weight of each coarse level's loss, robust scale --delta x 2^level (default 0: finest only)",
     )
@@ -163,7 +168,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     import numpy as np
     import torch
 
-    from nsflow_ros import LMConfig, load_encoder
+    from nsflow_ros import Jacobian, LMConfig, load_encoder
     from nsflow_ros.train.card import write_model_card
     from nsflow_ros.train.data import PairConfig
     from nsflow_ros.train.evaluate import compare, format_table, heldout_pairs
@@ -184,7 +189,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         mode=BackwardMode(opts.mode),
         rho=opts.rho,
         huber_delta=opts.delta,
-        lm=replace(TrainConfig().lm, levels=opts.levels),
+        lm=replace(TrainConfig().lm, levels=opts.levels, jacobian=Jacobian(opts.jacobian)),
         coarse_weight=opts.coarse_loss,
         scene_share=opts.scene_share,
         basin_weight=opts.basin_loss,
