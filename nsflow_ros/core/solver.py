@@ -64,9 +64,13 @@ class LMConfig:
     Attributes:
         window: side of the square window in pixels (odd). The paper uses 11.
         jacobian: the derivative the step uses, :class:`Jacobian` (the paper's ``FORWARD`` by default).
-        coarse_window: window side on the coarser levels (1 and up); None = ``window`` on every level.
+        coarse_window: window side from level ``coarse_from`` up; None = ``window`` on every level.
             A wider coarse window sees more of the image around a point while the flow is still far
             off (VINS's KLT uses 21 on every level); the final level keeps ``window``.
+        coarse_from: the first pyramid level (>= 1) that uses ``coarse_window``. From level 2 the
+            tracker's solves with a prior (which start on level 1) never pay for it: with ESM, 21 px
+            from level 2 cost +5 % of the stereo frame and from level 1 +36 %, for nearly the same
+            basin (capture from zero flow, stereo under a lighting change: 92.6 vs 92.7 %).
         levels: pyramid levels (1 = single scale, as in training).
         max_iterations: K_max, the iteration limit per level.
         lambda_init: initial damping lambda^(0) (a floor when ``lambda_scale`` > 0), reset at the start
@@ -127,6 +131,7 @@ class LMConfig:
 
     window: int = 11
     coarse_window: int | None = None
+    coarse_from: int = 1
     jacobian: Jacobian = Jacobian.FORWARD
     levels: int = 3
     max_iterations: int = 12
@@ -144,6 +149,8 @@ class LMConfig:
             raise CoreError(f"LMConfig.window must be odd and >= 3, got {self.window}")
         if self.coarse_window is not None and (self.coarse_window < 3 or self.coarse_window % 2 == 0):
             raise CoreError(f"LMConfig.coarse_window must be odd and >= 3 or None, got {self.coarse_window}")
+        if self.coarse_from < 1:
+            raise CoreError(f"LMConfig.coarse_from must be >= 1, got {self.coarse_from}")
         if not isinstance(self.jacobian, Jacobian):
             raise CoreError(f"LMConfig.jacobian must be a Jacobian, got {self.jacobian!r}")
         if self.levels < 1:
@@ -173,7 +180,7 @@ class LMConfig:
 
     def window_at(self, level: int) -> int:
         """The window side the solver uses on pyramid level ``level`` (0 = full resolution)."""
-        return self.window if level == 0 or self.coarse_window is None else self.coarse_window
+        return self.window if level < self.coarse_from or self.coarse_window is None else self.coarse_window
 
 
 @dataclass(frozen=True)

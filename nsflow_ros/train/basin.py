@@ -102,7 +102,7 @@ def basin_loss(
     n = pts.shape[0]
     total = desc1.new_zeros((), dtype=torch.float64)
     for lev, (m1, m2) in enumerate(zip(pyr1, pyr2, strict=True)):
-        lcfg = replace(config, window=config.window_at(lev), coarse_window=None)
+        lcfg = replace(config, window=config.window_at(lev), coarse_window=None, coarse_from=1)
         r = lcfg.window // 2
         s = 2.0**lev
         p_l, gt_l = pts / s, gt / s

@@ -496,7 +496,7 @@ def lk_track_pyramid(
         s = 2.0**lev
         start = u.detach() if mode is BackwardMode.IMPLICIT else u
         # Each level solves with its own window (``LMConfig.window_at``), status by the same rule.
-        lcfg = replace(cfg, window=cfg.window_at(lev), coarse_window=None)
+        lcfg = replace(cfg, window=cfg.window_at(lev), coarse_window=None, coarse_from=1)
         res = _track_level(pyr1[lev], pyr2[lev], pts / s, start, lcfg, mode, residual_tol, min_curvature)
         iterations = iterations + res.iterations
         outputs.append(LKOutput(res.flow * s, res.status, res.cost, res.iterations))

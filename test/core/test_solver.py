@@ -235,7 +235,8 @@ def test_guards(kwargs, match):
     ("field", "value"),
     [("window", 10), ("window", 1), ("levels", 0), ("max_iterations", 0), ("lambda_init", 0.0),
      ("nu", 1.0), ("eps", 0.0), ("min_eigen", -1.0), ("tail_share", 1.0), ("tail_share", -0.1),
-     ("tail_passes", 0), ("coarse_window", 14), ("coarse_window", 1), ("jacobian", "esm")],
+     ("tail_passes", 0), ("coarse_window", 14), ("coarse_window", 1), ("coarse_from", 0),
+     ("jacobian", "esm")],
 )
 def test_config_validation(field, value):
     with pytest.raises(CoreError, match=field):
@@ -327,6 +328,8 @@ def test_many_points_in_one_call():
 def test_window_at_gives_the_coarse_window_above_level_0():
     assert [LMConfig(window=11).window_at(lev) for lev in range(3)] == [11, 11, 11]
     assert [LMConfig(window=11, coarse_window=21).window_at(lev) for lev in range(3)] == [11, 21, 21]
+    cfg = LMConfig(window=11, coarse_window=21, coarse_from=2)
+    assert [cfg.window_at(lev) for lev in range(4)] == [11, 11, 21, 21]
 
 
 def test_coarse_window_changes_only_the_coarse_levels(textures):

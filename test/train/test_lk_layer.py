@@ -245,8 +245,9 @@ def test_pyr_down_mirrors_the_numpy_pyramid():
         LMConfig(levels=3),
         LMConfig(levels=3, jacobian=Jacobian.ESM),
         LMConfig(levels=2, coarse_window=15, jacobian=Jacobian.ESM),
+        LMConfig(levels=3, coarse_window=15, coarse_from=2, jacobian=Jacobian.ESM),
     ],
-    ids=["2 levels", "3 levels", "3 levels, ESM", "2 levels, ESM, coarse window 15"],
+    ids=["2 levels", "3 levels", "3 levels, ESM", "2 levels, ESM, window 15", "3 levels, ESM, 15 on 2"],
 )
 def test_pyramid_forward_matches_numpy_solver(textures32, cfg):
     img1, img2, pts, flow0 = textures32
