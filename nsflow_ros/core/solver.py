@@ -424,7 +424,8 @@ def _normal_equations(
             p, f = np.take(p, rows, axis=1), np.take(f, rows, axis=1)
         if template_patch is not None:  # ESM: differentiate D2 + D1 patches at once (Scharr is linear)
             tp = template_patch[c]
-            p = p + (np.take(tp, rows, axis=1) if part else tp)
+            # p is this call's own sampled (or taken) patch and f is already formed from it: add in place.
+            np.add(p, np.take(tp, rows, axis=1) if part else tp, out=p)
         # Unnormalised Scharr ([-3 0 3; -10 0 10; -3 0 3]); the 1/32 is applied to the sums below.
         jx, jy = _scharr_xy(p)
         terms[:, 0] += np.einsum(_SUM, jx, jx)
