@@ -112,7 +112,8 @@ class TrackerSettings:
             ``jacobian`` ESM (the mean of frame 2's and the template's derivatives): on the evaluation
             suite it widened every basin figure (capture from zero flow, stereo under lighting change
             71.7 -> 83.6 %; trackable region one level fewer 48.4 -> 63.0 %; one-level convergence
-            3.66 -> 3.07 px) for ~3 % more time per frame (interleaved with ``klt``, 752x480).
+            3.66 -> 3.07 px) for ~2 % more time per frame (interleaved with ``klt``, 752x480). Checks keep the
+            forward Jacobian (``LMMethod.check_jacobian``).
         use_imu_prediction: use gyro samples given to :meth:`FeatureTracker.process` to predict the flow.
         prediction_min_tracked: with a prediction, retry on the full pyramid when fewer points survive
             the single-level solve (VINS: 10).
