@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import enum
 import functools
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -181,6 +181,10 @@ class LMConfig:
     def window_at(self, level: int) -> int:
         """The window side the solver uses on pyramid level ``level`` (0 = full resolution)."""
         return self.window if level < self.coarse_from or self.coarse_window is None else self.coarse_window
+
+    def at_level(self, level: int) -> LMConfig:
+        """The settings of one level's solve on its own: its window as ``window``, no coarse window."""
+        return replace(self, window=self.window_at(level), coarse_window=None, coarse_from=1)
 
 
 @dataclass(frozen=True)
@@ -477,7 +481,7 @@ def _solve_level(
         lam = np.maximum(lam, cfg.lambda_scale * np.maximum(state[:, 3], state[:, 5]))
     # Working copies restricted to the still-active points; finished points are written back.
     idx = np.arange(n)
-    p_a, s_a, lam_a, t_a, g_a = pts, state.copy(), lam.copy(), template, tpatch
+    p_a, s_a, lam_a, t_a, tp_a = pts, state.copy(), lam.copy(), template, tpatch
     scale = 2.0**level_index
     passes = 0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -504,7 +508,7 @@ def _solve_level(
             cand = np.empty_like(s_a)
             np.add(s_a[:, 0], du0, out=cand[:, 0])
             np.add(s_a[:, 1], du1, out=cand[:, 1])
-            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, g_a)
+            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a)
             accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
             lam_a = lam_a * np.where(accept, 1.0 / cfg.nu, cfg.nu)
@@ -523,8 +527,8 @@ def _solve_level(
                 iterations[done] += passes
                 keep = ~stop
                 idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], _take(t_a, keep)
-                if g_a is not None:
-                    g_a = _take(g_a, keep)
+                if tp_a is not None:
+                    tp_a = _take(tp_a, keep)
     state[idx] = s_a
     iterations[idx] += passes
     return state, contrast

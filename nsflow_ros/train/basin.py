@@ -13,8 +13,6 @@ differentiable end to end (one window sample per point and level, autograd throu
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import torch
 
 from nsflow_ros.core.solver import LMConfig
@@ -78,7 +76,7 @@ def basin_loss(
         desc2: frame-2 full-resolution map.
         points: keypoints, level-0 pixels.
         flow_gt: ground-truth flow, level-0 pixels.
-        config: ``levels`` (as the solver builds them), windows (``window_at``), Jacobian and lambda^(0)
+        config: ``levels`` (as the solver builds them), windows (``at_level``), Jacobian and lambda^(0)
             rule.
         radius: largest start offset in each level's own pixels.
         delta: robust scale, in each level's pixels.
@@ -102,7 +100,7 @@ def basin_loss(
     n = pts.shape[0]
     total = desc1.new_zeros((), dtype=torch.float64)
     for lev, (m1, m2) in enumerate(zip(pyr1, pyr2, strict=True)):
-        lcfg = replace(config, window=config.window_at(lev), coarse_window=None, coarse_from=1)
+        lcfg = config.at_level(lev)
         r = lcfg.window // 2
         s = 2.0**lev
         p_l, gt_l = pts / s, gt / s

@@ -44,7 +44,7 @@ and unrolling through a whole pyramid would keep every level's iterations in mem
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 
@@ -495,9 +495,10 @@ def lk_track_pyramid(
     for lev in range(nlev - 1, -1, -1):
         s = 2.0**lev
         start = u.detach() if mode is BackwardMode.IMPLICIT else u
-        # Each level solves with its own window (``LMConfig.window_at``), status by the same rule.
-        lcfg = replace(cfg, window=cfg.window_at(lev), coarse_window=None, coarse_from=1)
-        res = _track_level(pyr1[lev], pyr2[lev], pts / s, start, lcfg, mode, residual_tol, min_curvature)
+        # Each level solves with its own window (``LMConfig.at_level``), status by the same rule.
+        res = _track_level(
+            pyr1[lev], pyr2[lev], pts / s, start, cfg.at_level(lev), mode, residual_tol, min_curvature
+        )
         iterations = iterations + res.iterations
         outputs.append(LKOutput(res.flow * s, res.status, res.cost, res.iterations))
         u = res.flow * 2.0

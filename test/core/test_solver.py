@@ -330,6 +330,7 @@ def test_window_at_gives_the_coarse_window_above_level_0():
     assert [LMConfig(window=11, coarse_window=21).window_at(lev) for lev in range(3)] == [11, 21, 21]
     cfg = LMConfig(window=11, coarse_window=21, coarse_from=2)
     assert [cfg.window_at(lev) for lev in range(4)] == [11, 11, 21, 21]
+    assert cfg.at_level(1) == LMConfig(window=11) and cfg.at_level(3) == LMConfig(window=21)
 
 
 def test_coarse_window_changes_only_the_coarse_levels(textures):
