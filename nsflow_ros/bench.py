@@ -42,7 +42,7 @@ from nsflow_ros.core import (
     to_gray,
     track,
 )
-from nsflow_ros.core.methods import klt_track
+from nsflow_ros.core.methods import klt_track, pyramid_smoothing
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
 
@@ -165,7 +165,7 @@ class _Pipeline(_Method):
         gray = to_gray(frame)
         desc, t_enc = _timed(lambda: self.encoder(frame))
         t0 = time.perf_counter()
-        pyr = build_pyramid(desc, self.cfg.levels)
+        pyr = build_pyramid(desc, self.cfg.levels, pyramid_smoothing(self.encoder))
         if self.prev_pyr is not None:
             res = track(self.prev_pyr, pyr, self.pts, config=self.cfg)
             self.tracked.append(float(res.status.mean()) if len(self.pts) else 0.0)
@@ -265,7 +265,7 @@ def solver_cost_model(
     """
     if len(frames) < 2:
         raise NSFlowError(f"the solver cost model needs at least 2 frames, got {len(frames)}")
-    pyrs = [build_pyramid(encoder(f), cfg.levels) for f in frames]
+    pyrs = [build_pyramid(encoder(f), cfg.levels, pyramid_smoothing(encoder)) for f in frames]
     corners = [detect_corners(to_gray(f), points, min_distance=30) for f in frames]
     nlev = min(cfg.levels, pyrs[0].num_levels)
     rows, times, full = [], [], []

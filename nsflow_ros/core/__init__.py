@@ -16,7 +16,7 @@ from nsflow_ros.core.encoder import (
 )
 from nsflow_ros.core.errors import CoreError, EncoderError
 from nsflow_ros.core.methods import METHODS, SolveKind, TrackingMethod, klt_track, make_method
-from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, descriptor_gradients
+from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid, descriptor_gradients
 from nsflow_ros.core.solver import IterationRecord, Jacobian, LMConfig, TrackResult, sample_windows, track
 
 __all__ = [
@@ -31,6 +31,7 @@ __all__ = [
     "Jacobian",
     "LMConfig",
     "OnnxEncoder",
+    "Smoothing",
     "SolveKind",
     "TrackResult",
     "TrackingMethod",

@@ -12,12 +12,21 @@ Coarser levels are made by ``cv2.pyrDown`` of the descriptor map (Gaussian blur 
 running the encoder on a smaller image: it costs ~1 ms instead of a second encoder pass, and the solver's
 coarse levels only need a smooth, aliasing-free approximation.
 
+Optional Gaussian smoothing (:class:`Smoothing`): level 0 is smoothed with ``fine`` before the coarser
+levels are made from it, and each coarser level is then smoothed with ``coarse`` (in its own pixels; the
+next level is made from the unsmoothed one). A learned descriptor map is much sharper than image
+intensity, and its narrow autocorrelation leaves the solver a narrow basin; smoothing widens it for
+one separable filter per level (models/README.md has the measurements). The ONNX encoder applies the
+``fine`` part itself when its model declares one (``nsflow_ros.core.encoder``), so the LM methods pass
+only the ``coarse`` part here.
+
 Derivatives use the normalised Scharr kernel ([-3 0 3; -10 0 10; -3 0 3] / 32) with replicated borders,
 the same filter OpenCV's pyramidal LK uses; the torch training layer mirrors this choice exactly.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -25,7 +34,14 @@ import numpy as np
 
 from nsflow_ros.core.errors import CoreError
 
-__all__ = ["DescriptorPyramid", "build_pyramid", "descriptor_gradients", "split_channels"]
+__all__ = [
+    "DescriptorPyramid",
+    "Smoothing",
+    "build_pyramid",
+    "descriptor_gradients",
+    "gaussian_kernel",
+    "split_channels",
+]
 
 _BORDER = cv2.BORDER_REPLICATE
 
@@ -50,6 +66,42 @@ def descriptor_gradients(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 MAX_CHUNK = 4
+
+
+def gaussian_kernel(sigma: float) -> np.ndarray:
+    """The 1-D smoothing kernel for ``sigma`` (px): taps within 2 sigma, normalised to sum 1.
+
+    Args:
+        sigma: standard deviation in pixels, > 0.
+
+    Returns:
+        float32 (2 ceil(2 sigma) + 1,) kernel, symmetric (the torch layer uses the same taps).
+    """
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise CoreError(f"smoothing sigma must be a finite number > 0, got {sigma}")
+    radius = math.ceil(2.0 * sigma)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return (k / k.sum()).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Smoothing:
+    """Gaussian smoothing of the descriptor pyramid's levels (sigma 0 = none).
+
+    Attributes:
+        fine: sigma at level 0, in pixels; the coarser levels are made from the smoothed map.
+        coarse: sigma at every coarser level, in that level's pixels.
+    """
+
+    fine: float = 0.0
+    coarse: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("fine", "coarse"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise CoreError(f"Smoothing.{name} must be a finite number >= 0, got {v!r}")
 
 
 def split_channels(level: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -107,17 +159,24 @@ def _check_map(desc: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(desc, dtype=np.float32)
 
 
-def build_pyramid(desc: np.ndarray, levels: int = 3) -> DescriptorPyramid:
+def _smooth(level: np.ndarray, sigma: float) -> np.ndarray:
+    k = gaussian_kernel(sigma)
+    out = cv2.sepFilter2D(level, cv2.CV_32F, k, k, borderType=_BORDER)
+    return out[..., None] if out.ndim == 2 else out
+
+
+def build_pyramid(desc: np.ndarray, levels: int = 3, smoothing: Smoothing | None = None) -> DescriptorPyramid:
     """Build the solver's pyramid from a full-resolution descriptor map.
 
     Args:
         desc: the descriptor map of one frame.
         levels: number of levels (1 = single scale). Levels whose size would drop below 8 px are
             not built, so the result may have fewer.
+        smoothing: Gaussian smoothing of each level (module docstring); None = none.
 
     Returns:
-        the pyramid, level 0 first. Level 0 shares memory with ``desc`` when that is already a
-        C-contiguous float32 array of at most 4 channels (no copy on the per-frame path).
+        the pyramid, level 0 first. Without smoothing, level 0 shares memory with ``desc`` when that
+        is already a C-contiguous float32 array of at most 4 channels (no copy on the per-frame path).
 
     Raises:
         CoreError: on a wrong shape or dtype, or ``levels < 1``.
@@ -127,9 +186,13 @@ def build_pyramid(desc: np.ndarray, levels: int = 3) -> DescriptorPyramid:
     """
     if levels < 1:
         raise CoreError(f"levels must be >= 1, got {levels}")
+    if smoothing is not None and not isinstance(smoothing, Smoothing):
+        raise CoreError(f"smoothing must be a Smoothing or None, got {type(smoothing).__name__}")
     current = _check_map(desc)
     channels = current.shape[2]
-    out = [_level(current)]
+    if smoothing is not None and smoothing.fine > 0:
+        current = _smooth(current, smoothing.fine)
+    maps = [current]
     for _ in range(1, levels):
         h, w = current.shape[:2]
         if min(h, w) // 2 < 8:
@@ -137,5 +200,7 @@ def build_pyramid(desc: np.ndarray, levels: int = 3) -> DescriptorPyramid:
         current = cv2.pyrDown(current, borderType=_BORDER)
         if current.ndim == 2:
             current = current[..., None]
-        out.append(_level(current))
-    return DescriptorPyramid(levels=tuple(out), channels=channels)
+        maps.append(current)
+    if smoothing is not None and smoothing.coarse > 0:
+        maps = maps[:1] + [_smooth(m, smoothing.coarse) for m in maps[1:]]
+    return DescriptorPyramid(levels=tuple(_level(m) for m in maps), channels=channels)

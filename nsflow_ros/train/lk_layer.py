@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import torch
 
+from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import Jacobian, LMConfig
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients
@@ -459,6 +460,7 @@ def lk_track_pyramid(
     mode: BackwardMode = BackwardMode.IMPLICIT,
     residual_tol: float | None = None,
     min_curvature: float | None = 0.0,
+    smoothing: Smoothing | None = None,
 ) -> LKPyramidOutput:
     """Track coarse to fine through the descriptor pyramid, as ``nsflow_ros.track`` does, differentiably.
 
@@ -474,9 +476,12 @@ def lk_track_pyramid(
             chain between levels.
         residual_tol: as in :func:`lk_track`, per level.
         min_curvature: as in :func:`lk_track`, per level.
+        smoothing: each pyramid level's Gaussian smoothing (the ``nsflow`` method's
+            ``LEARNED_SMOOTHING``, :func:`nsflow_ros.train.ops.pyramid`); None = none.
 
     Returns:
-        an :class:`LKPyramidOutput`; ``flow`` matches ``nsflow_ros.track(..., config)``.
+        an :class:`LKPyramidOutput`; ``flow`` matches ``nsflow_ros.track(..., config)`` on pyramids
+        built with the same smoothing.
 
     Raises:
         TrainError: on mismatched maps or wrong point/flow shapes.
@@ -486,8 +491,8 @@ def lk_track_pyramid(
     """
     cfg = config or LMConfig()
     d1, d2, pts, u0 = _check_inputs(desc1, desc2, points, flow0, mode)
-    pyr1 = pyramid(d1, cfg.levels)
-    pyr2 = pyramid(d2, cfg.levels)
+    pyr1 = pyramid(d1, cfg.levels, smoothing)
+    pyr2 = pyramid(d2, cfg.levels, smoothing)
     nlev = len(pyr1)
     u = u0 / 2.0 ** (nlev - 1)
     outputs: list[LKOutput] = []

@@ -16,9 +16,10 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F  # noqa: N812 - the usual torch alias
 
+from nsflow_ros.core.pyramid import Smoothing, gaussian_kernel
 from nsflow_ros.train.errors import TrainError
 
-__all__ = ["MIN_LEVEL_SIZE", "pyr_down", "pyramid", "sample_windows", "scharr_gradients"]
+__all__ = ["MIN_LEVEL_SIZE", "gaussian_smooth", "pyr_down", "pyramid", "sample_windows", "scharr_gradients"]
 
 # build_pyramid stops before a level whose smaller side would be below this many pixels.
 MIN_LEVEL_SIZE = 8
@@ -112,26 +113,55 @@ def pyr_down(desc: torch.Tensor) -> torch.Tensor:
     return out.reshape(c, (h + 1) // 2, (w + 1) // 2)
 
 
-def pyramid(desc: torch.Tensor, levels: int) -> list[torch.Tensor]:
+def gaussian_smooth(desc: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian smoothing with replicated borders, as the core's pyramid smoothing.
+
+    Args:
+        desc: the map.
+        sigma: standard deviation in pixels, > 0 (the taps of ``nsflow_ros.core.pyramid.gaussian_kernel``).
+
+    Returns:
+        the smoothed map, differentiable w.r.t. ``desc``.
+
+    Shape:
+        desc: (C, H, W). Returns (C, H, W).
+    """
+    if desc.dim() != 3:
+        raise TrainError(f"gaussian_smooth expects a (C, H, W) map, got shape {tuple(desc.shape)}")
+    k = torch.as_tensor(gaussian_kernel(sigma), dtype=desc.dtype, device=desc.device)
+    r = k.numel() // 2
+    c, h, w = desc.shape
+    padded = F.pad(desc[:, None], (r, r, r, r), mode="replicate")
+    rows = F.conv2d(padded, k.reshape(1, 1, -1, 1))
+    return F.conv2d(rows, k.reshape(1, 1, 1, -1)).reshape(c, h, w)
+
+
+def pyramid(desc: torch.Tensor, levels: int, smoothing: Smoothing | None = None) -> list[torch.Tensor]:
     """The solver's descriptor pyramid in torch, level 0 first (``nsflow_ros.core.pyramid.build_pyramid``).
 
     Args:
         desc: the full-resolution map.
         levels: levels wanted; as in the core, a level whose smaller side would drop below
             :data:`MIN_LEVEL_SIZE` is not built, so the result may have fewer.
+        smoothing: Gaussian smoothing, as in the core: level 0 before the coarser levels are made
+            from it, each coarser level after; None = none.
 
     Returns:
-        the maps, level 0 (``desc`` itself) first.
+        the maps, level 0 first (``desc`` itself unless level 0 is smoothed).
 
     Shape:
         desc: (C, H, W).
     """
     if levels < 1:
         raise TrainError(f"levels must be >= 1, got {levels}")
+    if smoothing is not None and smoothing.fine > 0:
+        desc = gaussian_smooth(desc, smoothing.fine)
     out = [desc]
     for _ in range(1, levels):
         h, w = out[-1].shape[1:]
         if min(h, w) // 2 < MIN_LEVEL_SIZE:
             break
         out.append(pyr_down(out[-1]))
+    if smoothing is not None and smoothing.coarse > 0:
+        out = out[:1] + [gaussian_smooth(m, smoothing.coarse) for m in out[1:]]
     return out

@@ -10,8 +10,9 @@ from onnx import TensorProto, helper
 from onnx_models import conv_encoder, graph_encoder, reference_conv
 
 import nsflow_ros.resources as resources
-from nsflow_ros import EncoderError, IntensityEncoder, OnnxEncoder, load_encoder
+from nsflow_ros import EncoderError, IntensityEncoder, OnnxEncoder, Smoothing, load_encoder
 from nsflow_ros.core.encoder import to_gray
+from nsflow_ros.core.pyramid import gaussian_kernel
 
 
 def _image(h=24, w=32, color=False, seed=0):
@@ -154,6 +155,49 @@ def test_shipped_model_tiled_equals_whole_frame(threads):
     auto = load_encoder(threads=threads)
     for h, w in ((400, 320), (480, 752), (7, 9)):
         np.testing.assert_array_equal(auto(_image(h, w)), whole(_image(h, w)))
+
+
+def _blur(desc, sigma):
+    k = gaussian_kernel(sigma)
+    out = cv2.sepFilter2D(desc, cv2.CV_32F, k, k, borderType=cv2.BORDER_REPLICATE)
+    return out if out.ndim == 3 else out[..., None]
+
+
+def test_shipped_model_declares_its_smoothing_and_the_encoder_applies_the_fine_part():
+    enc = load_encoder(threads=1)
+    assert enc.smoothing == Smoothing(fine=1.0, coarse=0.5) and enc.metadata["smoothing"] == "1.0,0.5"
+    raw = load_encoder(threads=1, tile_rows=0, smoothing=Smoothing())
+    assert raw.smoothing == Smoothing()
+    img = _image(120, 160, seed=4)
+    np.testing.assert_allclose(enc(img), _blur(raw(img), 1.0), atol=1e-6)
+    assert IntensityEncoder.smoothing == Smoothing()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_smoothed_strips_equal_the_smoothed_whole_frame(tmp_path, threads):
+    path = conv_encoder(tmp_path / "m.onnx", c_in=1, d=3)
+    sm = Smoothing(fine=1.3, coarse=0.0)  # 7 taps: the strips' halo must grow by 3 rows
+    tiled = load_encoder(path, threads=threads, tile_rows=5, smoothing=sm)
+    whole = load_encoder(path, threads=threads, tile_rows=0, smoothing=sm)
+    plain = load_encoder(path, threads=1, tile_rows=0)
+    assert tiled.tiled and tiled.halo == 1 and plain.smoothing == Smoothing()
+    for h, w in ((61, 47), (6, 9)):
+        img = _image(h, w, seed=5)
+        np.testing.assert_allclose(tiled(img), whole(img), atol=1e-6)
+        np.testing.assert_allclose(whole(img), _blur(plain(img), 1.3), atol=1e-6)
+
+
+@pytest.mark.parametrize("value", ["1.0", "a,b", "1.0,-1", "1,2,3"])
+def test_malformed_smoothing_metadata_is_named(tmp_path, value):
+    path = conv_encoder(tmp_path / "m.onnx", c_in=1, d=3)
+    model = onnx.load(str(path))
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "smoothing", value
+    onnx.save(model, str(path))
+    with pytest.raises(EncoderError, match=r"m\.onnx: metadata 'smoothing' must be 'fine,coarse'"):
+        load_encoder(path)
+    with pytest.raises(EncoderError, match="Smoothing or None"):
+        load_encoder(conv_encoder(tmp_path / "n.onnx"), smoothing=(1.0, 0.5))  # type: ignore[arg-type]
 
 
 def test_halo_is_measured_from_the_model(tmp_path):

@@ -19,7 +19,7 @@ from nsflow_ros.core.methods import (
     make_method,
     quantise_descriptors,
 )
-from nsflow_ros.core.pyramid import build_pyramid
+from nsflow_ros.core.pyramid import Smoothing, build_pyramid
 from nsflow_ros.core.solver import Jacobian, LMConfig, track
 
 
@@ -46,6 +46,23 @@ def test_registry_builds_each_method_once_by_name(tmp_path):
         make_method("sift")
     with pytest.raises(CoreError, match="encoder cannot be given"):
         make_method("klt", encoder=IntensityEncoder())
+
+
+def test_lm_methods_smooth_coarse_levels_as_the_encoder_declares(pair, tmp_path):
+    _, img, _ = pair
+    gray = to_gray(img)
+    enc = load_encoder(conv_encoder(tmp_path / "m.onnx", c_in=1, d=3), smoothing=Smoothing(1.0, 0.5))
+    nsflow = make_method("nsflow", encoder=enc)
+    assert nsflow.pyramid_smoothing == Smoothing(coarse=0.5)  # the encoder applied the fine part
+    got, want = nsflow.prepare(img, gray), build_pyramid(enc(img), nsflow.lm.levels, Smoothing(coarse=0.5))
+    assert got.num_levels == want.num_levels == 4
+    for lev in range(got.num_levels):
+        np.testing.assert_array_equal(got.level(lev), want.level(lev))
+    plain = load_encoder(conv_encoder(tmp_path / "m.onnx", c_in=1, d=3))
+    assert make_method("nsflow", encoder=plain).pyramid_smoothing is None
+    classical = make_method("classical")
+    assert classical.pyramid_smoothing is None
+    np.testing.assert_allclose(classical.prepare(img, gray).level(0)[..., 0], gray / 255.0, atol=1e-6)
 
 
 def test_lm_method_rejects_bad_policies():
@@ -173,6 +190,27 @@ def test_checks_use_the_forward_jacobian_whatever_the_solves_use(pair, monkeypat
     assert back_ok.mean() > 0.9 and np.median(np.hypot(*(back - pts[ok]).T)[back_ok]) < 0.1
     with pytest.raises(CoreError, match="check_jacobian must be a Jacobian"):
         LMMethod("x", IntensityEncoder(), LMConfig(), check_jacobian="forward")
+
+
+def test_checks_keep_their_own_stop_tolerance(pair, monkeypatch):
+    _, a, b = pair
+    method = make_method("classical", lm=LMConfig(levels=4, eps=0.03))
+    assert method.check_eps == 0.01
+    fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
+    pts = _corners(a)
+    used = []
+    real = LMMethod.run
+
+    def spy(self, *args, **kw):
+        used.append(args[4].eps)
+        return real(self, *args, **kw)
+
+    monkeypatch.setattr(LMMethod, "run", spy)
+    new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts)
+    method.solve(SolveKind.FLOW_BACK, fb, fa, new[ok], pts[ok])
+    assert used == [0.03, 0.01]
+    with pytest.raises(CoreError, match="check_eps must be > 0"):
+        LMMethod("x", IntensityEncoder(), LMConfig(), check_eps=0.0)
 
 
 def test_klt_method_makes_vins_calls(pair):

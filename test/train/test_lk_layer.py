@@ -10,7 +10,7 @@ torch = pytest.importorskip("torch")
 from dataclasses import replace  # noqa: E402
 
 from nsflow_ros import Jacobian, LMConfig, track  # noqa: E402
-from nsflow_ros.core.pyramid import build_pyramid  # noqa: E402
+from nsflow_ros.core.pyramid import Smoothing, build_pyramid  # noqa: E402
 from nsflow_ros.train import BackwardMode, TrainError, lk_track  # noqa: E402
 from nsflow_ros.train.lk_layer import lk_track_pyramid, optimality_condition  # noqa: E402
 from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients  # noqa: E402
@@ -236,6 +236,30 @@ def test_pyr_down_mirrors_the_numpy_pyramid():
         assert len(got) == ref.num_levels
         for lev, t in enumerate(got):
             assert np.abs(t.permute(1, 2, 0).numpy() - ref.level(lev)).max() < 1e-6
+
+
+def test_smoothed_pyramid_mirrors_the_numpy_pyramid():
+    rng = np.random.default_rng(4)
+    smoothing = Smoothing(fine=1.0, coarse=0.5)
+    for h, w in ((37, 53), (48, 64)):
+        a = rng.random((h, w, 3)).astype(np.float32)
+        ref = build_pyramid(a, 3, smoothing)
+        got = pyramid(torch.from_numpy(a).permute(2, 0, 1), 3, smoothing)
+        for lev, t in enumerate(got):
+            assert np.abs(t.permute(1, 2, 0).numpy() - ref.level(lev)).max() < 1e-6
+
+
+def test_pyramid_forward_with_smoothing_matches_the_nsflow_method(textures32):
+    img1, img2, pts, flow0 = textures32
+    cfg = LMConfig(levels=3, jacobian=Jacobian.ESM)
+    smoothing = Smoothing(fine=1.0, coarse=0.5)
+    ref = track(build_pyramid(img1, 3, smoothing), build_pyramid(img2, 3, smoothing), pts, flow0, cfg)
+    maps = torch.from_numpy(img1)[None], torch.from_numpy(img2)[None]
+    out = lk_track_pyramid(*maps, torch.from_numpy(pts), torch.from_numpy(flow0), cfg, smoothing=smoothing)
+    plain = lk_track_pyramid(*maps, torch.from_numpy(pts), torch.from_numpy(flow0), cfg)
+    diff = np.abs(out.flow.numpy() - ref.flow).max(1)
+    assert np.median(diff) < 1e-5 and np.mean(diff < 1e-3) > 0.7
+    assert np.abs(out.flow.numpy() - plain.flow.numpy()).max() > 1e-3  # the smoothing is used
 
 
 @pytest.mark.parametrize(
