@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import torch
 
+from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.lk_layer import residual_and_jacobian, stack_level, template_windows
@@ -68,6 +69,7 @@ def basin_loss(
     delta: float = 1.0,
     rho: str = "cauchy",
     generator: torch.Generator | None = None,
+    smoothing: Smoothing | None = None,
 ) -> torch.Tensor:
     """Mean over pyramid levels of the robust landing error of one step from a random start.
 
@@ -82,6 +84,7 @@ def basin_loss(
         delta: robust scale, in each level's pixels.
         rho: robust penalty (see :func:`~nsflow_ros.train.loss.flow_loss`).
         generator: torch random generator of the offsets (None = the global one).
+        smoothing: the pyramid's Gaussian smoothing (:func:`~nsflow_ros.train.ops.pyramid`); None = none.
 
     Returns:
         the loss (a scalar with a graph; 0 when no point is usable).
@@ -94,7 +97,7 @@ def basin_loss(
     """
     if radius < 0:
         raise TrainError(f"radius must be >= 0, got {radius}")
-    pyr1, pyr2 = pyramid(desc1, config.levels), pyramid(desc2, config.levels)
+    pyr1, pyr2 = pyramid(desc1, config.levels, smoothing), pyramid(desc2, config.levels, smoothing)
     pts = points.detach().to(torch.float64)
     gt = flow_gt.detach().to(torch.float64)
     n = pts.shape[0]

@@ -12,6 +12,7 @@ and writes the model card ``models/README.md`` with its figures.
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import shutil
 import sys
@@ -33,6 +34,17 @@ def _init_error(text: str) -> tuple[str, float]:
     if mode not in ("normal", "uniform") or not value >= 0:
         raise argparse.ArgumentTypeError(f"expected normal:S, uniform:R or zero, got {text!r}")
     return mode, value
+
+
+def _smoothing(text: str) -> tuple[float, float]:
+    """``FINE,COARSE`` Gaussian sigmas (px, >= 0) -> (fine, coarse)."""
+    try:
+        fine, coarse = (float(v) for v in text.split(","))
+    except ValueError:
+        fine = coarse = -1.0
+    if not (0 <= fine < math.inf and 0 <= coarse < math.inf):
+        raise argparse.ArgumentTypeError(f"expected FINE,COARSE (two sigmas >= 0 in px), got {text!r}")
+    return fine, coarse
 
 
 def _init_text(mode: str, size: float) -> str:
@@ -106,6 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
         "as the tracker solves); default forward",
     )
     p.add_argument(
+        "--smoothing", type=_smoothing, default=None, metavar="FINE,COARSE",
+        help="Gaussian smoothing of the training solver's descriptor pyramid (sigma at full resolution, "
+        "sigma on coarser levels, px), as the tracker applies the smoothing a model declares; the "
+        "exported model declares it (the shipped model: 1.0,0.5). Default: none",
+    )
+    p.add_argument(
         "--coarse-loss", type=float, default=0.0, metavar="W",
         help="weight of each coarse level's loss, robust scale --delta x 2^level (default 0: finest only)",
     )
@@ -168,7 +186,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     import numpy as np
     import torch
 
-    from nsflow_ros import Jacobian, LMConfig, load_encoder
+    from nsflow_ros import Jacobian, LMConfig, Smoothing, load_encoder
     from nsflow_ros.train.card import write_model_card
     from nsflow_ros.train.data import PairConfig
     from nsflow_ros.train.evaluate import compare, format_table, heldout_pairs
@@ -202,19 +220,23 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         val_per_image=opts.val_per_image,
         teacher=opts.teacher,
         init=opts.init,
+        smoothing=None if opts.smoothing is None else Smoothing(*opts.smoothing),
     )
     command = "nsflow-train " + shlex.join(argv)
     result = train(cfg, progress=not opts.no_progress)
     out = Path(opts.out)
-    onnx_path = export_onnx(result.model, out / "nsflow_encoder.onnx", {"training_command": command})
-    encoder = load_encoder(onnx_path)
+    meta = {"training_command": command}
+    if opts.smoothing is not None:
+        meta["smoothing"] = ",".join(f"{v:g}" for v in opts.smoothing)
+    onnx_path = export_onnx(result.model, out / "nsflow_encoder.onnx", meta)
+    encoder = load_encoder(onnx_path)  # as deployed: with the smoothing it declares
     # The export must reproduce the torch encoder.
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (97, 131), dtype=np.uint8)
     with torch.no_grad():
         x = torch.from_numpy(img.astype(np.float32) / 255.0)[None, None].expand(1, spec.in_channels, 97, 131)
         ref = result.model(x)[0].permute(1, 2, 0).numpy()
-    diff = float(np.abs(encoder(img) - ref).max())
+    diff = float(np.abs(load_encoder(onnx_path, smoothing=Smoothing())(img) - ref).max())
     print(f"ONNX vs torch max abs difference: {diff:.2e}")
     comparisons = []
     for label, strength in (("perturbed", 1.0), ("clean", 0.0)):

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nsflow_ros.core.encoder import Encoder, IntensityEncoder
+from nsflow_ros.core.methods import pyramid_smoothing
+from nsflow_ros.core.pyramid import build_pyramid
 from nsflow_ros.core.solver import LMConfig, track
 from nsflow_ros.train.data import HELDOUT_IMAGES, Pair, PairConfig, load_image, make_pair
 
@@ -89,10 +91,13 @@ def mode_metrics(errors: np.ndarray, status: np.ndarray) -> ModeMetrics:
 
 def _run_mode(encoder: Encoder, pairs: list[Pair], config: LMConfig) -> tuple[ModeMetrics, np.ndarray]:
     errs, stats = [], []
+    smoothing = pyramid_smoothing(encoder)
     for p in pairs:
         if len(p.points) == 0:
             continue
-        res = track(encoder(p.image1), encoder(p.image2), p.points, p.flow0, config)
+        # the maps as the LM methods prepare them (the encoder applies its own fine smoothing)
+        f1, f2 = (build_pyramid(encoder(im), config.levels, smoothing) for im in (p.image1, p.image2))
+        res = track(f1, f2, p.points, p.flow0, config)
         errs.append(np.linalg.norm(res.flow - p.flow_gt, axis=1))
         stats.append(res.status)
     if not errs:

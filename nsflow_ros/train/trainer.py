@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.basin import basin_loss
 from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, load_image, make_pair
@@ -22,6 +23,7 @@ from nsflow_ros.train.figures import plot_loss, plot_validation
 from nsflow_ros.train.lk_layer import BackwardMode, lk_track, lk_track_pyramid
 from nsflow_ros.train.loss import flow_loss
 from nsflow_ros.train.model import Encoder, EncoderSpec
+from nsflow_ros.train.ops import pyramid
 from nsflow_ros.train.scenes import ScenePool, make_scene_pair
 
 __all__ = ["TrainConfig", "TrainResult", "encode_pair", "load_checkpoint", "train", "train_step", "validate"]
@@ -69,6 +71,9 @@ class TrainConfig:
             None = end-to-end training through the LK layer.
         init: a checkpoint (``encoder.pt`` of an earlier run, same spec) to start from instead of
             random weights, e.g. to fine-tune a distilled encoder through the LK layer.
+        smoothing: Gaussian smoothing of the descriptor pyramid in the training solver, validation
+            and the basin loss, as the tracker applies a model's declared smoothing
+            (``nsflow_ros.core.pyramid.Smoothing``); the export then declares it. None = none.
     """
 
     spec: EncoderSpec = field(default_factory=EncoderSpec)
@@ -98,6 +103,7 @@ class TrainConfig:
     images: tuple[str, ...] = TRAIN_IMAGES
     teacher: Path | None = None
     init: Path | None = None
+    smoothing: Smoothing | None = None
 
 
 def load_checkpoint(model: Encoder, path: str | Path) -> None:
@@ -145,10 +151,11 @@ def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: Trai
     d1, d2 = encode_pair(model, pair)
     pts, flow0, gt = (torch.from_numpy(a) for a in (pair.points, pair.flow0, pair.flow_gt))
     if cfg.lm.levels == 1:
+        d1, d2 = (pyramid(d, 1, cfg.smoothing)[0] for d in (d1, d2))
         res = lk_track(d1, d2, pts, flow0, cfg.lm, mode=cfg.mode)
         loss, used = flow_loss(res.flow, gt, res.status, cfg.huber_delta, cfg.rho)
     else:
-        out = lk_track_pyramid(d1, d2, pts, flow0, cfg.lm, mode=cfg.mode)
+        out = lk_track_pyramid(d1, d2, pts, flow0, cfg.lm, mode=cfg.mode, smoothing=cfg.smoothing)
         loss, used = flow_loss(out.flow, gt, out.status, cfg.huber_delta, cfg.rho)
         if cfg.coarse_weight > 0:
             for lev, res in enumerate(out.levels[1:], start=1):
@@ -158,7 +165,11 @@ def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: Trai
     if used == 0:
         return None
     if cfg.basin_weight > 0:
-        basin = basin_loss(d1, d2, pts, gt, cfg.lm, cfg.basin_radius, cfg.huber_delta, cfg.rho)
+        # single level: d1, d2 are smoothed above already
+        smoothing = cfg.smoothing if cfg.lm.levels > 1 else None
+        basin = basin_loss(
+            d1, d2, pts, gt, cfg.lm, cfg.basin_radius, cfg.huber_delta, cfg.rho, smoothing=smoothing
+        )
         loss = loss + cfg.basin_weight * basin
     opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -166,21 +177,26 @@ def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: Trai
     return float(loss.detach())
 
 
-def _pair_errors(model: Encoder | None, pair: Pair, lm: LMConfig) -> tuple[np.ndarray, np.ndarray]:
+def _pair_errors(
+    model: Encoder | None, pair: Pair, lm: LMConfig, smoothing: Smoothing | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     with torch.no_grad():
         if model is None:
             d1 = torch.from_numpy(pair.image1.astype(np.float32) / 255.0)[None]
             d2 = torch.from_numpy(pair.image2.astype(np.float32) / 255.0)[None]
         else:
-            d1, d2 = encode_pair(model, pair)
+            d1, d2 = (pyramid(d, 1, smoothing)[0] for d in encode_pair(model, pair))
         out = lk_track(d1, d2, torch.from_numpy(pair.points), torch.from_numpy(pair.flow0), lm)
     err = np.linalg.norm(out.flow.numpy() - pair.flow_gt, axis=1)
     return np.where(out.status.numpy(), err, np.inf), out.status.numpy()
 
 
-def validate(model: Encoder | None, pairs: list[Pair], lm: LMConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Endpoint errors (inf where lost) and statuses of all points; ``model=None`` is the classical mode."""
-    errs, stats = zip(*(_pair_errors(model, p, lm) for p in pairs if len(p.points)), strict=True)
+def validate(
+    model: Encoder | None, pairs: list[Pair], lm: LMConfig, smoothing: Smoothing | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Endpoint errors (inf where lost) and statuses of all points; ``model=None`` is the classical mode
+    (never smoothed); ``smoothing`` is the model's (only its fine part acts: ``lm`` solves one level)."""
+    errs, stats = zip(*(_pair_errors(model, p, lm, smoothing) for p in pairs if len(p.points)), strict=True)
     return np.concatenate(errs), np.concatenate(stats)
 
 
@@ -244,7 +260,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
         results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         record: dict[str, float | int] = {"step": step, "seconds": round(time.monotonic() - start, 1)}
         for name, pairs in val_sets.items():
-            err, st = validate(model, pairs, val_lm)
+            err, st = validate(model, pairs, val_lm, cfg.smoothing)
             results[f"NSFlow {name}"] = (err, st)
             results[f"classical {name}"] = baseline[name]
             record[f"{name}_within1"] = float((err < 1).mean())

@@ -11,7 +11,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nsflow_ros import load_encoder  # noqa: E402
+from nsflow_ros import Smoothing, load_encoder  # noqa: E402
 from nsflow_ros.train.cli import main  # noqa: E402
 from nsflow_ros.train.data import PairConfig, load_image, make_pair  # noqa: E402
 from nsflow_ros.train.export import export_onnx  # noqa: E402
@@ -134,6 +134,11 @@ def test_cli_reports_known_errors(tmp_path, capsys):
             main(["--init-error", bad])
         assert exc.value.code == 2
         assert "expected normal:S, uniform:R or zero" in capsys.readouterr().err
+    for bad in ("1", "1,-0.5", "a,b", "nan,1"):
+        with pytest.raises(SystemExit) as exc:
+            main(["--smoothing", bad])
+        assert exc.value.code == 2
+        assert "expected FINE,COARSE" in capsys.readouterr().err
 
 
 def test_cli_trains_coarse_to_fine(tmp_path):
@@ -151,3 +156,30 @@ def test_cli_trains_coarse_to_fine(tmp_path):
     card = (models / "README.md").read_text()
     assert "3-level coarse-to-fine LM" in card and "0.5 x the same penalty of each coarse level" in card
     assert "uniform in [0, 20] px" in card and "1 x the basin loss" in card
+
+
+@pytest.mark.parametrize("levels", [1, 3])
+def test_cli_trains_through_the_smoothing_and_the_export_declares_it(tmp_path, capsys, levels):
+    out = tmp_path / "run"
+    args = f"--steps 2 --d 2 --levels {levels} --smoothing 1,0.5 --basin-loss 1"
+    args += " --val-every 2 --eval-per-image 1 --val-per-image 1 --no-progress --threads 1"
+    assert main([*args.split(), "--out", str(out)]) == 0
+    enc = load_encoder(out / "nsflow_encoder.onnx")
+    assert enc.smoothing == Smoothing(1.0, 0.5) and enc.metadata["smoothing"] == "1,0.5"
+    # the export check compares the unsmoothed maps with torch's
+    diff = float(capsys.readouterr().out.split("ONNX vs torch max abs difference: ")[1].split()[0])
+    assert diff < 1e-4
+    config = json.loads((out / "run.json").read_text())["config"]
+    assert config["smoothing"] == "{'fine': 1.0, 'coarse': 0.5}"
+
+
+def test_smoothing_changes_the_training_step(tmp_path):
+    # same seed, same pair: the loss differs only through the smoothing in the solver's maps
+    pair = make_pair(load_image("camera"), np.random.default_rng(0), PairConfig(), strength=0.0)
+    losses = []
+    for smoothing in (None, Smoothing(1.0, 0.5)):
+        torch.manual_seed(0)
+        model = Encoder(EncoderSpec(d=2))
+        opt = torch.optim.SGD(model.parameters(), lr=0.0)
+        losses.append(train_step(model, opt, pair, TrainConfig(smoothing=smoothing)))
+    assert None not in losses and abs(losses[0] - losses[1]) > 1e-4
