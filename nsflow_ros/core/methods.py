@@ -55,6 +55,7 @@ __all__ = [
     "TrackingMethod",
     "klt_track",
     "make_method",
+    "method_encoder",
     "pyramid_smoothing",
     "quantise_descriptors",
 ]
@@ -391,11 +392,18 @@ class DescriptorKLTMethod(KLTMethod):
     """The learned descriptors as uint8, tracked by OpenCV's pyramidal LK with VINS's calls (``nsflow_lk``).
 
     Each frame is encoded and quantised once. OpenCV builds its pyramids inside every call, as for
-    ``klt`` (its Python binding takes no pre-built pyramid).
+    ``klt`` (its Python binding takes no pre-built pyramid). The maps are not smoothed: a model's declared
+    smoothing is chosen for the LM solver's 11x11 window, and on OpenCV's 21x21 one it cost more under
+    light than it gave (evaluation: trackable region under a lighting change 91.2 -> 86.5 %, illumination
+    pairs 99.2 -> 98.7 %; demo tracks 6 % shorter).
 
     Args:
-        encoder: the descriptor encoder (1-4 channels in [0, 1]).
+        encoder: the descriptor encoder (1-4 channels in [0, 1]), without smoothing (``load_encoder(...,
+            smoothing=Smoothing())``; the registry loads it so).
         window, max_iterations, eps: as :class:`KLTMethod`.
+
+    Raises:
+        CoreError: an encoder that smooths its maps.
     """
 
     name = "nsflow_lk"
@@ -404,6 +412,11 @@ class DescriptorKLTMethod(KLTMethod):
         self, encoder: Encoder, window: int = KLT_WINDOW[0], max_iterations: int = 30, eps: float = 0.01
     ) -> None:
         super().__init__(window, max_iterations, eps)
+        if encoder.smoothing.fine > 0:
+            raise CoreError(
+                f"nsflow_lk tracks unsmoothed descriptors, but the encoder smooths them "
+                f"({encoder.smoothing}); load it with smoothing=Smoothing()"
+            )
         self.encoder = encoder
 
     def prepare(self, image: np.ndarray, gray: np.ndarray) -> np.ndarray:
@@ -418,6 +431,7 @@ class _Entry:
     factory: MethodFactory
     learned: bool  # needs the ONNX encoder
     summary: str
+    smoothed: bool = True  # applies the model's declared smoothing (the LM methods do)
 
 
 def _nsflow(encoder: Encoder, lm: LMConfig) -> TrackingMethod:
@@ -440,7 +454,9 @@ METHODS: dict[str, _Entry] = {
     "nsflow": _Entry(_nsflow, True, "learned encoder + the paper's LM solver (NumPy)"),
     "classical": _Entry(_classical, False, "image intensity + the same LM solver"),
     "klt": _Entry(_klt, False, "OpenCV calcOpticalFlowPyrLK on the gray image, as VINS-Fusion calls it"),
-    "nsflow_lk": _Entry(_nsflow_lk, True, "learned encoder as uint8 + OpenCV's pyramidal LK (VINS's calls)"),
+    "nsflow_lk": _Entry(
+        _nsflow_lk, True, "learned encoder as uint8 + OpenCV's pyramidal LK (VINS's calls)", smoothed=False
+    ),
 }
 """The registry of tracking methods: name -> factory, whether it needs the learned encoder, summary."""
 
@@ -469,11 +485,35 @@ def make_method(
         CoreError: unknown name, or an encoder given to ``klt``.
         EncoderError: the learned model cannot be loaded.
     """
+    entry = _entry(name)
+    if name == "klt" and encoder is not None:
+        raise CoreError("method 'klt' tracks the gray image with OpenCV; an encoder cannot be given")
+    if encoder is None:
+        encoder = method_encoder(name, model_path, threads)
+    return entry.factory(encoder, lm or LMConfig(levels=4))
+
+
+def _entry(name: str) -> _Entry:
     entry = METHODS.get(name)
     if entry is None:
         raise CoreError(f"method must be one of {tuple(METHODS)}, got {name!r}")
-    if name == "klt" and encoder is not None:
-        raise CoreError("method 'klt' tracks the gray image with OpenCV; an encoder cannot be given")
-    if encoder is None and name != "klt":
-        encoder = load_encoder(model_path, threads=threads) if entry.learned else IntensityEncoder()
-    return entry.factory(encoder, lm or LMConfig(levels=4))
+    return entry
+
+
+def method_encoder(name: str, model_path: str | None = None, threads: int | None = None) -> Encoder | None:
+    """The encoder :func:`make_method` gives method ``name`` when none is passed.
+
+    The learned model for ``nsflow`` (smoothed as the model declares) and ``nsflow_lk`` (unsmoothed),
+    intensity for ``classical``, None for ``klt``.
+
+    Raises:
+        CoreError: unknown name.
+        EncoderError: the learned model cannot be loaded.
+    """
+    entry = _entry(name)
+    if name == "klt":
+        return None
+    if not entry.learned:
+        return IntensityEncoder()
+    smoothing = None if entry.smoothed else Smoothing()  # None: as the model declares
+    return load_encoder(model_path, threads=threads, smoothing=smoothing)

@@ -248,6 +248,7 @@ def run(ctx: EvalContext) -> Section:
         EvaluationError: no ONNX model, no onnx package, or a run that fails.
     """
     from nsflow_ros.core.encoder import OnnxEncoder, load_encoder
+    from nsflow_ros.core.methods import method_encoder
     from nsflow_ros.evaluation import sequences
 
     opts = dict(ctx.extra.get(KEY, {}))
@@ -284,7 +285,14 @@ def run(ctx: EvalContext) -> Section:
     kinds = sequences.TRACKER_METHODS
     tracker_times: dict[str, dict[str, dict[str, float]]] = {}
     for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
-        enc = encoder if name in sequences.LEARNED else None
+        enc: Encoder | None = None
+        if name == NSFLOW:
+            enc = encoder
+        elif name in sequences.LEARNED:  # the same model, as the registry loads it for that method
+            try:
+                enc = method_encoder(kinds[name]["method"], str(model_path), ctx.threads)
+            except CoreError as err:
+                raise EvaluationError(str(err)) from err
         per = settings.with_overrides(kinds[name])
         tracker_times[name] = time_tracker(frames, source.camera, per.method, settings=per, encoder=enc)
 

@@ -35,7 +35,7 @@ from nsflow_ros.core.methods import (
 )
 from nsflow_ros.core.methods import KLTMethod as CoreKLTMethod
 from nsflow_ros.core.methods import LMMethod as CoreLMMethod
-from nsflow_ros.core.pyramid import DescriptorPyramid
+from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing
 from nsflow_ros.core.solver import LMConfig, TrackResult
 from nsflow_ros.core.tracker import TrackerSettings
 from nsflow_ros.evaluation.errors import EvaluationError
@@ -292,7 +292,8 @@ def default_methods(
     """Every evaluated method (:data:`METHOD_ORDER`), all at ``levels`` (None = the deployed depth).
 
     Args:
-        model: NSFlow ONNX encoder (None = the shipped one); NSFlow + OpenCV LK uses the same.
+        model: NSFlow ONNX encoder (None = the shipped one); NSFlow + OpenCV LK uses the same, without
+            its declared smoothing (as the tracker's ``nsflow_lk``).
         levels: pyramid levels of every method; None = :func:`deployed_levels`.
         threads: encoder threads (None = all usable cores).
 
@@ -308,11 +309,12 @@ def default_methods(
     cfg = replace(deployed_lm(), levels=lev)
     try:
         encoder = load_encoder(model, threads=threads)
+        unsmoothed = load_encoder(model, threads=threads, smoothing=Smoothing())  # as nsflow_lk loads it
     except CoreError as err:
         raise EvaluationError(str(err)) from err
     return [
         LMMethod(NSFLOW, encoder, cfg),
-        KLTMethod(lev, encoder=encoder),
+        KLTMethod(lev, encoder=unsmoothed),
         LMMethod(CLASSICAL, IntensityEncoder(), cfg),
         KLTMethod(lev),
         KLTMethod(lev, equalize=True),

@@ -699,15 +699,13 @@ def run(ctx: EvalContext) -> Section:
         enc = getattr(m, "encoder", None)
         if m.name in (*LEARNED, CLASSICAL) and isinstance(enc, Encoder):
             encoders[m.name] = enc  # reuse the run's loaded model instead of opening it again
-    missing = [n for n in LEARNED if n in methods and n not in encoders]
-    if missing:
-        from nsflow_ros.core.encoder import load_encoder
+    for name in (n for n in LEARNED if n in methods and n not in encoders):
+        from nsflow_ros.core.methods import method_encoder
 
         try:
-            enc = load_encoder(ctx.model, threads=ctx.threads)
+            encoders[name] = method_encoder(TRACKER_METHODS[name]["method"], ctx.model, ctx.threads)
         except CoreError as err:
             raise EvaluationError(str(err)) from err
-        encoders.update(dict.fromkeys(missing, enc))
     settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads)
     source = load_source(ctx, setup)
     runs = evaluate_sequences(

@@ -42,6 +42,11 @@ def test_registry_builds_each_method_once_by_name(tmp_path):
     enc = load_encoder(conv_encoder(tmp_path / "m.onnx", c_in=1, d=3))
     lk = make_method("nsflow_lk", encoder=enc)
     assert isinstance(lk, DescriptorKLTMethod) and lk.encoder is enc
+    # the registry loads the shipped model smoothed for the LM method, unsmoothed for OpenCV's LK
+    assert make_method("nsflow").encoder.smoothing.fine > 0
+    assert make_method("nsflow_lk").encoder.smoothing == Smoothing()
+    with pytest.raises(CoreError, match="nsflow_lk tracks unsmoothed descriptors"):
+        make_method("nsflow_lk", encoder=load_encoder(enc.path, smoothing=Smoothing(1.0)))
     with pytest.raises(CoreError, match="method must be one of"):
         make_method("sift")
     with pytest.raises(CoreError, match="encoder cannot be given"):

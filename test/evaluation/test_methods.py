@@ -58,7 +58,9 @@ def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
         assert sequences.TRACKER_METHODS[m.name] == m.tracker_overrides
     lm = {m.name: m for m in methods if isinstance(m, ev.LMMethod)}
     assert lm[ev.NSFLOW].config == deployed and lm[ev.CLASSICAL].config == deployed
-    assert methods[0].encoder is methods[1].encoder  # NSFlow + OpenCV LK tracks the same descriptors
+    # NSFlow + OpenCV LK tracks the same model's descriptors, without the smoothing the LM solver gets
+    assert methods[0].encoder.path == methods[1].encoder.path
+    assert methods[0].encoder.smoothing.fine > 0 and methods[1].encoder.smoothing.fine == 0
 
 
 def test_each_method_solves_through_its_core_track_pair(methods, pair):

@@ -7,6 +7,7 @@ import pytest
 
 from nsflow_ros.core.encoder import IntensityEncoder, load_encoder
 from nsflow_ros.core.imu import so3_exp
+from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.tracker import TrackerSettings
 from nsflow_ros.evaluation import sequences as sq
 from nsflow_ros.evaluation.context import EvalContext
@@ -67,9 +68,9 @@ def test_fundamental_inliers_count_lost_tracks_against_the_rate():
 def quick_ctx(tmp_path_factory) -> EvalContext:
     root = tmp_path_factory.mktemp("seq")
     (root / "report").mkdir()
-    enc = load_encoder(threads=1)
+    enc, raw = load_encoder(threads=1), load_encoder(threads=1, smoothing=Smoothing())
     methods = [
-        LMMethod(NSFLOW, enc), KLTMethod(encoder=enc), LMMethod(CLASSICAL, IntensityEncoder()), KLTMethod(),
+        LMMethod(NSFLOW, enc), KLTMethod(encoder=raw), LMMethod(CLASSICAL, IntensityEncoder()), KLTMethod(),
         KLTMethod(equalize=True),
     ]
     return EvalContext(methods=methods, quick=True, out_dir=root / "report", progress=False, threads=1,
