@@ -395,7 +395,7 @@ class DescriptorKLTMethod(KLTMethod):
     ``klt`` (its Python binding takes no pre-built pyramid). The maps are not smoothed: a model's declared
     smoothing is chosen for the LM solver's 11x11 window, and on OpenCV's 21x21 one it cost more under
     light than it gave (evaluation: trackable region under a lighting change 91.2 -> 86.5 %, illumination
-    pairs 99.2 -> 98.7 %; demo tracks 6 % shorter).
+    pairs 99.2 -> 98.7 %; demo tracks 6-8 % shorter).
 
     Args:
         encoder: the descriptor encoder (1-4 channels in [0, 1]), without smoothing (``load_encoder(...,
