@@ -94,6 +94,10 @@ class LMConfig:
             level, or the result at level 0). 0 = every point iterates until its own stop test or
             K_max, Algorithm 1 as written (the library default). See "Stragglers" below.
         tail_passes: the passes a level runs before ``tail_share`` may end it.
+        zero_mean: compare windows up to a constant per channel: the residual and J lose their window
+            means (sum (a - mean a)(b - mean b) = sum ab - n mean a mean b, from the same sums), so an
+            offset between the two windows, as a lighting change leaves in descriptor maps, costs nothing.
+            Not the paper's cost; off by default (measurements in models/README.md).
         lambda_scale: tau of the per-point initial damping lambda^(0) = max(lambda_init,
             tau * max(diag J^T J)) at the start of each level (Madsen, Nielsen and Tingleff's
             initialisation); 0 = lambda_init for every point.
@@ -143,6 +147,7 @@ class LMConfig:
     margin: int | None = None
     tail_share: float = 0.0
     tail_passes: int = 3
+    zero_mean: bool = False
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -173,6 +178,8 @@ class LMConfig:
             raise CoreError(f"LMConfig.tail_passes must be >= 1, got {self.tail_passes}")
         if self.margin is not None and self.margin < 0:
             raise CoreError(f"LMConfig.margin must be >= 0 or None, got {self.margin}")
+        if not isinstance(self.zero_mean, bool):
+            raise CoreError(f"LMConfig.zero_mean must be a bool, got {self.zero_mean!r}")
 
     def as_dict(self) -> dict[str, int | float | str | None]:
         """The settings as plain values (the Jacobian by its name), e.g. for a JSON report."""
@@ -383,6 +390,11 @@ def _templates(
 _SUM = "imjk,imjk->m"  # per point: sum over window rows, columns and channels
 
 
+def _window_sums(a: np.ndarray) -> np.ndarray:
+    """Per point and channel, the sum over the window of (window, M, window, K) values: (M, K)."""
+    return a.sum(axis=0).sum(axis=1)
+
+
 def _normal_equations(
     level: tuple[np.ndarray, ...],
     centers: np.ndarray,
@@ -390,6 +402,7 @@ def _normal_equations(
     window: int,
     below: np.ndarray | None = None,
     template_patch: list[np.ndarray] | None = None,
+    zero_mean: bool = False,
 ) -> np.ndarray:
     """S, J^T J and J^T f per point as (M, 6) columns [S, h11, h12, h22, g1, g2], at ``centers``.
 
@@ -407,16 +420,21 @@ def _normal_equations(
 
     With ``below`` (the current costs), J^T J and J^T f are computed only where S < below, i.e. for the
     candidates LM will accept, and left 0 elsewhere: the solver discards them for rejected steps, which
-    are most steps of the last iterations.
+    are most steps of the last iterations. With ``zero_mean`` every sum is of window-centred factors
+    (:attr:`LMConfig.zero_mean`), corrected from per-channel window sums instead of centred copies.
     """
     m = centers.shape[0]
     size = window + 2
     patches = _sample_level(level, centers, size)
     resid = [p[1:-1, :, 1:-1] - t for p, t in zip(patches, template, strict=True)]
+    count = float(window * window)
+    fsums = [_window_sums(f) for f in resid] if zero_mean else []
     sums = np.zeros((m, 6))
     cost = sums[:, 0]
-    for f in resid:
+    for c, f in enumerate(resid):
         cost += np.einsum(_SUM, f, f)
+        if zero_mean:
+            cost -= (fsums[c] * fsums[c]).sum(axis=1) / count
     cost *= 0.5
     rows = None if below is None else np.flatnonzero(cost < below)
     if rows is not None and rows.size == 0:
@@ -437,6 +455,14 @@ def _normal_equations(
         terms[:, 2] += np.einsum(_SUM, jy, jy)
         terms[:, 3] += np.einsum(_SUM, jx, f)
         terms[:, 4] += np.einsum(_SUM, jy, f)
+        if zero_mean:
+            sx, sy = _window_sums(jx), _window_sums(jy)
+            fs = fsums[c][rows] if part else fsums[c]
+            terms[:, 0] -= (sx * sx).sum(axis=1) / count
+            terms[:, 1] -= (sx * sy).sum(axis=1) / count
+            terms[:, 2] -= (sy * sy).sum(axis=1) / count
+            terms[:, 3] -= (sx * fs).sum(axis=1) / count
+            terms[:, 4] -= (sy * fs).sum(axis=1) / count
     terms *= _SCHARR_NORM if template_patch is None else _ESM_NORM
     if part:
         sums[rows, 1:] = terms
@@ -475,7 +501,8 @@ def _solve_level(
             contrast += np.einsum(_SUM, t, t) - (sums * sums).sum(axis=1) / (win * win)
     state = np.empty((n, 8))
     state[:, _U] = u
-    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, template_patch=tpatch)
+    zm = cfg.zero_mean
+    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, template_patch=tpatch, zero_mean=zm)
     lam = np.full(n, cfg.lambda_init)
     if cfg.lambda_scale > 0:
         lam = np.maximum(lam, cfg.lambda_scale * np.maximum(state[:, 3], state[:, 5]))
@@ -508,7 +535,7 @@ def _solve_level(
             cand = np.empty_like(s_a)
             np.add(s_a[:, 0], du0, out=cand[:, 0])
             np.add(s_a[:, 1], du1, out=cand[:, 1])
-            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a)
+            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a, zm)
             accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
             lam_a = lam_a * np.where(accept, 1.0 / cfg.nu, cfg.nu)

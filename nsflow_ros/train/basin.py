@@ -47,7 +47,7 @@ def first_step(
         shapes = f"{tuple(desc1.shape)}, {tuple(desc2.shape)}"
         raise TrainError(f"first_step needs two equal (C, H, W) maps, got {shapes}")
     win = config.window
-    template = template_windows(desc1, points, win, config.jacobian)
+    template = template_windows(desc1, points, win, config.jacobian, config.zero_mean)
     f, jx, jy = residual_and_jacobian(stack_level(desc2), points + start.detach(), template, win)
     h11, h12, h22 = ((jx * jx).sum(1).double(), (jx * jy).sum(1).double(), (jy * jy).sum(1).double())
     g1, g2 = (jx * f).sum(1).double(), (jy * f).sum(1).double()

@@ -128,27 +128,41 @@ class Template:
     Attributes:
         values: D1 over each point's window, flattened, (M, C window^2).
         grad: for :attr:`Jacobian.ESM` D1's Scharr x / y derivatives there, (M, 2, C window^2); else None.
+        channels: C.
+        zero_mean: residuals and Jacobians lose their window means per channel (``LMConfig.zero_mean``).
     """
 
     values: torch.Tensor
     grad: torch.Tensor | None
+    channels: int = 1
+    zero_mean: bool = False
 
     def take(self, idx: torch.Tensor) -> Template:
         """The templates of the points ``idx``."""
-        return Template(self.values[idx], None if self.grad is None else self.grad[idx])
+        grad = None if self.grad is None else self.grad[idx]
+        return Template(self.values[idx], grad, self.channels, self.zero_mean)
+
+    def centred(self, a: torch.Tensor) -> torch.Tensor:
+        """``a`` (M, C window^2) less its window mean per channel when ``zero_mean``, else ``a``."""
+        if not self.zero_mean:
+            return a
+        b = a.reshape(a.shape[0], self.channels, -1)
+        return (b - b.mean(dim=2, keepdim=True)).reshape(a.shape)
 
 
-def template_windows(desc1: torch.Tensor, pts: torch.Tensor, window: int, jacobian: Jacobian) -> Template:
+def template_windows(
+    desc1: torch.Tensor, pts: torch.Tensor, window: int, jacobian: Jacobian, zero_mean: bool = False
+) -> Template:
     """Sample the frame-1 template at ``pts`` (with its derivatives when the Jacobian needs them).
 
     Shape:
         desc1: (C, H, W). pts: (M, 2).
     """
-    n = pts.shape[0]
+    n, c = pts.shape[0], desc1.shape[0]
     if jacobian is Jacobian.ESM:
         s = sample_windows(stack_level(desc1), pts, window).reshape(n, 3, -1)
-        return Template(s[:, 0], s[:, 1:])
-    return Template(sample_windows(desc1, pts, window).reshape(n, -1), None)
+        return Template(s[:, 0], s[:, 1:], c, zero_mean)
+    return Template(sample_windows(desc1, pts, window).reshape(n, -1), None, c, zero_mean)
 
 
 def residual_and_jacobian(
@@ -156,7 +170,8 @@ def residual_and_jacobian(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """f = D2(x + u) - D1(x) and the step's J (x and y) at the frame-2 centres x + u.
 
-    J is D2's Scharr derivative there, or with an ESM template the mean of that and D1's at x.
+    J is D2's Scharr derivative there, or with an ESM template the mean of that and D1's at x; a
+    ``zero_mean`` template centres all three per channel over the window.
 
     Shape:
         level2: (3C, H, W) from :func:`stack_level`. centers: (M, 2). Returns three (M, C window^2).
@@ -164,8 +179,10 @@ def residual_and_jacobian(
     s = sample_windows(level2, centers, window).reshape(centers.shape[0], 3, -1)
     f = s[:, 0] - template.values
     if template.grad is None:
-        return f, s[:, 1], s[:, 2]
-    return f, 0.5 * (s[:, 1] + template.grad[:, 0]), 0.5 * (s[:, 2] + template.grad[:, 1])
+        jx, jy = s[:, 1], s[:, 2]
+    else:
+        jx, jy = 0.5 * (s[:, 1] + template.grad[:, 0]), 0.5 * (s[:, 2] + template.grad[:, 1])
+    return template.centred(f), template.centred(jx), template.centred(jy)
 
 
 def _normal_equations(
@@ -186,6 +203,7 @@ def optimality_condition(
     flow: torch.Tensor,
     window: int,
     jacobian: Jacobian = Jacobian.FORWARD,
+    zero_mean: bool = False,
 ) -> torch.Tensor:
     """F(D1, D2, u) = J(u)^T f(u) per point, zero at a converged solution of the LM solver.
 
@@ -197,6 +215,7 @@ def optimality_condition(
         flow: flow u.
         window: odd window side.
         jacobian: the J of the solver's step (ESM: the mean of D2's derivatives at x + u and D1's at x).
+        zero_mean: f and J centred per window and channel (``LMConfig.zero_mean``).
 
     Returns:
         F, one 2-vector per point, in the maps' dtype.
@@ -204,7 +223,7 @@ def optimality_condition(
     Shape:
         desc1, desc2: (C, H, W). points, flow: (N, 2). Returns (N, 2).
     """
-    template = template_windows(desc1, points, window, jacobian)
+    template = template_windows(desc1, points, window, jacobian, zero_mean)
     f, jx, jy = residual_and_jacobian(stack_level(desc2), points + flow, template, window)
     return torch.stack([(jx * f).sum(1), (jy * f).sum(1)], 1)
 
@@ -220,7 +239,7 @@ def _lm_solve(
     win = cfg.window
     n = pts.shape[0]
     level2 = stack_level(desc2)
-    template = template_windows(desc1, pts, win, cfg.jacobian)
+    template = template_windows(desc1, pts, win, cfg.jacobian, cfg.zero_mean)
     cost, hess, grad = _normal_equations(level2, pts + u0, template, win)
     u = u0
     lam = torch.full((n,), cfg.lambda_init, dtype=torch.float64, device=pts.device)
@@ -295,6 +314,7 @@ class _ImplicitLK(torch.autograd.Function):
         ctx.save_for_backward(desc1, desc2, points, u, status)
         ctx.window = cfg.window
         ctx.jacobian = cfg.jacobian
+        ctx.zero_mean = cfg.zero_mean
         ctx.residual_tol = residual_tol
         ctx.min_curvature = min_curvature
         ctx.mark_non_differentiable(status, cost, iters)
@@ -310,7 +330,7 @@ class _ImplicitLK(torch.autograd.Function):
             d1 = desc1.detach().requires_grad_(need1)
             d2 = desc2.detach().requires_grad_(need2)
             uu = u.detach().requires_grad_(True)
-            fval = optimality_condition(d1, d2, points, uu, ctx.window, ctx.jacobian)  # (N, 2)
+            fval = optimality_condition(d1, d2, points, uu, ctx.window, ctx.jacobian, ctx.zero_mean)  # (N, 2)
             # Exact dF/du, block row by block row (F_i depends on u_i only).
             row0 = torch.autograd.grad(fval[:, 0].sum(), uu, retain_graph=True)[0]
             row1 = torch.autograd.grad(fval[:, 1].sum(), uu, retain_graph=True)[0]

@@ -389,6 +389,58 @@ def test_esm_normal_equations_use_the_mean_jacobian():
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("jacobian", list(Jacobian))
+def test_zero_mean_normal_equations_centre_every_factor(jacobian):
+    rng = np.random.default_rng(5)
+    desc = cv2.GaussianBlur(rng.random((40, 50, 5), dtype=np.float32), (0, 0), 1.5)  # chunks of 4 and 1
+    level = build_pyramid(desc, 1).levels[0]
+    centers = rng.uniform(8, 30, (6, 2))
+    shifted = centers + np.array([0.6, -0.4])
+    template, tpatch = solver_mod._templates(level, centers, 7, jacobian)
+    got = solver_mod._normal_equations(level, shifted, template, 7, template_patch=tpatch, zero_mean=True)
+    below = np.where(np.arange(6) % 2 == 0, got[:, 0] + 1.0, got[:, 0] - 1e-9)
+    part = solver_mod._normal_equations(level, shifted, template, 7, below, tpatch, True)
+    np.testing.assert_allclose(part[::2], got[::2], rtol=1e-12)
+    assert not part[1::2, 1:].any()
+    border = cv2.BORDER_REPLICATE
+    dmaps = [cv2.Scharr(desc, cv2.CV_32F, *o, scale=1 / 32, borderType=border) for o in ((1, 0), (0, 1))]
+    jx, jy = (sample_windows(m, shifted, 7).astype(np.float64) for m in dmaps)
+    if jacobian is Jacobian.ESM:
+        jx, jy = (0.5 * (j + sample_windows(m, centers, 7)) for j, m in zip((jx, jy), dmaps, strict=True))
+    f = sample_windows(desc, shifted, 7).astype(np.float64) - sample_windows(desc, centers, 7)
+
+    def centred(a):
+        return a - a.mean(axis=(1, 2), keepdims=True)
+
+    f, jx, jy = centred(f), centred(jx), centred(jy)
+    axes = (1, 2, 3)
+    want = np.stack(
+        [0.5 * (f * f).sum(axes), (jx * jx).sum(axes), (jx * jy).sum(axes), (jy * jy).sum(axes),
+         (jx * f).sum(axes), (jy * f).sum(axes)],
+        axis=1,
+    )  # fmt: skip
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
+
+
+def test_zero_mean_ignores_a_constant_offset_between_the_frames(textures):
+    h = translation(1.3, -0.7)
+    for gray in textures.values():
+        a, b = warp_pair(gray, h)
+        pts = detect_corners(a, 100, min_distance=10)
+        d1, d2 = IntensityEncoder()(a), IntensityEncoder()(b)
+        cfg = LMConfig(zero_mean=True, jacobian=Jacobian.ESM)
+        same = track(d1, d2, pts, config=cfg)
+        brighter = track(d1, d2 + 0.2, pts, config=cfg)
+        plain = track(d1, d2 + 0.2, pts, config=LMConfig(jacobian=Jacobian.ESM))
+        truth = apply_h(h, pts) - pts
+        err = [np.linalg.norm(r.flow - truth, axis=1) for r in (same, brighter, plain)]
+        assert np.mean(err[0] < 0.5) > 0.9 and np.mean(err[1] < 0.5) > 0.9
+        assert np.median(np.abs(same.flow - brighter.flow)) < 1e-3
+        assert np.mean(err[2] < 0.5) < np.mean(err[1] < 0.5)  # the plain SSD is thrown by the offset
+    with pytest.raises(CoreError, match="zero_mean must be a bool"):
+        LMConfig(zero_mean=1)
+
+
 @pytest.mark.parametrize("shift", [(0.37, -0.21), (2.3, -1.7)])
 def test_esm_is_as_accurate_as_the_forward_jacobian(textures, shift):
     h = translation(*shift)

@@ -31,27 +31,33 @@ def _smooth_map(h: int, w: int, shift: np.ndarray) -> np.ndarray:
     return np.stack([c0, c1])
 
 
-def _problem():
+def _problem(zero_mean: bool = False):
     d1 = torch.from_numpy(_smooth_map(32, 32, np.zeros(2)))
     d2 = torch.from_numpy(_smooth_map(32, 32, SHIFT))
+    weights = torch.tensor([[0.7, -1.3], [0.4, 0.9], [-1.1, 0.5]], dtype=torch.float64)
+    if zero_mean:  # starts from which the centred (ESM) solve reaches F = 0, found the same way
+        pts = torch.tensor([[16.76, 16.29], [16.63, 14.87], [20.95, 12.48]], dtype=torch.float64)
+        off = np.array([[-0.06, 0.07], [-0.22, 0.16], [-0.24, 0.11]])
+        return d1, d2, pts, torch.from_numpy(np.tile(SHIFT, (3, 1)) + off), weights
     # Points and starts for which LM reaches F = J^T f = 0 (its grad test stops it). Most starts instead
     # end where LM stalls on rejected steps a hair away from F = 0: the Scharr J is not the exact
     # derivative of the bilinear cost, so near F = 0 the GN step can fail to lower S. There the solver's
     # output depends on its step history and the implicit gradient is only ~0.1-1 % close to it.
     pts = torch.tensor([[20.3, 14.6], [21.24, 14.55], [23.39, 19.6]], dtype=torch.float64)
     flow0 = torch.from_numpy(np.tile(SHIFT, (3, 1)) + np.array([[0.1, 0.3], [0.33, -0.34], [0.31, -0.16]]))
-    weights = torch.tensor([[0.7, -1.3], [0.4, 0.9], [-1.1, 0.5]], dtype=torch.float64)
     return d1, d2, pts, flow0, weights
 
 
-def _gradients(mode: BackwardMode, jacobian: Jacobian = Jacobian.FORWARD):
-    d1, d2, pts, flow0, weights = _problem()
+def _gradients(mode: BackwardMode, jacobian: Jacobian = Jacobian.FORWARD, zero_mean: bool = False):
+    d1, d2, pts, flow0, weights = _problem(zero_mean)
     d1.requires_grad_(True)
     d2.requires_grad_(True)
-    cfg = replace(TIGHT, jacobian=jacobian)
+    cfg = replace(TIGHT, jacobian=jacobian, zero_mean=zero_mean)
     out = lk_track(d1, d2, pts, flow0, cfg, mode=mode)
     assert bool(out.status.all())
-    residual = optimality_condition(d1.detach(), d2.detach(), pts, out.flow.detach(), cfg.window, jacobian)
+    residual = optimality_condition(
+        d1.detach(), d2.detach(), pts, out.flow.detach(), cfg.window, jacobian, zero_mean
+    )
     # ESM's J is no more the derivative of S than Scharr's: LM stalls ~3e-8 short of F = 0 on these starts.
     assert float(residual.abs().max()) < RESIDUAL[jacobian], "precondition: the solution must satisfy F = 0"
     (out.flow * weights).sum().backward()
@@ -59,10 +65,11 @@ def _gradients(mode: BackwardMode, jacobian: Jacobian = Jacobian.FORWARD):
 
 
 def _finite_differences(
-    which: int, entries: list[tuple[int, int, int]], jacobian: Jacobian = Jacobian.FORWARD, h: float = 1e-6
+    which: int, entries: list[tuple[int, int, int]], jacobian: Jacobian = Jacobian.FORWARD, h: float = 1e-6,
+    zero_mean: bool = False,
 ) -> np.ndarray:
-    d1, d2, pts, flow0, weights = _problem()
-    cfg = replace(TIGHT, jacobian=jacobian)
+    d1, d2, pts, flow0, weights = _problem(zero_mean)
+    cfg = replace(TIGHT, jacobian=jacobian, zero_mean=zero_mean)
     out = []
     for c, y, x in entries:
         vals = []
@@ -98,6 +105,24 @@ def test_implicit_gradient_matches_finite_differences(which, jacobian):
     assert rel < 1e-3, f"relative error {rel:.2e} (D{which + 1})"
 
 
+@pytest.mark.parametrize("which", [0, 1])
+def test_implicit_gradient_matches_finite_differences_with_a_zero_mean_residual(which):
+    g1, g2, out = _gradients(BackwardMode.IMPLICIT, Jacobian.ESM, zero_mean=True)
+    assert np.allclose(out.flow.detach().numpy(), SHIFT, atol=0.05)
+    grad = (g1, g2)[which]
+    entries = _check_entries(grad)
+    fd = _finite_differences(which, entries, Jacobian.ESM, zero_mean=True)
+    an = np.array([float(grad[e]) for e in entries])
+    rel = np.linalg.norm(an - fd) / np.linalg.norm(fd)
+    assert rel < 1e-3, f"relative error {rel:.2e} (D{which + 1})"
+    # a constant added to a frame changes nothing: the centred residual ignores it
+    d1, d2, pts, flow0, _ = _problem(zero_mean=True)
+    cfg = replace(TIGHT, jacobian=Jacobian.ESM, zero_mean=True)
+    a = lk_track(d1, d2, pts, flow0, cfg)
+    b = lk_track(d1, d2 + 0.25, pts, flow0, cfg)
+    assert float((a.flow - b.flow).abs().max()) < 1e-6
+
+
 @pytest.mark.parametrize("jacobian", list(Jacobian))
 def test_implicit_gradient_matches_unrolled(jacobian):
     i1, i2, _ = _gradients(BackwardMode.IMPLICIT, jacobian)
@@ -116,11 +141,13 @@ def test_unrolled_forward_equals_implicit_forward():
 
 
 @pytest.mark.parametrize(
-    ("lambda_scale", "jacobian"), [(0.0, Jacobian.FORWARD), (0.1, Jacobian.FORWARD), (0.1, Jacobian.ESM)]
+    ("lambda_scale", "jacobian", "zero_mean"),
+    [(0.0, Jacobian.FORWARD, False), (0.1, Jacobian.FORWARD, False), (0.1, Jacobian.ESM, False),
+     (0.1, Jacobian.ESM, True), (0.1, Jacobian.FORWARD, True)],
 )
-def test_forward_matches_numpy_solver(textures32, lambda_scale, jacobian):
+def test_forward_matches_numpy_solver(textures32, lambda_scale, jacobian, zero_mean):
     img1, img2, pts, flow0 = textures32
-    cfg = LMConfig(levels=1, lambda_scale=lambda_scale, jacobian=jacobian)
+    cfg = LMConfig(levels=1, lambda_scale=lambda_scale, jacobian=jacobian, zero_mean=zero_mean)
     ref = track(img1[..., None], img2[..., None], pts, flow0, cfg)
     out = lk_track(
         torch.from_numpy(img1)[None],
@@ -270,8 +297,10 @@ def test_pyramid_forward_with_smoothing_matches_the_nsflow_method(textures32):
         LMConfig(levels=3, jacobian=Jacobian.ESM),
         LMConfig(levels=2, coarse_window=15, jacobian=Jacobian.ESM),
         LMConfig(levels=3, coarse_window=15, coarse_from=2, jacobian=Jacobian.ESM),
+        LMConfig(levels=3, jacobian=Jacobian.ESM, zero_mean=True),
     ],
-    ids=["2 levels", "3 levels", "3 levels, ESM", "2 levels, ESM, window 15", "3 levels, ESM, 15 on 2"],
+    ids=["2 levels", "3 levels", "3 levels, ESM", "2 levels, ESM, window 15", "3 levels, ESM, 15 on 2",
+         "3 levels, ESM, zero mean"],
 )
 def test_pyramid_forward_matches_numpy_solver(textures32, cfg):
     img1, img2, pts, flow0 = textures32
