@@ -151,8 +151,8 @@ def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: Trai
     d1, d2 = encode_pair(model, pair)
     pts, flow0, gt = (torch.from_numpy(a) for a in (pair.points, pair.flow0, pair.flow_gt))
     if cfg.lm.levels == 1:
-        d1, d2 = (pyramid(d, 1, cfg.smoothing)[0] for d in (d1, d2))
-        res = lk_track(d1, d2, pts, flow0, cfg.lm, mode=cfg.mode)
+        s1, s2 = (pyramid(d, 1, cfg.smoothing)[0] for d in (d1, d2))
+        res = lk_track(s1, s2, pts, flow0, cfg.lm, mode=cfg.mode)
         loss, used = flow_loss(res.flow, gt, res.status, cfg.huber_delta, cfg.rho)
     else:
         out = lk_track_pyramid(d1, d2, pts, flow0, cfg.lm, mode=cfg.mode, smoothing=cfg.smoothing)
@@ -165,10 +165,8 @@ def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: Trai
     if used == 0:
         return None
     if cfg.basin_weight > 0:
-        # single level: d1, d2 are smoothed above already
-        smoothing = cfg.smoothing if cfg.lm.levels > 1 else None
         basin = basin_loss(
-            d1, d2, pts, gt, cfg.lm, cfg.basin_radius, cfg.huber_delta, cfg.rho, smoothing=smoothing
+            d1, d2, pts, gt, cfg.lm, cfg.basin_radius, cfg.huber_delta, cfg.rho, smoothing=cfg.smoothing
         )
         loss = loss + cfg.basin_weight * basin
     opt.zero_grad(set_to_none=True)

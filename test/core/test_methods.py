@@ -175,20 +175,26 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     assert np.hypot(*(back - pts[ok]).T)[back_ok].max() < 0.5
 
 
+def _record_configs(monkeypatch, attr: str) -> list:
+    """Record ``attr`` of the solver config of every ``LMMethod.run`` call from now on."""
+    used = []
+    real = LMMethod.run
+
+    def spy(self, *args, **kw):
+        used.append(getattr(args[4], attr))
+        return real(self, *args, **kw)
+
+    monkeypatch.setattr(LMMethod, "run", spy)
+    return used
+
+
 def test_checks_use_the_forward_jacobian_whatever_the_solves_use(pair, monkeypatch):
     _, a, b = pair
     method = make_method("classical", lm=LMConfig(levels=4, jacobian=Jacobian.ESM))
     assert method.check_jacobian is Jacobian.FORWARD
     fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
     pts = _corners(a)
-    used = []
-    real = LMMethod.run
-
-    def spy(self, *args, **kw):
-        used.append(args[4].jacobian)
-        return real(self, *args, **kw)
-
-    monkeypatch.setattr(LMMethod, "run", spy)
+    used = _record_configs(monkeypatch, "jacobian")
     new, ok = method.solve(SolveKind.STEREO, fa, fb, pts)
     back, back_ok = method.solve(SolveKind.STEREO_BACK, fb, fa, new[ok], pts[ok])
     assert used == [Jacobian.ESM, Jacobian.FORWARD]
@@ -203,14 +209,7 @@ def test_checks_keep_their_own_stop_tolerance(pair, monkeypatch):
     assert method.check_eps == 0.01
     fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
     pts = _corners(a)
-    used = []
-    real = LMMethod.run
-
-    def spy(self, *args, **kw):
-        used.append(args[4].eps)
-        return real(self, *args, **kw)
-
-    monkeypatch.setattr(LMMethod, "run", spy)
+    used = _record_configs(monkeypatch, "eps")
     new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts)
     method.solve(SolveKind.FLOW_BACK, fb, fa, new[ok], pts[ok])
     assert used == [0.03, 0.01]

@@ -350,6 +350,13 @@ def test_coarse_window_changes_only_the_coarse_levels(textures):
         assert run.status.mean() > 0.9 and np.median(err[run.status]) < 0.05
 
 
+def _normal_sums(f, jx, jy):
+    """Columns [S, h11, h12, h22, g1, g2] of (N, window, window, C) residuals and derivatives."""
+    axes = (1, 2, 3)
+    terms = [0.5 * f * f, jx * jx, jx * jy, jy * jy, jx * f, jy * f]
+    return np.stack([t.sum(axes) for t in terms], axis=1)
+
+
 def test_esm_template_is_the_inner_window_of_its_patch():
     rng = np.random.default_rng(3)
     desc = cv2.GaussianBlur(rng.random((40, 50, 6), dtype=np.float32), (0, 0), 1.5)
@@ -380,13 +387,7 @@ def test_esm_normal_equations_use_the_mean_jacobian():
     jx2, jy2 = (sample_windows(m, shifted, 7) for m in dmaps)
     jx1, jy1 = (sample_windows(m, centers, 7) for m in dmaps)
     jx, jy = 0.5 * (jx1 + jx2), 0.5 * (jy1 + jy2)
-    axes = (1, 2, 3)
-    want = np.stack(
-        [0.5 * (f * f).sum(axes), (jx * jx).sum(axes), (jx * jy).sum(axes), (jy * jy).sum(axes),
-         (jx * f).sum(axes), (jy * f).sum(axes)],
-        axis=1,
-    )  # fmt: skip
-    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(got, _normal_sums(f, jx, jy), rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.parametrize("jacobian", list(Jacobian))
@@ -413,13 +414,7 @@ def test_zero_mean_normal_equations_centre_every_factor(jacobian):
         return a - a.mean(axis=(1, 2), keepdims=True)
 
     f, jx, jy = centred(f), centred(jx), centred(jy)
-    axes = (1, 2, 3)
-    want = np.stack(
-        [0.5 * (f * f).sum(axes), (jx * jx).sum(axes), (jx * jy).sum(axes), (jy * jy).sum(axes),
-         (jx * f).sum(axes), (jy * f).sum(axes)],
-        axis=1,
-    )  # fmt: skip
-    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(got, _normal_sums(f, jx, jy), rtol=1e-4, atol=1e-6)
 
 
 def test_zero_mean_ignores_a_constant_offset_between_the_frames(textures):
