@@ -393,10 +393,69 @@ _SUM = "imjk,imjk->m"  # per point: sum over window rows, columns and channels
 def _window_sums(a: np.ndarray) -> np.ndarray:
     """Per point and channel, the sum over the window of (window, M, window, K) values: (M, K).
 
-    Two single-axis reductions: ~4x faster than ``einsum("imjk->mk")`` or a sum over axes (0, 2) on
-    this layout (150 points, 11x11 windows, 4 channels: 27 vs 106 us).
+    Rows first (contiguous slabs), then einsum over the columns: ~6x faster than ``einsum("imjk->mk")``
+    or a sum over axes (0, 2) on this layout, whose strided middle-axis sums NumPy does slowly (150
+    points, 11x11 windows, 4 channels: 17 vs 106 us).
     """
-    return a.sum(axis=0).sum(axis=1)
+    return np.einsum("mjk->mk", a.sum(axis=0))
+
+
+@functools.lru_cache(maxsize=8)
+def _sum_weights(size: int, channels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row weights (3, size) and column weights (3, size * channels, channels) of :func:`_patch_sums`.
+
+    Each sum is separable, rows x columns; the column weights act on a row's (size, channels) values
+    flattened, one weight per column for every channel alike.
+    """
+    inner = np.zeros(size, np.float32)
+    inner[1:-1] = 1.0
+    smooth = np.convolve(inner, [3.0, 10.0, 3.0], mode="same").astype(np.float32)  # [3 10 3] over the window
+    diff = np.zeros(size, np.float32)  # the central difference summed over the window telescopes to the edges
+    diff[:2], diff[-2:] = -1.0, 1.0
+    eye = np.eye(channels, dtype=np.float32)
+    cols = np.stack([np.kron(c[:, None], eye) for c in (inner, diff, smooth)])
+    return np.stack([inner, smooth, diff]), cols
+
+
+def _patch_sums(patches: np.ndarray) -> np.ndarray:
+    """Per point and channel, window sums of a (window + 2)^2 patch: of its inner window values and of
+    its unnormalised Scharr x / y derivatives over the window, as (3, M, K) [S, Sx, Sy].
+
+    Each sum is a fixed weighting of the patch that factors into row weights times column weights (the
+    window's indicator; Scharr's [3 10 3] smoothing summed over the window; its central difference summed
+    over the window, which telescopes to the two outer rows or columns on each side). So two small matrix
+    products give all three, ~6x faster than three reductions over the window (150 points, 11x11, 4
+    channels: 17 vs 102 us), and no derivative needs computing.
+
+    Shape:
+        patches: (window + 2, M, window + 2, K). Returns (3, M, K).
+    """
+    size, m, _, k = patches.shape
+    rows, cols = _sum_weights(size, k)
+    by_rows = (rows @ patches.reshape(size, -1)).reshape(3, m, size * k)
+    return np.matmul(by_rows, cols)
+
+
+def _template_sums(template: list[np.ndarray], template_patch: list[np.ndarray] | None) -> list[np.ndarray]:
+    """Per chunk, the template's part of the zero-mean window sums (3, M, K): [-sum t, Jx, Jy sums].
+
+    f = D2 - t, so its sum is the patch's less the template's; for ESM J's sums add the template patch's
+    Scharr sums (:func:`_patch_sums`); the forward J has no template derivative (zeros). Computed once
+    per level; :func:`_normal_equations` adds the candidate patch's sums.
+    """
+    if template_patch is not None:
+        out = [_patch_sums(tp) for tp in template_patch]
+    else:
+        out = [np.zeros((3, t.shape[1], t.shape[3]), t.dtype) for t in template]
+        for o, t in zip(out, template, strict=True):
+            o[0] = _window_sums(t)
+    for o in out:
+        o[0] *= -1.0
+    return out
+
+
+# The zero-mean corrections of [h11, h12, h22, g1, g2] are these products of [sum f, sum Jx, sum Jy].
+_ZM_A, _ZM_B = np.array([1, 1, 2, 1, 2]), np.array([1, 2, 2, 0, 0])
 
 
 def _normal_equations(
@@ -406,7 +465,7 @@ def _normal_equations(
     window: int,
     below: np.ndarray | None = None,
     template_patch: list[np.ndarray] | None = None,
-    zero_mean: bool = False,
+    template_sums: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """S, J^T J and J^T f per point as (M, 6) columns [S, h11, h12, h22, g1, g2], at ``centers``.
 
@@ -424,21 +483,33 @@ def _normal_equations(
 
     With ``below`` (the current costs), J^T J and J^T f are computed only where S < below, i.e. for the
     candidates LM will accept, and left 0 elsewhere: the solver discards them for rejected steps, which
-    are most steps of the last iterations. With ``zero_mean`` every sum is of window-centred factors
-    (:attr:`LMConfig.zero_mean`), corrected from per-channel window sums instead of centred copies.
+    are most steps of the last iterations. With ``template_sums`` (:func:`_template_sums`, the
+    zero-mean cost of :attr:`LMConfig.zero_mean`) every sum is of window-centred factors, corrected
+    from per-channel window sums (sum (a - mean a)(b - mean b) = sum ab - sum a sum b / n) instead of
+    centred copies; the patch's sums come from :func:`_patch_sums` and the template's are fixed.
     """
     m = centers.shape[0]
     size = window + 2
     patches = _sample_level(level, centers, size)
     resid = [p[1:-1, :, 1:-1] - t for p, t in zip(patches, template, strict=True)]
     count = float(window * window)
-    fsums = [_window_sums(f) for f in resid] if zero_mean else []
+    gram = None
+    if template_sums is not None:
+        # Zero mean: the products of the window sums [f, Jx, Jy] (J unnormalised) per point, summed over
+        # channels and divided by the window size, are what centring takes off each sum below. The
+        # patch's sums are taken before ESM adds the template patch to it.
+        for p, ts in zip(patches, template_sums, strict=True):
+            js = _patch_sums(p)
+            js += ts
+            g = np.einsum("amk,bmk->mab", js, js)  # (M, 3, 3)
+            gram = g if gram is None else gram + g
+        gram /= count
     sums = np.zeros((m, 6))
     cost = sums[:, 0]
-    for c, f in enumerate(resid):
+    for f in resid:
         cost += np.einsum(_SUM, f, f)
-        if zero_mean:
-            cost -= (fsums[c] * fsums[c]).sum(axis=1) / count
+    if gram is not None:
+        cost -= gram[:, 0, 0]
     cost *= 0.5
     rows = None if below is None else np.flatnonzero(cost < below)
     if rows is not None and rows.size == 0:
@@ -459,14 +530,8 @@ def _normal_equations(
         terms[:, 2] += np.einsum(_SUM, jy, jy)
         terms[:, 3] += np.einsum(_SUM, jx, f)
         terms[:, 4] += np.einsum(_SUM, jy, f)
-        if zero_mean:
-            sx, sy = _window_sums(jx), _window_sums(jy)
-            fs = fsums[c][rows] if part else fsums[c]
-            terms[:, 0] -= (sx * sx).sum(axis=1) / count
-            terms[:, 1] -= (sx * sy).sum(axis=1) / count
-            terms[:, 2] -= (sy * sy).sum(axis=1) / count
-            terms[:, 3] -= (sx * fs).sum(axis=1) / count
-            terms[:, 4] -= (sy * fs).sum(axis=1) / count
+    if gram is not None:
+        terms -= (gram[rows] if part else gram)[:, _ZM_A, _ZM_B]
     terms *= _SCHARR_NORM if template_patch is None else _ESM_NORM
     if part:
         sums[rows, 1:] = terms
@@ -496,22 +561,22 @@ def _solve_level(
     win = cfg.window_at(level_index)
     # The Jacobian kind is settled here, once per level: ESM carries the template's patches.
     template, tpatch = _templates(level1, pts, win, cfg.jacobian)
+    tsums = _template_sums(template, tpatch) if cfg.zero_mean else None
     contrast = np.zeros(n)
     if level_index == 0:  # only level 0's is reported
         # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count.
-        for t in template:
-            sums = _window_sums(t)
-            contrast += np.einsum(_SUM, t, t) - (sums * sums).sum(axis=1) / (win * win)
+        for c, t in enumerate(template):
+            sums = -tsums[c][0] if tsums is not None else _window_sums(t)
+            contrast += np.einsum(_SUM, t, t) - np.einsum("mk,mk->m", sums, sums) / (win * win)
     state = np.empty((n, 8))
     state[:, _U] = u
-    zm = cfg.zero_mean
-    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, template_patch=tpatch, zero_mean=zm)
+    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, None, tpatch, tsums)
     lam = np.full(n, cfg.lambda_init)
     if cfg.lambda_scale > 0:
         lam = np.maximum(lam, cfg.lambda_scale * np.maximum(state[:, 3], state[:, 5]))
     # Working copies restricted to the still-active points; finished points are written back.
     idx = np.arange(n)
-    p_a, s_a, lam_a, t_a, tp_a = pts, state.copy(), lam.copy(), template, tpatch
+    p_a, s_a, lam_a, t_a, tp_a, ts_a = pts, state.copy(), lam.copy(), template, tpatch, tsums
     scale = 2.0**level_index
     passes = 0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -538,7 +603,7 @@ def _solve_level(
             cand = np.empty_like(s_a)
             np.add(s_a[:, 0], du0, out=cand[:, 0])
             np.add(s_a[:, 1], du1, out=cand[:, 1])
-            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a, zm)
+            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a, ts_a)
             accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
             lam_a = lam_a * np.where(accept, 1.0 / cfg.nu, cfg.nu)
@@ -559,6 +624,8 @@ def _solve_level(
                 idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], _take(t_a, keep)
                 if tp_a is not None:
                     tp_a = _take(tp_a, keep)
+                if ts_a is not None:
+                    ts_a = _take(ts_a, keep)
     state[idx] = s_a
     iterations[idx] += passes
     return state, contrast

@@ -398,9 +398,10 @@ def test_zero_mean_normal_equations_centre_every_factor(jacobian):
     centers = rng.uniform(8, 30, (6, 2))
     shifted = centers + np.array([0.6, -0.4])
     template, tpatch = solver_mod._templates(level, centers, 7, jacobian)
-    got = solver_mod._normal_equations(level, shifted, template, 7, template_patch=tpatch, zero_mean=True)
+    tsums = solver_mod._template_sums(template, tpatch)
+    got = solver_mod._normal_equations(level, shifted, template, 7, None, tpatch, tsums)
     below = np.where(np.arange(6) % 2 == 0, got[:, 0] + 1.0, got[:, 0] - 1e-9)
-    part = solver_mod._normal_equations(level, shifted, template, 7, below, tpatch, True)
+    part = solver_mod._normal_equations(level, shifted, template, 7, below, tpatch, tsums)
     np.testing.assert_allclose(part[::2], got[::2], rtol=1e-12)
     assert not part[1::2, 1:].any()
     border = cv2.BORDER_REPLICATE
@@ -415,6 +416,17 @@ def test_zero_mean_normal_equations_centre_every_factor(jacobian):
 
     f, jx, jy = centred(f), centred(jx), centred(jy)
     np.testing.assert_allclose(got, _normal_sums(f, jx, jy), rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("window", [3, 7, 11])
+def test_patch_sums_telescope_to_the_window_sums(window):
+    rng = np.random.default_rng(window)
+    patches = rng.random((window + 2, 9, window + 2, 4), dtype=np.float32)
+    jx, jy = solver_mod._scharr_xy(patches)
+    want = np.stack([solver_mod._window_sums(a) for a in (patches[1:-1, :, 1:-1], jx, jy)])
+    got = solver_mod._patch_sums(patches)
+    assert got.shape == (3, 9, 4)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4)
 
 
 def test_zero_mean_ignores_a_constant_offset_between_the_frames(textures):
