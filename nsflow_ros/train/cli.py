@@ -124,6 +124,11 @@ def build_parser() -> argparse.ArgumentParser:
         "exported model declares it (the shipped model: 1.0,0.5). Default: none",
     )
     p.add_argument(
+        "--zero-mean", action="store_true",
+        help="the training solver compares windows up to a constant per channel (LMConfig.zero_mean, as "
+        "the tracker solves); default off",
+    )
+    p.add_argument(
         "--coarse-loss", type=float, default=0.0, metavar="W",
         help="weight of each coarse level's loss, robust scale --delta x 2^level (default 0: finest only)",
     )
@@ -207,7 +212,9 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         mode=BackwardMode(opts.mode),
         rho=opts.rho,
         huber_delta=opts.delta,
-        lm=replace(TrainConfig().lm, levels=opts.levels, jacobian=Jacobian(opts.jacobian)),
+        lm=replace(
+            TrainConfig().lm, levels=opts.levels, jacobian=Jacobian(opts.jacobian), zero_mean=opts.zero_mean
+        ),
         coarse_weight=opts.coarse_loss,
         scene_share=opts.scene_share,
         basin_weight=opts.basin_loss,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -396,3 +397,23 @@ def test_a_bad_right_image_leaves_the_state_as_it_was():
     with pytest.raises(CoreError, match=r"image1 must be a uint8 \(H, W\) or \(H, W, 3\) array"):
         tracker.process(float(seq.stamps[1]), seq.frames[1], four)
     assert tracker.next_id == before and tracker.last_stamp == float(seq.stamps[0])
+
+
+def test_deployed_settings_keep_tracks_through_a_brightness_step():
+    # Auto-exposure: from frame 3 on the image is 20 gray levels brighter. The deployed zero-mean residual
+    # compares windows up to that offset; the plain SSD loses most tracks at the step (and lets some
+    # through at wrong places).
+    seq = syn.translating(6)
+    for k in range(3, 6):
+        seq.frames[k] = cv2.add(seq.frames[k], 20)
+    assert TrackerSettings().lm.zero_mean
+    kept = {}
+    for zero_mean in (True, False):
+        lm = replace(TrackerSettings().lm, zero_mean=zero_mean)
+        res = _run(FeatureTracker([syn.camera()], _classical(lm=lm)), seq)
+        prev, cur = res[2].cameras[0], res[3].cameras[0]
+        pi, ci = _matches(prev, cur)
+        kept[zero_mean] = len(ci) / len(prev)
+        if zero_mean:
+            assert np.hypot(*(cur.pixels[ci] - seq.truth(2, 3, prev.pixels[pi])).T).max() < 1.0
+    assert kept[True] > 0.85 and kept[False] < 0.5 * kept[True], kept
