@@ -234,7 +234,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     else:
         teacher = Teacher(cfg.teacher, cfg.spec.d, cfg.spec.in_channels)
         step_fn = functools.partial(distill_step, model, opt, teacher=teacher)
-    val_lm = LMConfig(levels=1, max_iterations=30)  # one level from 5 px needs the longer limit
+    # One level from 5 px needs the longer limit; the residual is the training solver's.
+    val_lm = LMConfig(levels=1, max_iterations=30, zero_mean=cfg.lm.zero_mean)
     val_sets = {
         "perturbed": heldout_pairs(cfg.val_per_image, strength=1.0, seed=7),
         "clean": heldout_pairs(cfg.val_per_image, strength=0.0, seed=7),
