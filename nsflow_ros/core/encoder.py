@@ -33,7 +33,7 @@ pixels; :class:`~nsflow_ros.core.pyramid.Smoothing`), how its maps are smoothed 
 reads them: the encoder applies the ``fine`` part to its own output (in each strip's worker, with the
 kernel's radius added to the halo, so tiled and whole runs stay identical, while the strip is still
 in cache, one plane at a time), and the LM methods
-apply the ``coarse`` part to the pyramid's coarser levels. The shipped model declares "1.0,0.5"
+apply the ``coarse`` part to the pyramid's coarser levels. The shipped model declares "1.0,1.0"
 (models/README.md says why); a model without the key is not smoothed.
 """
 

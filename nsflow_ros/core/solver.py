@@ -433,6 +433,10 @@ def _patch_sums(patches: np.ndarray) -> np.ndarray:
     size, m, _, k = patches.shape
     rows, cols = _sum_weights(size, k)
     by_rows = (rows @ patches.reshape(size, -1)).reshape(3, m, size * k)
+    if m == 1:
+        # NumPy multiplies a one-row matrix by another path (vector x matrix) that rounds differently;
+        # two rows keep a point's sums independent of its batch, as the rest of the solve is.
+        return np.matmul(np.repeat(by_rows, 2, axis=1), cols)[:, :1]
     return np.matmul(by_rows, cols)
 
 

@@ -95,7 +95,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         "model_path", "",
         "ONNX encoder of the learned methods ('nsflow', 'nsflow_lk'); '' = the model shipped in the "
         "package's models/ folder. Its maps are smoothed as its metadata 'smoothing' declares (the shipped "
-        "model: 1.0,0.5). A change restarts the tracks.", True),
+        "model: 1.0,1.0). A change restarts the tracks.", True),
     ParamSpec("max_cnt", -1, f"Most features kept per image (VINS max_cnt, >= 1). {_FROM_CONFIG}", True, 150),
     ParamSpec(
         "min_dist", -1, f"Minimum distance between features in pixels (VINS min_dist, >= 0). {_FROM_CONFIG}",

@@ -121,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--smoothing", type=_smoothing, default=None, metavar="FINE,COARSE",
         help="Gaussian smoothing of the training solver's descriptor pyramid (sigma at full resolution, "
         "sigma on coarser levels, px), as the tracker applies the smoothing a model declares; the "
-        "exported model declares it (the shipped model: 1.0,0.5). Default: none",
+        "exported model declares it (the shipped model: 1.0,1.0). Default: none",
     )
     p.add_argument(
         "--zero-mean", action="store_true",

@@ -165,7 +165,7 @@ def _blur(desc, sigma):
 
 def test_shipped_model_declares_its_smoothing_and_the_encoder_applies_the_fine_part():
     enc = load_encoder(threads=1)
-    assert enc.smoothing == Smoothing(fine=1.0, coarse=0.5) and enc.metadata["smoothing"] == "1.0,0.5"
+    assert enc.smoothing == Smoothing(fine=1.0, coarse=1.0) and enc.metadata["smoothing"] == "1.0,1.0"
     raw = load_encoder(threads=1, tile_rows=0, smoothing=Smoothing())
     assert raw.smoothing == Smoothing()
     img = _image(120, 160, seed=4)
