@@ -73,6 +73,8 @@ def test_lm_methods_smooth_coarse_levels_as_the_encoder_declares(pair, tmp_path)
 def test_lm_method_rejects_bad_policies():
     with pytest.raises(CoreError, match="prior_levels"):
         LMMethod("x", IntensityEncoder(), LMConfig(), prior_levels=-1)
+    with pytest.raises(CoreError, match="fill_levels"):
+        LMMethod("x", IntensityEncoder(), LMConfig(), fill_levels=-1)
     with pytest.raises(CoreError, match="max_residual"):
         LMMethod("x", IntensityEncoder(), LMConfig(), max_residual=0)
 
@@ -168,8 +170,15 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     prior[::3] = np.nan  # ids new to the previous frame have no prior
     new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts, prior=prior)
     first, _ = calls[-1]
-    assert (first[1::3] == 1).all() and (first[::3] == 3).all()  # 2 levels with a prior, 4 without
+    # 2 levels with a prior, 3 from the median of the others' flows without one
+    assert (first[1::3] == 1).all() and (first[::3] == 2).all()
     assert ok.mean() > 0.8 and np.median(np.hypot(*(new - truth).T)[ok]) < 0.1
+    # with no prior at all, the whole pyramid from zero flow; fill_levels 0 = the whole pyramid too
+    method.solve(SolveKind.FORWARD, fa, fb, pts, prior=np.full_like(prior, np.nan))
+    assert (calls[-1][0] == 3).all()
+    method.fill_levels = 0
+    method.solve(SolveKind.FORWARD, fa, fb, pts, prior=prior)
+    assert (calls[-1][0][::3] == 3).all() and (calls[-1][0][1::3] == 1).all()
     back, back_ok = method.solve(SolveKind.FLOW_BACK, fb, fa, new[ok], pts[ok])
     assert calls[-1][1] == 2  # the check starts at its answer on two levels
     assert np.hypot(*(back - pts[ok]).T)[back_ok].max() < 0.5
