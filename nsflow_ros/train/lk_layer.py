@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import torch
 
 from nsflow_ros.core.pyramid import Smoothing
-from nsflow_ros.core.solver import Jacobian, LMConfig
+from nsflow_ros.core.solver import Jacobian, LMConfig, window_centres
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients
 
@@ -520,9 +520,14 @@ def lk_track_pyramid(
     for lev in range(nlev - 1, -1, -1):
         s = 2.0**lev
         start = u.detach() if mode is BackwardMode.IMPLICIT else u
-        # Each level solves with its own window (``LMConfig.at_level``), status by the same rule.
+        # Each level solves with its own window (``LMConfig.at_level``), status by the same rule; a
+        # coarse level's windows are moved inside it as the core moves them (points carry no gradient).
+        p_l = pts / s
+        if lev:
+            at = window_centres(p_l.detach().cpu().numpy(), tuple(pyr1[lev].shape[-2:]), cfg.window_at(lev))
+            p_l = torch.from_numpy(at).to(p_l)
         res = _track_level(
-            pyr1[lev], pyr2[lev], pts / s, start, cfg.at_level(lev), mode, residual_tol, min_curvature
+            pyr1[lev], pyr2[lev], p_l, start, cfg.at_level(lev), mode, residual_tol, min_curvature
         )
         iterations = iterations + res.iterations
         outputs.append(LKOutput(res.flow * s, res.status, res.cost, res.iterations))

@@ -120,12 +120,12 @@ def test_margin_keeps_points_whose_window_reaches_past_the_edge(pair):
     assert not inside.status.any()  # their windows reach past the edge
     edge = track(pa, pb, pts, start, LMConfig(levels=2, margin=1))
     np.testing.assert_allclose(edge.flow, inside.flow)  # same solve, only the status rule differs
-    assert edge.status.mean() > 0.3  # the textured ones (flat windows fail the eigenvalue test)
+    assert edge.status.sum() >= 5  # the textured ones (flat windows fail the eigenvalue test)
     # Where the template itself holds replicated border pixels the solve is biased (several px here):
     # the tracker's flow-back and residual tests are what drop those (test_tracker's occlusion and
     # sequence tests, and the benchmark's error figures, hold with margin 1).
     near = np.hypot(*(pts + edge.flow - truth).T) < 0.5
-    assert (edge.status & near).sum() >= 2
+    assert (edge.status & near).sum() >= 4  # 5 (3 before the coarse windows were moved inside)
     with pytest.raises(CoreError, match="margin"):
         LMConfig(margin=-1)
 

@@ -9,7 +9,7 @@ from image_pairs import apply_h, rotation, texture, translation, warp_pair
 
 from nsflow_ros import CoreError, IntensityEncoder, Jacobian, LMConfig, build_pyramid, detect_corners, track
 from nsflow_ros.core import solver as solver_mod
-from nsflow_ros.core.solver import sample_windows
+from nsflow_ros.core.solver import sample_windows, window_centres
 
 ENC = IntensityEncoder()
 
@@ -190,6 +190,34 @@ def test_border_points_get_status_false(textures):
     # a flow that carries the window out of frame 2 is lost as well
     res = track(ENC(a), ENC(b), inner[None], flow0=np.array([[800.0, 0.0]]), config=LMConfig(levels=1))
     assert not res.status[0]
+
+
+def test_window_centres_move_coarse_windows_inside_the_level():
+    pts = np.array([[40.0, 30.0], [2.0, 30.0], [78.5, 1.0], [-3.0, 61.0]])
+    got = window_centres(pts, (60, 80), 11)
+    np.testing.assert_array_equal(got, [[40.0, 30.0], [5.0, 30.0], [74.0, 5.0], [5.0, 54.0]])
+    # a level smaller than the window: its centre
+    np.testing.assert_array_equal(window_centres(pts[:1], (8, 40), 11), [[34.0, 3.5]])
+
+
+def test_coarse_levels_use_the_moved_windows(textures, monkeypatch):
+    a, b = warp_pair(textures["astronaut"], translation(6.0, -4.0))
+    pts = np.stack([np.full(9, 6.0), np.linspace(60, 420, 9)], 1)
+    seen = []
+    real = solver_mod._solve_level
+
+    def spy(l1, l2, p, *args):
+        seen.append((args[2], p.copy()))
+        return real(l1, l2, p, *args)
+
+    monkeypatch.setattr(solver_mod, "_solve_level", spy)
+    track(ENC(a), ENC(b), pts, config=LMConfig(levels=3))
+    by_level = dict(seen)
+    np.testing.assert_array_equal(by_level[0], pts)  # level 0 keeps each point's own window
+    for lev in (1, 2):
+        shape = (480 // 2**lev, 752 // 2**lev)
+        np.testing.assert_array_equal(by_level[lev], window_centres(pts / 2**lev, shape, 11))
+        assert (by_level[lev][:, 0] == 5.0).all()  # moved right until the 11 px window fits
 
 
 def test_textureless_and_saturated_windows_get_status_false(textures):

@@ -49,6 +49,28 @@ def test_stereo_pairs_carry_the_exact_disparity(ctx, methods):
     assert np.mean(errs < 0.5) > 0.9
 
 
+def test_coarse_windows_moved_inside_the_image_capture_the_stereo_border_points(tmp_path, monkeypatch):
+    # The full analysis' stereo pair of frame 68, where most failures sat within 40 px of the border.
+    from nsflow_ros.core import solver
+
+    nsflow = [m for m in default_methods(threads=1) if m.name == NSFLOW]
+    (tmp_path / "report").mkdir()
+    ctx = EvalContext(methods=nsflow, out_dir=tmp_path / "report", progress=False, threads=1,
+                      extra={"capture": {"cache_dir": str(tmp_path / "cache")}})  # fmt: skip
+    cfg = cp.CaptureConfig()
+    pair = next(p for p in cp.stereo_pairs(cp.load_stereo_sequence(ctx, cfg), cfg)
+                if p.label == "stereo frame 68" and p.condition == "none")  # fmt: skip
+    h, w = pair.image1.shape
+    x, y = pair.points.T
+    near = np.minimum.reduce([x, y, w - 1 - x, h - 1 - y]) < 40
+    moved = cp.capture_errors(nsflow, pair)[NSFLOW] < 1.0
+    monkeypatch.setattr(solver, "window_centres", lambda points, shape, window: points)
+    centred = cp.capture_errors(nsflow, pair)[NSFLOW] < 1.0
+    # Measured: 66 vs 38 of 69 near the border, 190 vs 186 of 196 inside.
+    assert moved[near].sum() >= centred[near].sum() + 15 and moved[near].mean() > 0.9
+    assert moved[~near].sum() >= centred[~near].sum() - 3
+
+
 def test_capture_errors_from_zero_flow_and_guards(methods):
     h = np.array([[1.0, 0.0, 6.0], [0.0, 1.0, -4.0], [0.0, 0.0, 1.0]])
     f1, f2 = warp_pair(texture("astronaut", (200, 150)), h)

@@ -11,6 +11,7 @@ from dataclasses import replace  # noqa: E402
 
 from nsflow_ros import Jacobian, LMConfig, track  # noqa: E402
 from nsflow_ros.core.pyramid import Smoothing, build_pyramid  # noqa: E402
+from nsflow_ros.core.solver import window_centres  # noqa: E402
 from nsflow_ros.train import BackwardMode, TrainError, lk_track  # noqa: E402
 from nsflow_ros.train.lk_layer import lk_track_pyramid, optimality_condition  # noqa: E402
 from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients  # noqa: E402
@@ -320,3 +321,21 @@ def test_pyramid_forward_matches_numpy_solver(textures32, cfg):
     hits = [np.mean(np.linalg.norm(f - shift, axis=1) < 1) for f in (out.flow.numpy(), ref.flow)]
     assert abs(hits[0] - hits[1]) < 0.02 and hits[1] > 0.9
     assert np.array_equal(out.iterations.numpy(), sum(lv.iterations for lv in out.levels).numpy())
+
+
+def test_pyramid_moves_coarse_windows_inside_the_level_as_the_core_does(textures32):
+    img1, img2, _, _ = textures32
+    # points 3-12 px from the left and top borders: their coarse windows reach past the border
+    pts = np.concatenate([np.stack([np.full(8, 3.0 + k), np.linspace(40, 200, 8)], 1) for k in (0, 9)]
+                         + [np.stack([np.linspace(40, 280, 8), np.full(8, 5.0)], 1)])  # fmt: skip
+    assert (window_centres(pts / 4, (60, 80), 11) != pts / 4).any(axis=1).all()
+    flow0 = np.zeros_like(pts)
+    cfg = LMConfig(levels=3, jacobian=Jacobian.ESM, zero_mean=True)
+    ref = track(img1[..., None], img2[..., None], pts, flow0, cfg)
+    maps = torch.from_numpy(img1)[None], torch.from_numpy(img2)[None]
+    out = lk_track_pyramid(*maps, torch.from_numpy(pts), torch.from_numpy(flow0), cfg)
+    assert np.array_equal(out.status.numpy(), ref.status)
+    # float32 rounding where the fine windows hold replicated border; centred coarse windows in one of
+    # the two would put it 0.1-1.8 px off on most of these points
+    diff = np.abs(out.flow.numpy() - ref.flow).max(1)
+    assert diff.max() < 0.02 and np.mean(diff < 1e-3) > 0.7
