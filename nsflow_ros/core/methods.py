@@ -244,7 +244,9 @@ class LMMethod(TrackingMethod):
             start from the median of the others' flows); 0 = the full pyramid. The coarsest level
             does more harm than good from a start that close: on the 752x480 sample sequence, 3
             levels instead of 4 cut the stereo matches more than 1 px off from 2.2 % to 1.0 % and
-            the stereo frame time by 4 %.
+            the stereo frame time by 4 %. Such a solve (every point near its start) also keeps the
+            fine window on every level: ``lm.coarse_window`` serves solves from zero flow, and here it
+            cost 2-3 % of the frame for no better tracks.
         max_residual: the residual test of forward and stereo solves: a point is lost when its final
             residual energy exceeds this fraction of its template's contrast energy (sum of squared
             deviations from the window mean); inf = no test. See :meth:`residual_ratio`. On the 752x480
@@ -326,11 +328,12 @@ class LMMethod(TrackingMethod):
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, levels: int | None = None, first_level: np.ndarray | None = None,
         *, residual_test: bool = False, max_iterations: int | None = None, jacobian: Jacobian | None = None,
-        eps: float | None = None,
+        eps: float | None = None, coarse_window: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
         cfg = replace(self.lm, levels=levels or self.lm.levels,
                       max_iterations=max_iterations or self.lm.max_iterations,
-                      jacobian=jacobian or self.lm.jacobian, eps=eps or self.lm.eps)
+                      jacobian=jacobian or self.lm.jacobian, eps=eps or self.lm.eps,
+                      coarse_window=self.lm.coarse_window if coarse_window else None)
         flow0 = None if start is None else start - pts
         res = self.run(frame1, frame2, pts, flow0, cfg, first_level=first_level)
         status = res.status
@@ -356,10 +359,12 @@ class LMMethod(TrackingMethod):
         if self.prior_levels == 0 or prior is None:
             return self.track_pair(frame1, frame2, pts, residual_test=True)
         flow0, known = _fill_prior(pts, prior)
-        # Without any known flow the median is no start: the whole pyramid from zero flow.
-        fill = (self.fill_levels or self.lm.levels) if known.any() else self.lm.levels
-        first = np.where(known, self.prior_levels, fill).astype(np.int64) - 1
-        return self.track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True)
+        if not known.any():  # the median of nothing is no start: the whole pyramid from zero flow
+            return self.track_pair(frame1, frame2, pts, residual_test=True)
+        first = np.where(known, self.prior_levels, self.fill_levels or self.lm.levels).astype(np.int64) - 1
+        # Every point starts near its answer: the coarse window, there for starts far off, is not needed.
+        return self.track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,
+                               coarse_window=False)
 
 
 class KLTMethod(TrackingMethod):

@@ -74,8 +74,8 @@ class LMConfig:
         coarse_from: the first pyramid level (>= 1) that uses ``coarse_window``. From level 2 the
             tracker's solves with a prior (which start on level 1) never pay for it: with ESM, 21 px
             from level 2 cost +5 % of the stereo frame and from level 1 +36 %, for nearly the same
-            basin (capture from zero flow, stereo under a lighting change: 92.6 vs 92.7 %); the
-            tracker deploys 21 from level 2, for +2 % once points without a prior start on 3 levels.
+            basin (capture from zero flow, stereo under a lighting change: 92.6 vs 92.7 %). The
+            tracker deploys 21 from level 2 for its solves from zero flow.
         levels: pyramid levels (1 = single scale, as in training).
         max_iterations: K_max, the iteration limit per level.
         lambda_init: initial damping lambda^(0) (a floor when ``lambda_scale`` > 0), reset at the start

@@ -126,10 +126,10 @@ class TrackerSettings:
             zero-mean sums' cost: the two together cost ~4 % of the frame (zero mean alone +6 %;
             docs/benchmarks.md). Intensity (``classical``) loses more basin with the loose stop test;
             set ``eps=0.01`` there for its best accuracy. ``coarse_window`` 21 from level 2 (VINS's
-            KLT window): only solves without a prior of their own reach those levels, so it costs
-            little (+2 % of the stereo frame) and widens every basin figure (capture from zero flow
-            of photo shifts 94.1 -> 98.2 %, the trackable region one level fewer 83.2 -> 95.6 %);
-            with ``LMMethod.fill_levels`` 3 the frame is 1 % faster than before both.
+            KLT window) widens every basin figure from zero flow (capture of photo shifts 94.1 ->
+            98.2 %, the trackable region one level fewer 83.2 -> 95.6 %); the tracker's solves from a
+            prior keep the fine window (``LMMethod.fill_levels``), so only solves without any start
+            (the first frame) pay for it.
         use_imu_prediction: use gyro samples given to :meth:`FeatureTracker.process` to predict the flow.
         prediction_min_tracked: with a prediction, retry on the full pyramid when fewer points survive
             the single-level solve (VINS: 10).

@@ -175,7 +175,7 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     assert ok.mean() > 0.8 and np.median(np.hypot(*(new - truth).T)[ok]) < 0.1
     # with no prior at all, the whole pyramid from zero flow; fill_levels 0 = the whole pyramid too
     method.solve(SolveKind.FORWARD, fa, fb, pts, prior=np.full_like(prior, np.nan))
-    assert (calls[-1][0] == 3).all()
+    assert calls[-1] == (None, 4)
     method.fill_levels = 0
     method.solve(SolveKind.FORWARD, fa, fb, pts, prior=prior)
     assert (calls[-1][0][::3] == 3).all() and (calls[-1][0][1::3] == 1).all()
@@ -195,6 +195,20 @@ def _record_configs(monkeypatch, attr: str) -> list:
 
     monkeypatch.setattr(LMMethod, "run", spy)
     return used
+
+
+def test_only_solves_from_zero_flow_use_the_coarse_window(pair, monkeypatch):
+    _, a, b = pair
+    method = make_method("classical", lm=LMConfig(levels=4, coarse_window=21, coarse_from=2))
+    fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
+    pts = _corners(a, 20)
+    used = _record_configs(monkeypatch, "coarse_window")
+    prior = pts + 1.0
+    prior[::2] = np.nan
+    method.solve(SolveKind.FORWARD, fa, fb, pts, prior=prior)  # every point near its start
+    method.solve(SolveKind.FORWARD, fa, fb, pts, prior=np.full_like(pts, np.nan))  # none
+    method.solve(SolveKind.STEREO, fa, fb, pts)
+    assert used == [None, 21, 21]
 
 
 def test_checks_use_the_forward_jacobian_whatever_the_solves_use(pair, monkeypatch):
