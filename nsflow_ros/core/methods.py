@@ -22,10 +22,11 @@ The methods:
 Known starts (LM methods): a check (flow-back, right -> left) starts at the point it must return to, and
 a forward or stereo solve may start from a per-point prior (the point's previous flow, the id's previous
 disparity). A solve from a trusted start needs fewer pyramid levels; points without one (a feature new
-since the last frame) start from the median of the others' flows on one level more, and only a solve
-where no point has a prior runs from zero flow on the whole pyramid, all in the same call
-(:func:`nsflow_ros.core.solver.track` ``first_level``). The VINS-Fusion-exact ``klt`` baseline ignores
-priors, as VINS does.
+since the last frame) start from the median of the others' flows on one level more
+(``LMMethod.fill_levels``), all in the same call (:func:`nsflow_ros.core.solver.track` ``first_level``),
+with the fine window on every level. Only a solve where no point has a prior runs from zero flow on the
+whole pyramid, with the solver's coarse window. The VINS-Fusion-exact ``klt`` baseline ignores priors,
+as VINS does.
 """
 
 from __future__ import annotations
