@@ -209,17 +209,12 @@ class TrackingMethod(ABC):
         """
 
 
-def _fill_prior(pts: np.ndarray, prior: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Flows from a prior with NaN holes: (flow0, has_prior); holes take the median known flow."""
-    n = pts.shape[0]
-    if prior is None:
-        return np.zeros((n, 2)), np.zeros(n, bool)
-    known = np.isfinite(prior).all(axis=1)
-    flow = np.zeros((n, 2))
-    if known.any():
-        flow[known] = prior[known] - pts[known]
-        flow[~known] = np.median(flow[known], axis=0)
-    return flow, known
+def _fill_prior(pts: np.ndarray, prior: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Flows from a prior known where ``known`` (at least one point); the others take the median flow."""
+    flow = np.empty((pts.shape[0], 2))
+    flow[known] = prior[known] - pts[known]
+    flow[~known] = np.median(flow[known], axis=0)
+    return flow
 
 
 def pyramid_smoothing(encoder: Encoder) -> Smoothing | None:
@@ -357,11 +352,12 @@ class LMMethod(TrackingMethod):
                 frame1, frame2, pts, np.where(usable[:, None], start, pts), self.predicted_levels,
                 residual_test=True,
             )
-        if self.prior_levels == 0 or prior is None:
+        known = np.zeros(len(pts), bool)
+        if self.prior_levels > 0 and prior is not None:
+            known = np.isfinite(prior).all(axis=1)
+        if prior is None or not known.any():  # no prior, or the median of nothing: all from zero flow
             return self.track_pair(frame1, frame2, pts, residual_test=True)
-        flow0, known = _fill_prior(pts, prior)
-        if not known.any():  # the median of nothing is no start: the whole pyramid from zero flow
-            return self.track_pair(frame1, frame2, pts, residual_test=True)
+        flow0 = _fill_prior(pts, prior, known)
         first = np.where(known, self.prior_levels, self.fill_levels or self.lm.levels).astype(np.int64) - 1
         # Every point starts near its answer: the coarse window, there for starts far off, is not needed.
         return self.track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,
