@@ -14,12 +14,18 @@ maxLevel 3 as VINS calls it; the 15 px offset is under 2 px at the coarsest leve
 basin per level, at one level fewer. The heat map (deployed depth) colours each pixel by the threshold
 it was recovered within (red = easy, blue = not recovered), one column per method, as the paper's
 figure does.
+
+A lighting change at full strength saturates parts of some photos (a third of one pair's keypoints sit
+in windows that are more than a fifth clipped); no descriptor keeps what clipping erased. So the report
+also gives each method's share among the keypoints whose solver window is not clipped
+(:func:`clipped_windows`), next to the share of keypoints that are.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from nsflow_ros.data.perturb import perturb_pair
@@ -32,7 +38,15 @@ from nsflow_ros.evaluation.context import (
     save_figure,
 )
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import BASELINES, CLASSICAL, NSFLOW, EvalMethod, PairMethod, PairResult
+from nsflow_ros.evaluation.methods import (
+    BASELINES,
+    CLASSICAL,
+    NSFLOW,
+    EvalMethod,
+    PairMethod,
+    PairResult,
+    deployed_lm,
+)
 from nsflow_ros.evaluation.pairs import (
     MARGIN,
     HomographyPair,
@@ -44,10 +58,22 @@ from nsflow_ros.evaluation.pairs import (
 )
 from nsflow_ros.evaluation.section import HeadlineRow, Section
 
-__all__ = ["THRESHOLDS", "TrackableConfig", "TrackableMap", "make_trackable_pairs", "run", "trackable_map"]
+__all__ = [
+    "CLIP_SHARE",
+    "THRESHOLDS",
+    "TrackableConfig",
+    "TrackableMap",
+    "clipped_windows",
+    "make_trackable_pairs",
+    "run",
+    "trackable_map",
+]
 
 THRESHOLDS = (1.0, 2.0, 3.0)
 CONDITIONS = ("none", "light")
+CLIP_DARK, CLIP_BRIGHT = 5, 250  # gray values at or beyond which a pixel counts as clipped
+CLIP_SHARE = 0.2
+"""A window is clipped when more than this share of its pixels is (:func:`clipped_windows`)."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +114,8 @@ class TrackableMap:
         errors: method name -> (N,) endpoint errors, inf where lost.
         grid_shape: (rows, cols) of the keypoint grid; ``errors[m].reshape`` it after ``grid_index``.
         grid_index: (N, 2) int (row, col) of each keypoint in the grid.
+        clipped: (N,) bool, the keypoint's solver window is clipped in either frame
+            (:func:`clipped_windows`).
     """
 
     label: str
@@ -96,11 +124,17 @@ class TrackableMap:
     errors: dict[str, np.ndarray]
     grid_shape: tuple[int, int]
     grid_index: np.ndarray
+    clipped: np.ndarray
 
-    def ratios(self) -> dict[str, list[float]]:
-        """Method name -> share of keypoints recovered within each of :data:`THRESHOLDS`."""
+    def ratios(self, unclipped: bool = False) -> dict[str, list[float]]:
+        """Method name -> share of keypoints recovered within each of :data:`THRESHOLDS`.
+
+        Args:
+            unclipped: count only the keypoints whose windows are not clipped.
+        """
+        keep = ~self.clipped if unclipped else slice(None)
         return {
-            n: [float(np.mean(e < t)) if e.size else float("nan") for t in THRESHOLDS]
+            n: [float(np.mean(e[keep] < t)) if e[keep].size else float("nan") for t in THRESHOLDS]
             for n, e in self.errors.items()
         }
 
@@ -132,6 +166,38 @@ def make_trackable_pairs(cfg: TrackableConfig, seed: int = 0) -> list[tuple[str,
                 f1, f2 = perturb_pair(f1, f2, np.random.default_rng([seed, 8, k]), 1.0)
             out.append((f"{name}, {cond}", HomographyPair(name, "trackable", 1, f1, f2, p)))
     return out
+
+
+def clipped_windows(
+    image1: np.ndarray, image2: np.ndarray, points1: np.ndarray, points2: np.ndarray, window: int,
+    share: float = CLIP_SHARE,
+) -> np.ndarray:
+    """Which keypoints' windows are clipped: more than ``share`` of the window's pixels at or beyond
+    :data:`CLIP_DARK` / :data:`CLIP_BRIGHT` gray, around the point in frame 1 or its true position in
+    frame 2.
+
+    Args:
+        image1, image2: the frames.
+        points1: (N, 2) keypoints in frame 1; points2: (N, 2) their true positions in frame 2.
+        window: window side in pixels (the solver's).
+        share: clipped share above which a window counts as clipped.
+
+    Returns:
+        (N,) bool.
+
+    Shape:
+        image1, image2: (H, W) uint8.
+    """
+
+    def clipped_share(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        mask = ((image <= CLIP_DARK) | (image >= CLIP_BRIGHT)).astype(np.float32)
+        frac = cv2.boxFilter(mask, -1, (window, window), borderType=cv2.BORDER_REPLICATE)
+        h, w = image.shape
+        x = np.clip(np.rint(pts[:, 0]).astype(int), 0, w - 1)
+        y = np.clip(np.rint(pts[:, 1]).astype(int), 0, h - 1)
+        return frac[y, x]
+
+    return (clipped_share(image1, points1) > share) | (clipped_share(image2, points2) > share)
 
 
 def _track_chunked(
@@ -208,7 +274,8 @@ def trackable_map(
             raise EvaluationError(f"{m.name}: {m.levels} levels cannot be reduced by {fewer_levels}")
         flow, status = _track_chunked(m, pair, pts, flow0, max(1, chunk), m.levels - fewer_levels)
         errors[m.name] = endpoint_errors(PairResult(flow, status), gt)
-    return TrackableMap(label, pair.image1, pts, errors, (len(ys), len(xs)), index)
+    clipped = clipped_windows(pair.image1, pair.image2, pts, pts + gt, deployed_lm().window)
+    return TrackableMap(label, pair.image1, pts, errors, (len(ys), len(xs)), index, clipped)
 
 
 def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
@@ -240,6 +307,18 @@ def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
     )
     fig.suptitle("Trackable regions: recovery from a 15 px initial error, per pixel", fontsize=10)
     save_figure(fig, path)
+
+
+def _median(ratios: dict[str, dict[str, list[float]]], names: list[str]) -> dict[str, dict[str, list[float]]]:
+    """Condition -> method -> median over the condition's pairs of each threshold's share."""
+    return {
+        cond: {
+            n: [float(np.median([r[n][i] for label, r in ratios.items() if label.endswith(cond)]))
+                for i in range(len(THRESHOLDS))]
+            for n in names
+        }
+        for cond in CONDITIONS
+    }  # fmt: skip
 
 
 def _headline(median: dict[str, dict[str, list[float]]], names: list[str], suffix: str,
@@ -294,17 +373,10 @@ def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
     _heat_map(maps[0], names, fig_path)
 
     ratios = {f: {tm.label: tm.ratios() for tm in maps[f]} for f in fewer_set}
-    median = {
-        f: {
-            cond: {
-                n: [float(np.median([ratios[f][tm.label][n][i] for tm in maps[f] if tm.label.endswith(cond)]))
-                    for i in range(len(THRESHOLDS))]
-                for n in names
-            }
-            for cond in CONDITIONS
-        }
-        for f in fewer_set
-    }  # fmt: skip
+    median = {f: _median(ratios[f], names) for f in fewer_set}
+    unclipped = {tm.label: tm.ratios(unclipped=True) for tm in maps[0]}
+    median_unclipped = _median(unclipped, names)
+    clipped_share = {tm.label: float(np.mean(tm.clipped)) if tm.clipped.size else 0.0 for tm in maps[0]}
     grid = "every pixel" if cfg.stride == 1 else f"every {cfg.stride}th pixel in x and y"
     depth = levels_text(ctx.methods)
     lines = [
@@ -332,11 +404,33 @@ def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
             lines.append(f"| {tag} | **median, {cond}** | | {cells(median[f][cond])} |")
     lines += [
         "", "(percent of keypoints)", "",
+        f"Keypoints whose {deployed_lm().window} px window is clipped (more than {CLIP_SHARE:.0%} of its "
+        f"pixels at <= {CLIP_DARK} or >= {CLIP_BRIGHT} gray around the keypoint in frame 1 or its true "
+        "position in frame 2) carry little of the photo; the same shares among the others "
+        f"({levels_text(ctx.methods)}):",
+        "",
+        "| pair | clipped windows | points not clipped | "
+        + " | ".join(f"{n} @1/@2/@3" for n in names) + " |",
+        "|---|---|---|" + "---|" * len(names),
+    ]  # fmt: skip
+    for tm in maps[0]:
+        lines.append(
+            f"| {tm.label} | {100 * clipped_share[tm.label]:.1f} | {int(np.sum(~tm.clipped))} "
+            f"| {cells(unclipped[tm.label])} |"
+        )
+    for cond in CONDITIONS:
+        lines.append(f"| **median, {cond}** | | | {cells(median_unclipped[cond])} |")
+    lines += [
+        "", "(percent of keypoints)", "",
         f"![trackable regions]({fig_path.name})", "",
         "(heat map: the deployed levels)", "",
     ]  # fmt: skip
 
     headline = _headline(median[0], names, f" ({depth})", targets=True)
+    headline.append(HeadlineRow(
+        f"trackable region @1 px, lighting change, windows not clipped ({depth})",
+        {n: f"{median_unclipped['light'][n][0]:.1%}" for n in names},
+    ))  # fmt: skip
     if 1 in fewer_set:
         fewer = f" ({levels_text(ctx.methods, 1)}: one fewer)"
         headline += _headline(median[1], names, fewer, targets=False)
@@ -347,6 +441,9 @@ def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
         "ratios": ratios[0],
         "median": median[0],
         "points": {tm.label: len(tm.points) for tm in maps[0]},
+        "clipped_share": clipped_share,
+        "ratios_unclipped": unclipped,
+        "median_unclipped": median_unclipped,
     }
     if 1 in fewer_set:
         data["ratios_one_level_fewer"] = ratios[1]
