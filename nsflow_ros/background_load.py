@@ -1,0 +1,101 @@
+"""A synthetic CPU load beside the tracker: processes busy a share of each short period.
+
+On a robot the VINS estimator runs on the same cores as the tracker; ``nsflow-bench --background-load
+CORES`` stands it in with this load so that real-time figures are taken with the cores shared. ``CORES``
+is spread over whole-core processes: 0.7 is one process busy 70 % of every period, 1.5 one busy all the
+time and one busy half of it. Each process spins for its share of every period and sleeps the rest, so
+the load arrives in short bursts as an estimator's per-frame work does, not as one long block.
+
+Every process ends by itself when its parent goes away or after ``max_seconds``, so a crashed benchmark
+leaves nothing spinning.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from nsflow_ros.errors import NSFlowError
+
+__all__ = ["PERIOD_S", "LoadError", "background_load", "load_shares"]
+
+PERIOD_S = 0.02
+"""The load's period: one 20 Hz camera frame."""
+
+_MAX_CORES = 64
+
+
+class LoadError(NSFlowError):
+    """A background load that cannot be made (a share out of range)."""
+
+
+def load_shares(cores: float) -> list[float]:
+    """Split ``cores`` into per-process busy shares in (0, 1]: whole cores first, the rest last.
+
+    Raises:
+        LoadError: ``cores`` negative, not finite or more than 64.
+    """
+    if not (math.isfinite(cores) and 0 <= cores <= _MAX_CORES):
+        raise LoadError(f"background load must be between 0 and {_MAX_CORES} cores, got {cores}")
+    whole = int(cores)
+    shares = [1.0] * whole
+    rest = round(cores - whole, 6)
+    if rest > 0:
+        shares.append(rest)
+    return shares
+
+
+def _spin(share: float, period: float, max_seconds: float, parent: int) -> None:
+    end = time.monotonic() + max_seconds
+    busy = share * period
+    nxt = time.monotonic()
+    while time.monotonic() < end and os.getppid() == parent:
+        start = time.monotonic()
+        while time.monotonic() - start < busy:
+            pass
+        nxt += period
+        pause = nxt - time.monotonic()
+        if pause > 0:
+            time.sleep(pause)
+        else:  # fell behind (an overloaded machine): start the next period now
+            nxt = time.monotonic()
+
+
+@contextmanager
+def background_load(
+    cores: float, *, period: float = PERIOD_S, max_seconds: float = 3600.0
+) -> Iterator[list[mp.Process]]:
+    """Run a load of ``cores`` CPU cores in other processes while the ``with`` block runs.
+
+    Args:
+        cores: total load in cores (0 = none).
+        period: seconds of one busy-then-idle cycle.
+        max_seconds: each process stops by itself after this long.
+
+    Yields:
+        the load processes (empty for 0 cores).
+
+    Raises:
+        LoadError: ``cores`` out of range or ``period`` not positive.
+    """
+    shares = load_shares(cores)
+    if not period > 0:
+        raise LoadError(f"load period must be > 0 s, got {period}")
+    ctx = mp.get_context("spawn")  # no copy of the tracker's threads or onnxruntime sessions
+    procs = [
+        ctx.Process(target=_spin, args=(s, period, max_seconds, os.getpid()), daemon=True, name=f"load{i}")
+        for i, s in enumerate(shares)
+    ]
+    for p in procs:
+        p.start()
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.join(timeout=5)
