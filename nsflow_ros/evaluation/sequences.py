@@ -147,7 +147,7 @@ class FrameSource:
     Attributes:
         camera: the (scaled) camera as the tracker's camera model (pinhole-radtan).
         size: (width, height).
-        stamps_ns: (N,) int64 frame stamps (for :class:`~nsflow_ros.offline.TrackStats`).
+        stamps_ns: (N,) int64 frame stamps (for :class:`~nsflow_ros.data.scoring.TrackStats`).
     """
 
     def __init__(self, sequence: Any, scale: float = 1.0) -> None:
@@ -336,7 +336,7 @@ class MethodRun:
     lost_border_distance: list[float] = field(default_factory=list)
 
     def summary(self, stats: dict[str, Any]) -> dict[str, Any]:
-        """Combine :class:`~nsflow_ros.offline.TrackStats` figures with the geometry figures."""
+        """Combine :class:`~nsflow_ros.data.scoring.TrackStats` figures with the geometry figures."""
         err = np.asarray(self.errors)
         rot = np.asarray(self.rotation_errors)
         inl = np.asarray(self.inlier_rates)
@@ -401,7 +401,7 @@ def track_sequence(
     """
     from nsflow_ros.data.errors import DataError
     from nsflow_ros.data.perturb import IlluminationPerturber
-    from nsflow_ros.offline import TrackStats
+    from nsflow_ros.data.scoring import TrackStats
 
     if method not in TRACKER_METHODS:
         raise EvaluationError(f"unknown method {method!r}; expected one of {list(TRACKER_METHODS)}")
