@@ -16,183 +16,16 @@ import argparse
 import json
 import os
 import random
-import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from nsflow_ros.argtypes import non_negative_float, positive_float, program_name
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
-from nsflow_ros.stamps import stamp_to_ns
 
-__all__ = ["main", "run_demo", "run_live"]
-
-
-class _Collector:
-    """A node that records feature clouds (VINS-Fusion layout) and debug images."""
-
-    def __init__(self, ctx: Any, feature_topic: str) -> None:
-        from rclpy.node import Node
-        from rclpy.qos import qos_profile_sensor_data
-        from sensor_msgs.msg import Image, PointCloud
-
-        from nsflow_ros.ros.tracker_node import FEATURE_QOS
-
-        self.node = Node("nsflow_demo", context=ctx)
-        self.frames: dict[int, dict[int, np.ndarray]] = {}
-        self.debug: dict[int, Any] = {}
-        self.lock = threading.Lock()
-        self.node.create_subscription(PointCloud, feature_topic, self._on_features, FEATURE_QOS)
-        self.node.create_subscription(Image, "/image_track", self._on_debug, qos_profile_sensor_data)
-
-    def _on_features(self, msg: Any) -> None:
-        stamp = stamp_to_ns(msg.header.stamp)
-        ch = msg.channels
-        ids, cam = np.asarray(ch[0].values), np.asarray(ch[1].values)
-        uv = np.stack([np.asarray(ch[2].values), np.asarray(ch[3].values)], axis=1)
-        left = cam == 0
-        with self.lock:
-            self.frames[stamp] = {int(i): p for i, p in zip(ids[left], uv[left], strict=True)}
-
-    def _on_debug(self, msg: Any) -> None:
-        stamp = stamp_to_ns(msg.header.stamp)
-        with self.lock:
-            self.debug[stamp] = msg
-
-
-def _stats(frames: dict[int, dict[int, np.ndarray]], seq: Any) -> dict[str, Any]:
-    from nsflow_ros.offline import TrackStats
-
-    stats = TrackStats(seq)
-    for stamp in sorted(frames):
-        stats.add_frame(stamp, frames[stamp])
-    return stats.figures()
-
-
-def _wait_for(cond: Any, timeout: float, proc: subprocess.Popen[bytes] | None = None) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        if proc is not None and proc.poll() is not None:
-            return False
-        time.sleep(0.05)
-    return False
-
-
-def _read_summary(path: Path) -> dict[str, Any]:
-    """The tracker node's summary file ({} when it wrote none, e.g. it was killed)."""
-    try:
-        return dict(json.loads(path.read_text()))
-    except (OSError, ValueError):
-        return {}
-
-
-def run_live(
-    ctx: Any,
-    seq: Any,
-    config: Path,
-    method: str,
-    log: Path,
-    *,
-    level: str = "none",
-    seed: int = 0,
-    rate: float = 1.0,
-    topics: tuple[str, ...] = ("/cam0/image_raw",),
-    show_track: bool = True,
-) -> tuple[dict[str, Any], Any]:
-    """Replay ``seq`` over ROS 2 into a ``tracker`` node process started for it, and collect its output.
-
-    The replay publishes from this process (context ``ctx``) at ``rate`` with sensor-data QoS, as a
-    camera driver would; the tracker runs as its own process with the VINS config ``config``.
-
-    Args:
-        ctx: an initialised rclpy context.
-        seq: a :class:`~nsflow_ros.data.sample.SampleSequence` with its ROS 2 bag.
-        config: VINS config file (mono or stereo: ``topics`` must be its image topics).
-        method: tracking method.
-        log: the tracker's log file; its summary goes beside it (``.summary.json``).
-        level, seed: illumination perturbation level and seed.
-        rate: replay speed factor (1.0 = camera rate).
-        topics: image topics to replay.
-        show_track: have the tracker publish its debug image.
-
-    Returns:
-        (track figures of camera 0 plus the tracker's own counters, the middle debug image or None).
-
-    Raises:
-        NSFlowError: the tracker node did not come up.
-    """
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import qos_profile_sensor_data
-    from sensor_msgs.msg import Image
-
-    from nsflow_ros.replay import ReplayOptions, replay_stream
-    from nsflow_ros.ros.replay_node import publish_stream
-
-    collector = _Collector(ctx, "/feature_tracker/feature")
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(collector.node)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
-    summary_file = log.with_suffix(".summary.json")
-    summary_file.unlink(missing_ok=True)
-    cmd = [
-        sys.executable, "-m", "nsflow_ros.ros.tracker_node", "--ros-args",
-        "-p", f"config_file:={config}",
-        "-p", f"method:={method}",
-        "-p", f"show_track:={int(show_track)}",
-        "-p", f"summary_file:={summary_file}",
-    ]
-    with log.open("wb") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
-    sent = 0
-    try:
-        node = collector.node
-        if not _wait_for(lambda: all(node.count_subscribers(t) > 0 for t in topics), 60.0, proc):
-            tail = log.read_text(errors="replace")[-2000:]
-            raise NSFlowError(
-                f"the tracker node ({method}) did not come up; its log {log} ends with:\n{tail}"
-            )
-        opts = ReplayOptions(seq.ros2_dir, list(topics), perturb=level, seed=seed, rate=rate)
-        # the publishers first, matched with the tracker's subscriptions both ways, so the first frame is
-        # not lost (a reader drops samples of a writer it has not matched yet)
-        pubs = {t: node.create_publisher(Image, t, qos_profile_sensor_data) for t in topics}
-        _wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 30.0, proc)
-        time.sleep(0.5)
-        sent = publish_stream(node, replay_stream(opts), rate=rate, clock=False, progress=False,
-                              publishers=pubs)
-        frames_sent = sent // len(topics)
-        # let the last frames through the tracker before stopping it
-        _wait_for(lambda: len(collector.frames) >= frames_sent, 5.0)
-        time.sleep(0.3)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-        executor.shutdown()
-        collector.node.destroy_node()
-    with collector.lock:
-        frames, debug = dict(collector.frames), dict(collector.debug)
-    figures = _stats(frames, seq)
-    figures["frames_sent"] = sent // len(topics)
-    # what the tracker itself saw: frames that reached it and frames it tracked (its summary file)
-    counters = _read_summary(summary_file)
-    for key in ("frames_received", "frames_processed", "frames_dropped", "latency_ms_p50", "latency_ms_p90"):
-        figures[f"tracker_{key.removeprefix('frames_')}"] = counters.get(key)
-    # the debug image of the sequence's middle frame (or the nearest one drawn): the same frame for every run
-    target = int(seq.stamps_ns[len(seq) // 2])
-    mid = min(debug, key=lambda t: abs(t - target)) if debug else None
-    return figures, (debug[mid] if mid is not None else None)
+__all__ = ["format_summary", "main", "run_demo"]
 
 
 def run_demo(
@@ -209,10 +42,11 @@ def run_demo(
 
     from nsflow_ros.core.encoder import DEFAULT_MODEL
     from nsflow_ros.data.sample import make_sample_sequence
-    from nsflow_ros.offline import _write_png, contact_sheet
     from nsflow_ros.resources import ResourceError, share_file
     from nsflow_ros.ros.image_conv import image_to_numpy
+    from nsflow_ros.ros.live import run_live
     from nsflow_ros.ros.transport import use_large_image_transport
+    from nsflow_ros.vins.sheet import contact_sheet, write_png
 
     out_dir.mkdir(parents=True, exist_ok=True)
     notes = []
@@ -260,7 +94,7 @@ def run_demo(
     atomic_write(out_dir / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
     if sheet:
         img = contact_sheet(sheet, cols=len(methods), labels=labels, legend=True)
-        atomic_write(out_dir / "tracks.png", lambda p: _write_png(p, img))
+        atomic_write(out_dir / "tracks.png", lambda p: write_png(p, img))
     return summary
 
 

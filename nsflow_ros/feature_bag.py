@@ -21,9 +21,9 @@ from typing import Any, Literal
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.records import ImageRecord, ImuRecord
+from nsflow_ros.data.replay import ReplayOptions, replay_records
 from nsflow_ros.data.writers import BagWriter, temp_sibling
 from nsflow_ros.errors import NSFlowError
-from nsflow_ros.replay import ReplayOptions, replay_records
 from nsflow_ros.vins.messages import encode_fusion
 
 __all__ = ["FEATURE_TOPIC", "BagFormat", "FeatureBagSummary", "bag_format", "write_feature_bag"]

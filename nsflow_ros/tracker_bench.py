@@ -4,7 +4,8 @@ Every tracking method of :data:`nsflow_ros.core.methods.METHODS` runs the shippe
 stereo, flow-back on, 752x480) over the same frames of the synthetic EuRoC-like sample sequence, taking
 turns frame by frame so that the drifting load of a shared machine hits them alike. Per method and mode
 it reports the tracker's per-frame wall time (median, p90, and the stages), the ratio to ``klt`` (VINS's
-own KLT front-end, measured in the same run) and the quality against the sequence's exact optical flow:
+own KLT front-end, measured in the same run) and the quality against the sequence's exact optical flow
+(:class:`nsflow_ros.data.scoring.FrameQuality`):
 
 * carried-over share: features of camera 0 kept from one frame to the next, over those it had;
 * stereo matches: right-image features over left-image features;
@@ -24,6 +25,7 @@ import numpy as np
 
 from nsflow_ros.core.methods import METHODS
 from nsflow_ros.core.tracker import FeatureTracker
+from nsflow_ros.data.scoring import FrameQuality
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.resources import share_file
 
@@ -44,16 +46,13 @@ def _stats(values: Sequence[float]) -> dict[str, float]:
 
 
 class _Run:
-    """One method in one mode: its tracker and what it measured."""
+    """One method in one mode: its tracker, its timings and its quality."""
 
     def __init__(self, tracker: FeatureTracker) -> None:
         self.tracker = tracker
         self.total: list[float] = []
         self.stages: dict[str, list[float]] = {}
-        self.carried: list[float] = []
-        self.matched: list[float] = []
-        self.err: list[np.ndarray] = []
-        self.stereo_err: list[np.ndarray] = []
+        self.quality = FrameQuality()
         self.had = 0  # camera-0 features of the previous frame
 
     def step(self, seq: Any, i: int, left: np.ndarray, right: np.ndarray | None) -> None:
@@ -68,34 +67,12 @@ class _Run:
         for k, v in frame.timings.items():
             if k != "total":
                 self.stages.setdefault(k, []).append(v)
-        c0 = frame.cameras[0]
-        kept = np.isfinite(c0.previous[:, 0])
-        if before:
-            self.carried.append(int(kept.sum()) / before)
-        if kept.any():
-            flow, visible = seq.flow(i - 1, i, c0.previous[kept])
-            e = np.hypot(*(c0.pixels[kept] - c0.previous[kept] - flow).T)
-            self.err.append(e[visible])
-        if right is not None:
-            c1 = frame.cameras[1]
-            self.matched.append(len(c1) / max(1, len(c0)))
-            if len(c1):
-                idx = np.searchsorted(c0.ids, c1.ids)
-                flow, visible = seq.flow(i, i, c0.pixels[idx], 0, 1)
-                self.stereo_err.append(np.hypot(*(c1.pixels - c0.pixels[idx] - flow).T)[visible])
+        self.quality.add_frame(seq, i, frame, before, stereo=right is not None)
 
     def figures(self) -> dict[str, Any]:
         out: dict[str, Any] = {"total": _stats(self.total)}
         out["stages"] = {k: _stats(v)["median_ms"] for k, v in self.stages.items()}
-        err = np.concatenate(self.err) if self.err else np.zeros(0)
-        out["carried_share"] = float(np.mean(self.carried)) if self.carried else float("nan")
-        out["error_median_px"] = float(np.median(err)) if err.size else float("nan")
-        out["error_over_1px_share"] = float(np.mean(err > 1.0)) if err.size else float("nan")
-        if self.matched:
-            serr = np.concatenate(self.stereo_err) if self.stereo_err else np.zeros(0)
-            out["stereo_matched_share"] = float(np.mean(self.matched))
-            out["stereo_error_median_px"] = float(np.median(serr)) if serr.size else float("nan")
-            out["stereo_error_over_1px_share"] = float(np.mean(serr > 1.0)) if serr.size else float("nan")
+        out.update(self.quality.figures())
         return out
 
 

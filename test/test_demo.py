@@ -29,7 +29,7 @@ def test_replay_reaches_tracker_node_and_features_come_back(tmp_path):
 def test_contact_sheet_has_a_legend_and_labels_on_dark_boxes():
     import numpy as np
 
-    from nsflow_ros.offline import contact_sheet
+    from nsflow_ros.vins.sheet import contact_sheet
 
     white = np.full((480, 752, 3), 255, np.uint8)
     sheet = contact_sheet([white, white], cols=2, labels=["nsflow", "klt"], legend=True)

@@ -8,10 +8,10 @@ from rosbags.highlevel import AnyReader
 
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.replay import ReplayOptions
 from nsflow_ros.data.sample import make_sample_sequence
 from nsflow_ros.data.sources import SensorSource
 from nsflow_ros.feature_bag import FEATURE_TOPIC, bag_format, write_feature_bag
-from nsflow_ros.replay import ReplayOptions
 from nsflow_ros.resources import share_file
 from nsflow_ros.ros.replay_node import main as replay_main
 from nsflow_ros.vins.config import load_vins_config

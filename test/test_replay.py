@@ -12,12 +12,12 @@ import time
 import numpy as np
 import pytest
 
+from nsflow_ros.data.replay import ReplayError, ReplayOptions, parse_remaps, replay_records, replay_stream
 from nsflow_ros.data.sample import make_sample_sequence
 from nsflow_ros.errors import NSFlowError
-from nsflow_ros.offline import run_offline
-from nsflow_ros.replay import ReplayError, ReplayOptions, parse_remaps, replay_records, replay_stream
 from nsflow_ros.ros.replay_node import main as replay_main
 from nsflow_ros.ros.replay_node import publish_stream
+from nsflow_ros.vins.offline import run_offline
 
 
 @pytest.fixture(scope="module")

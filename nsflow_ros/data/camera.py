@@ -2,6 +2,11 @@
 
 Pixel convention: OpenCV's; integer coordinates are pixel centres, (0, 0) is the centre of the top-left
 pixel. Normalised coordinates are the undistorted ``(X / Z, Y / Z)`` of a point in the camera frame.
+
+Projection and distortion are the tracker's own camera model (:class:`~nsflow_ros.core.camera.PinholeCamera`,
+camodocal's ``PINHOLE``), so the sample's images and the tracker agree on where a point lands. Only the
+inverse differs: the ground truth needs the exact undistortion (Newton's method, ~1e-13), the tracker
+reproduces camodocal's fixed-point iteration bit for bit.
 """
 
 from __future__ import annotations
@@ -137,6 +142,10 @@ class PinholeRadtan:
 
     def camera_model(self) -> PinholeCamera:
         """This camera as the tracker's camodocal ``PINHOLE`` model (same intrinsics and distortion)."""
+        return self._model
+
+    @cached_property
+    def _model(self) -> PinholeCamera:
         return PinholeCamera(
             width=self.width, height=self.height, fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy,
             k1=self.k1, k2=self.k2, p1=self.p1, p2=self.p2, name=self.name,
@@ -197,9 +206,12 @@ class PinholeRadtan:
     # -- projection -------------------------------------------------------------------------------------
 
     def normalized_to_pixels(self, xn: np.ndarray) -> np.ndarray:
-        """Distort normalised coordinates and map them to pixels. Shape: (N, 2) -> (N, 2)."""
-        xd = self.distort(as_points(xn, 2, "normalized points"))
-        return np.stack([self.fx * xd[:, 0] + self.cx, self.fy * xd[:, 1] + self.cy], axis=1)
+        """Distort normalised coordinates and map them to pixels: the tracker's model projecting (x, y, 1).
+
+        Shape: (N, 2) -> (N, 2), float64.
+        """
+        p = as_points(xn, 2, "normalized points")
+        return self._model.project(np.column_stack([p, np.ones(len(p))]))
 
     def pixels_to_normalized(self, pixels: Any) -> np.ndarray:
         """Undistorted normalised coordinates of pixels. Shape: (N, 2) -> (N, 2), float64.

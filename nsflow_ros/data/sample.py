@@ -65,6 +65,7 @@ __all__ = [
     "IMU_TOPIC",
     "SAMPLE_VERSION",
     "SampleSequence",
+    "is_sample",
     "make_sample_sequence",
 ]
 
@@ -262,7 +263,8 @@ def _is_complete(root: Path, key: dict[str, Any], formats: Sequence[str]) -> boo
     return (root / "done").is_file() and meta.get("params") == key and set(formats) <= have
 
 
-def _is_sample(root: Path) -> bool:
+def is_sample(root: Path) -> bool:
+    """Whether ``root`` holds a complete sample sequence (its metadata and its completion mark)."""
     return (root / "sequence.json").is_file() and (root / "done").is_file()
 
 
@@ -312,7 +314,7 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
     if _is_complete(root, key, fmts):
         return SampleSequence.load(root)
     empty_dir = root.is_dir() and not any(root.iterdir())
-    if root.exists() and not empty_dir and not _is_sample(root) and not overwrite:
+    if root.exists() and not empty_dir and not is_sample(root) and not overwrite:
         raise DataError(f"{root} exists and is not a sample sequence; choose another folder or overwrite it")
 
     tmp = temp_sibling(root)

@@ -60,6 +60,7 @@ from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, KLT, KLT_CLAHE, NSFLOW, NSFLOW_LK
 from nsflow_ros.evaluation.section import HeadlineRow, Section
+from nsflow_ros.evaluation.targets import Clause, Target
 
 __all__ = [
     "FULL",
@@ -68,6 +69,7 @@ __all__ = [
     "MIN_MATCHES",
     "NEAR_BORDER_PX",
     "QUICK",
+    "TARGETS",
     "TRACKER_METHODS",
     "FrameSource",
     "MethodRun",
@@ -105,6 +107,24 @@ LONG_TRACK = 10
 NEAR_BORDER_PX = 40.0
 """A lost track counts as lost near the border when its last position is this close to the image edge:
 the LM solver's window half-width (5 px) at the coarsest of the tracker's 4 levels (x 8)."""
+TARGETS: dict[tuple[str, str], Target] = {
+    ("large", "tracks_10_frames"): Target("tracks_10_frames", (Clause(">=", (KLT,), 2),)),
+    ("large", "long_tracks_per_frame"): Target("long_tracks_per_frame", (Clause(">=", (KLT,), 2),)),
+    ("large", "error_median_px"): Target("error_median_px", (Clause("<=", bound=0.5, unit="px"),)),
+    ("none", "error_median_px"): Target("error_median_px", (Clause("<=", (KLT,), 1.1),)),
+}
+"""(perturbation level, figure) -> NSFlow's target on that figure of the sample-sequence runs."""
+TARGET_ROWS: dict[tuple[str, str], tuple[str, str]] = {
+    ("large", "tracks_10_frames"): (
+        "tracks reaching 10 frames, large perturbation (sample sequence)", "{:d}"
+    ),
+    ("large", "long_tracks_per_frame"): (
+        "features per frame on a track >= 10 frames old, large perturbation", "{:.1f}"
+    ),
+    ("large", "error_median_px"): ("median tracking error vs GT flow, large perturbation (px)", "{:.3f}"),
+    ("none", "error_median_px"): ("median tracking error vs GT flow, no perturbation (px)", "{:.3f}"),
+}
+"""The headline row (metric, value format) of each target, in report order."""
 
 
 @dataclass(frozen=True)
@@ -147,7 +167,7 @@ class FrameSource:
     Attributes:
         camera: the (scaled) camera as the tracker's camera model (pinhole-radtan).
         size: (width, height).
-        stamps_ns: (N,) int64 frame stamps (for :class:`~nsflow_ros.offline.TrackStats`).
+        stamps_ns: (N,) int64 frame stamps (for :class:`~nsflow_ros.data.scoring.TrackStats`).
     """
 
     def __init__(self, sequence: Any, scale: float = 1.0) -> None:
@@ -336,7 +356,7 @@ class MethodRun:
     lost_border_distance: list[float] = field(default_factory=list)
 
     def summary(self, stats: dict[str, Any]) -> dict[str, Any]:
-        """Combine :class:`~nsflow_ros.offline.TrackStats` figures with the geometry figures."""
+        """Combine :class:`~nsflow_ros.data.scoring.TrackStats` figures with the geometry figures."""
         err = np.asarray(self.errors)
         rot = np.asarray(self.rotation_errors)
         inl = np.asarray(self.inlier_rates)
@@ -401,7 +421,7 @@ def track_sequence(
     """
     from nsflow_ros.data.errors import DataError
     from nsflow_ros.data.perturb import IlluminationPerturber
-    from nsflow_ros.offline import TrackStats
+    from nsflow_ros.data.scoring import TrackStats
 
     if method not in TRACKER_METHODS:
         raise EvaluationError(f"unknown method {method!r}; expected one of {list(TRACKER_METHODS)}")
@@ -585,28 +605,10 @@ def _headline(runs: dict[str, dict[str, MethodRun]]) -> list[HeadlineRow]:
     def values(level: str, key: str, fmt: str) -> dict[str, str]:
         return {m: _fmt(r.figures.get(key), fmt) for m, r in runs.get(level, {}).items()}
 
-    def fig(level: str, m: str, key: str) -> Any:
-        r = runs.get(level, {}).get(m)
-        return None if r is None else r.figures.get(key)
-
-    if "large" in runs:
-        ns, klt = fig("large", NSFLOW, "tracks_10_frames"), fig("large", KLT, "tracks_10_frames")
-        met = None if ns is None or klt is None else bool(ns >= 2 * klt)
-        rows.append(HeadlineRow("tracks reaching 10 frames, large perturbation (sample sequence)",
-                                values("large", "tracks_10_frames", "{:d}"), ">= 2x OpenCV KLT", met))
-        ns, klt = fig("large", NSFLOW, "long_tracks_per_frame"), fig("large", KLT, "long_tracks_per_frame")
-        met = None if ns is None or klt is None else bool(ns >= 2 * klt)
-        rows.append(HeadlineRow("features per frame on a track >= 10 frames old, large perturbation",
-                                values("large", "long_tracks_per_frame", "{:.1f}"), ">= 2x OpenCV KLT", met))
-        ns = fig("large", NSFLOW, "error_median_px")
-        rows.append(HeadlineRow("median tracking error vs GT flow, large perturbation (px)",
-                                values("large", "error_median_px", "{:.3f}"), "<= 0.5 px",
-                                None if ns is None else bool(ns <= 0.5)))
-    if "none" in runs:
-        ns, klt = fig("none", NSFLOW, "error_median_px"), fig("none", KLT, "error_median_px")
-        met = None if ns is None or klt is None else bool(ns <= 1.1 * klt)
-        rows.append(HeadlineRow("median tracking error vs GT flow, no perturbation (px)",
-                                values("none", "error_median_px", "{:.3f}"), "<= 1.1x OpenCV KLT", met))
+    for (level, key), (metric, fmt) in TARGET_ROWS.items():
+        if level in runs:
+            figures = {m: r.figures.get(key) for m, r in runs[level].items()}
+            rows.append(TARGETS[(level, key)].row(metric, values(level, key, fmt), figures))
     for level in ("none", "large"):
         if level in runs:
             rows.append(HeadlineRow(f"5-point relative-rotation error, median, perturbation {level} (deg)",

@@ -41,7 +41,6 @@ from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import (
     BASELINES,
     CLASSICAL,
-    NSFLOW,
     EvalMethod,
     PairMethod,
     PairResult,
@@ -57,9 +56,11 @@ from nsflow_ros.evaluation.pairs import (
     true_flow,
 )
 from nsflow_ros.evaluation.section import HeadlineRow, Section
+from nsflow_ros.evaluation.targets import Clause, Target
 
 __all__ = [
     "CLIP_SHARE",
+    "TARGETS",
     "THRESHOLDS",
     "TrackableConfig",
     "TrackableMap",
@@ -74,6 +75,11 @@ CONDITIONS = ("none", "light")
 CLIP_DARK, CLIP_BRIGHT = 5, 250  # gray values at or beyond which a pixel counts as clipped
 CLIP_SHARE = 0.2
 """A window is clipped when more than this share of its pixels is (:func:`clipped_windows`)."""
+TARGETS: dict[str, Target] = {
+    "none": Target("ratio@1px", (Clause(">", (CLASSICAL,)), Clause(">=", bound=0.85, unit="%"))),
+    "light": Target("ratio@1px", (Clause(">=", BASELINES, 1.5, label="the best baseline ({rivals})"),)),
+}
+"""Condition -> NSFlow's target on the median trackable-region ratio at 1 px (deployed levels)."""
 
 
 @dataclass(frozen=True)
@@ -325,21 +331,10 @@ def _headline(median: dict[str, dict[str, list[float]]], names: list[str], suffi
               targets: bool) -> list[HeadlineRow]:  # fmt: skip
     rows = []
     for cond in CONDITIONS:
-        ns = median[cond].get(NSFLOW, [np.nan])[0]
-        target, met = "", None
-        if targets and cond == "none":
-            target = "> LM (intensity) and >= 85 %"
-            if NSFLOW in names and CLASSICAL in names:
-                met = bool(ns > median[cond][CLASSICAL][0] and ns >= 0.85)
-        elif targets:
-            base = [median[cond][b][0] for b in BASELINES if b in names]
-            target = ">= 1.5x the best baseline (" + ", ".join(b for b in BASELINES if b in names) + ")"
-            if NSFLOW in names and base:
-                met = bool(ns >= 1.5 * max(base))
-        rows.append(HeadlineRow(
-            f"trackable region @1 px, {condition_label(cond)}{suffix}",
-            {n: f"{median[cond][n][0]:.1%}" for n in names}, target, met,
-        ))  # fmt: skip
+        at1 = {n: median[cond][n][0] for n in names}
+        metric = f"trackable region @1 px, {condition_label(cond)}{suffix}"
+        values = {n: f"{v:.1%}" for n, v in at1.items()}
+        rows.append(TARGETS[cond].row(metric, values, at1) if targets else HeadlineRow(metric, values))
     return rows
 
 

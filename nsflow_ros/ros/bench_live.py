@@ -55,8 +55,8 @@ def run_live_benchmark(
     import rclpy
 
     from nsflow_ros.data.sample import make_sample_sequence
-    from nsflow_ros.demo import run_live
     from nsflow_ros.resources import share_file
+    from nsflow_ros.ros.live import run_live
     from nsflow_ros.ros.transport import use_large_image_transport
 
     if not seconds > 0 or not rate > 0:

@@ -8,7 +8,7 @@ message it waits (bounded by ``--wait-timeout``) until ``--wait-subscribers`` su
 camera topic, so a tracker started just before or after the replay still gets the first frame.
 ``--perturb`` applies the paper's illumination perturbation on the fly; ``--write-bag`` writes the
 (perturbed) stream to a new ROS 2 bag instead of publishing; ``--offline`` runs the tracker core straight
-over the data without middleware (see :mod:`nsflow_ros.offline`); ``--features-bag`` tracks every frame
+over the data without middleware (see :mod:`nsflow_ros.vins.offline`); ``--features-bag`` tracks every frame
 offline and writes a VINS feature bag (see :mod:`nsflow_ros.feature_bag`).
 """
 
@@ -26,8 +26,8 @@ from typing import Any
 from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_float, program_name
 from nsflow_ros.core.methods import METHODS
 from nsflow_ros.data.records import RawMessage
+from nsflow_ros.data.replay import ReplayOptions, parse_remaps, replay_stream
 from nsflow_ros.errors import NSFlowError
-from nsflow_ros.replay import ReplayOptions, parse_remaps, replay_stream
 
 __all__ = ["DESCRIPTION", "main", "message_class", "publish_stream", "wait_for_subscribers"]
 
@@ -358,7 +358,7 @@ def main(args: list[str] | None = None) -> int:
             print(bag.text())
             return 0
         if opts.offline is not None:
-            from nsflow_ros.offline import run_offline
+            from nsflow_ros.vins.offline import run_offline
 
             _make_dir(opts.offline)
             summary = run_offline(
@@ -367,8 +367,8 @@ def main(args: list[str] | None = None) -> int:
             print(summary.text())
             return 0
         if opts.write_bag is not None:
+            from nsflow_ros.data.replay import replay_records
             from nsflow_ros.data.writers import write_ros2_bag
-            from nsflow_ros.replay import replay_records
 
             n = write_ros2_bag(opts.write_bag, replay_records(ropts))
             print(f"wrote {n} messages to {opts.write_bag}")

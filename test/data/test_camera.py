@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from nsflow_ros.core.camera import radtan_distort
 from nsflow_ros.data.camera import EUROC_CAM0, EUROC_CAM1, PinholeRadtan
 from nsflow_ros.data.errors import DataError
 
@@ -60,3 +61,16 @@ def test_camera_model_projects_like_the_data_camera():
     uv, valid = cam.project(pts)
     assert valid.all() and (model.width, model.height, model.name) == (cam.width, cam.height, cam.name)
     np.testing.assert_allclose(model.project(pts), uv, atol=1e-9)
+
+
+def test_projection_is_the_tracker_models_to_the_bit():
+    rng = np.random.default_rng(3)
+    xn = rng.uniform(-0.8, 0.8, (500, 2))
+    for cam in (EUROC_CAM0, EUROC_CAM1):
+        xd = radtan_distort(xn, cam.dist)
+        by_hand = np.stack([cam.fx * xd[:, 0] + cam.cx, cam.fy * xd[:, 1] + cam.cy], axis=1)
+        assert np.array_equal(cam.normalized_to_pixels(xn), by_hand)
+        points = np.column_stack([xn * 2.5, np.full(len(xn), 2.5)])
+        uv, valid = cam.project(points)
+        assert valid.all()
+        assert np.array_equal(uv, cam.camera_model().project(points))

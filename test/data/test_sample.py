@@ -11,7 +11,7 @@ import pytest
 from nsflow_ros.data import sample as sample_mod
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.motion import quaternion_to_rotation
-from nsflow_ros.data.sample import SampleSequence, make_sample_sequence
+from nsflow_ros.data.sample import SampleSequence, is_sample, make_sample_sequence
 from nsflow_ros.data.writers import ASL_CAMERA_HEADER, ASL_GROUNDTRUTH_HEADER, ASL_IMU_HEADER
 
 SHORT = {"duration": 0.15, "stereo": False, "formats": ("asl",), "progress": False}
@@ -130,3 +130,10 @@ def test_parameter_errors(tmp_path):
     with pytest.raises(DataError, match="gives no frame"):
         make_sample_sequence(tmp_path / "x", duration=0.01)
     assert not (tmp_path / "x").exists()
+
+
+def test_is_sample_needs_the_metadata_and_the_completion_mark(sample_seq, tmp_path):
+    assert is_sample(sample_seq.root)
+    assert not is_sample(tmp_path)
+    (tmp_path / "sequence.json").write_text("{}")
+    assert not is_sample(tmp_path)  # no completion mark: an interrupted run

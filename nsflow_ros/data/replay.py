@@ -10,16 +10,16 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.messages import record_to_cdr
 from nsflow_ros.data.perturb import IlluminationPerturber, perturb_records
 from nsflow_ros.data.records import RawMessage, Record
 from nsflow_ros.data.sources import SensorSource
-from nsflow_ros.errors import NSFlowError
 
 __all__ = ["ReplayError", "ReplayOptions", "parse_remaps", "replay_records", "replay_stream"]
 
 
-class ReplayError(NSFlowError):
+class ReplayError(DataError):
     """Bad replay options (remap syntax, rate)."""
 
 
