@@ -452,9 +452,14 @@ def parse_transform(text: str, what: str = "transform") -> np.ndarray:
     path = Path(text)
     if not re.fullmatch(r"[\s\d.,;\[\]eE+-]*", text):
         try:
+            is_file = path.is_file()
+        except OSError:  # e.g. a name too long for the file system
+            is_file = False
+        if not is_file:
+            shown = text if len(text) <= 60 else text[:57] + "..."
+            raise ConfigError(f"{what}: {shown!r} is neither 16 numbers nor an existing file")
+        try:
             source = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise ConfigError(f"{what}: {text} is neither 16 numbers nor an existing file") from None
         except (OSError, UnicodeDecodeError) as err:
             raise ConfigError(f"{what}: cannot read {text}: {getattr(err, 'strerror', None) or err}") from err
         if "data:" in source:
