@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from calibration_files import EQUI, RADTAN, SHIPPED, K, camera_info, dump, shipped_camchain
 
 from nsflow_ros.core.camera import KannalaBrandtCamera, MeiCamera, PinholeCamera
 from nsflow_ros.core.opencv_yaml import read_opencv_yaml
@@ -27,36 +28,6 @@ from nsflow_ros.vins.calibration import (
 )
 from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.errors import ConfigError
-
-ROOT = Path(__file__).resolve().parents[2]
-SHIPPED = ROOT / "config" / "euroc" / "euroc_stereo_imu_config.yaml"
-
-
-def _dump(path: Path, data: dict) -> Path:
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
-
-
-def shipped_camchain(tmp_path: Path) -> tuple[Path, Path]:
-    """A Kalibr camchain and imu.yaml written from the shipped EuRoC config (what Kalibr would say)."""
-    cfg = load_vins_config(SHIPPED)
-    chain = {}
-    for i, (cam, body_T_cam) in enumerate(zip(cfg.cameras, cfg.body_T_cam, strict=True)):
-        chain[f"cam{i}"] = {
-            "T_cam_imu": np.linalg.inv(body_T_cam).tolist(),
-            "camera_model": "pinhole",
-            "distortion_coeffs": [cam.k1, cam.k2, cam.p1, cam.p2],
-            "distortion_model": "radtan",
-            "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
-            "resolution": [cam.width, cam.height],
-            "rostopic": cfg.image_topics[i],
-            "timeshift_cam_imu": 0.0,
-        }
-    raw = read_opencv_yaml(SHIPPED)
-    imu = {"imu0": {"accelerometer_noise_density": raw["acc_n"], "accelerometer_random_walk": raw["acc_w"],
-                    "gyroscope_noise_density": raw["gyr_n"], "gyroscope_random_walk": raw["gyr_w"],
-                    "rostopic": cfg.imu_topic, "update_rate": 200.0}}
-    return _dump(tmp_path / "camchain-imucam.yaml", chain), _dump(tmp_path / "imu.yaml", imu)
 
 
 def _from_kalibr(camchain: Path, imu: Path | None, out: Path, **kwargs) -> Path:
@@ -121,7 +92,7 @@ def test_camchain_without_imu_chains_cam1_from_cam0(tmp_path):
     data = yaml.safe_load(camchain.read_text())
     t0, t1 = (np.array(data[f"cam{i}"].pop("T_cam_imu")) for i in (0, 1))
     data["cam1"]["T_cn_cnm1"] = (t1 @ np.linalg.inv(t0)).tolist()
-    _dump(camchain, data)
+    dump(camchain, data)
     with pytest.raises(ConfigError, match=r"missing key 'cam0/T_cam_imu'"):
         read_kalibr_camchain(camchain)
     shipped = load_vins_config(SHIPPED)
@@ -134,16 +105,11 @@ def test_camchain_without_imu_chains_cam1_from_cam0(tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 # Fisheye and omnidirectional Kalibr models
 
-K = {"fu": 380.5, "fv": 381.25, "pu": 318.2, "pv": 241.7}
-EQUI = [-0.012, 0.0035, -0.0021, 0.0004]
-RADTAN = [-0.21, 0.045, 0.0007, -0.0003]
-
-
 def _chain(tmp_path: Path, model: str, distortion: str, intrinsics: list[float], coeffs: list[float]) -> Path:
     cam = {"camera_model": model, "distortion_model": distortion, "intrinsics": intrinsics,
            "distortion_coeffs": coeffs, "resolution": [640, 480], "rostopic": "/fisheye/image_raw",
            "T_cam_imu": np.eye(4).tolist(), "timeshift_cam_imu": -0.0042}
-    return _dump(tmp_path / "camchain.yaml", {"cam0": cam})
+    return dump(tmp_path / "camchain.yaml", {"cam0": cam})
 
 
 def test_pinhole_equidistant_becomes_kannala_brandt_projecting_as_opencv_fisheye(tmp_path):
@@ -194,26 +160,14 @@ def test_omni_radtan_becomes_mei(tmp_path):
 # camera_info
 
 
-def _camera_info(path: Path, model: str, coeffs: list[float], name: str = "narrow_stereo/left") -> Path:
-    return _dump(path, {
-        "image_width": 640, "image_height": 480, "camera_name": name,
-        "camera_matrix": {"rows": 3, "cols": 3, "data": [K["fu"], 0.0, K["pu"], 0.0, K["fv"], K["pv"],
-                                                          0.0, 0.0, 1.0]},
-        "distortion_model": model,
-        "distortion_coefficients": {"rows": 1, "cols": len(coeffs), "data": coeffs},
-        "rectification_matrix": {"rows": 3, "cols": 3, "data": np.eye(3).ravel().tolist()},
-        "projection_matrix": {"rows": 3, "cols": 4, "data": [0.0] * 12},
-    })
-
-
 def test_camera_info_plumb_bob_and_equidistant(tmp_path):
     matrix = np.array([[K["fu"], 0, K["pu"]], [0, K["fv"], K["pv"]], [0, 0, 1]])
     pts = _points()
-    pinhole = read_camera_info(_camera_info(tmp_path / "left.yaml", "plumb_bob", [*RADTAN, 0.0]))
+    pinhole = read_camera_info(camera_info(tmp_path / "left.yaml", "plumb_bob", [*RADTAN, 0.0]))
     assert isinstance(pinhole, PinholeCamera) and pinhole.name == "narrow_stereo/left"
     ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), matrix, np.array(RADTAN))
     np.testing.assert_allclose(pinhole.project(pts), ref[:, 0], rtol=0, atol=1e-6)
-    fisheye = read_camera_info(_camera_info(tmp_path / "fish.yaml", "equidistant", EQUI))
+    fisheye = read_camera_info(camera_info(tmp_path / "fish.yaml", "equidistant", EQUI))
     ref, _ = cv2.fisheye.projectPoints(pts[:, None, :], np.zeros(3), np.zeros(3), matrix, np.array(EQUI))
     assert isinstance(fisheye, KannalaBrandtCamera)
     np.testing.assert_allclose(fisheye.project(pts), ref[:, 0], rtol=0, atol=1e-6)
@@ -221,7 +175,7 @@ def test_camera_info_plumb_bob_and_equidistant(tmp_path):
 
 def test_camera_info_stereo_with_separate_extrinsics(tmp_path):
     shipped = load_vins_config(SHIPPED)
-    paths = [_camera_info(tmp_path / f"{side}.yaml", "plumb_bob", RADTAN, "") for side in ("l", "r")]
+    paths = [camera_info(tmp_path / f"{side}.yaml", "plumb_bob", RADTAN, "") for side in ("l", "r")]
     cameras = read_camera_infos(paths, shipped.body_T_cam, ["/left", "/right"])
     path = write_vins_config(tmp_path / "out", Calibration(cameras))[0]  # stereo: no IMU needed
     cfg = load_vins_config(path)
@@ -279,7 +233,7 @@ def test_kalibr_errors_name_the_key(tmp_path, edit, message):
     camchain, imu = shipped_camchain(tmp_path)
     data = yaml.safe_load(camchain.read_text())
     edit(data)
-    _dump(camchain, data)
+    dump(camchain, data)
     with pytest.raises(ConfigError) as err:
         _from_kalibr(camchain, imu, tmp_path / "out")
     text = str(err.value)
@@ -292,28 +246,28 @@ def test_imu_and_camera_info_errors_name_the_key(tmp_path):
     _, imu = shipped_camchain(tmp_path)
     data = yaml.safe_load(imu.read_text())
     del data["imu0"]["gyroscope_random_walk"]
-    _dump(imu, data)
+    dump(imu, data)
     with pytest.raises(ConfigError, match=r"imu\.yaml: missing key 'imu0/gyroscope_random_walk'$"):
         read_kalibr_imu(imu)
-    flat = _dump(tmp_path / "flat.yaml", {
+    flat = dump(tmp_path / "flat.yaml", {
         "accelerometer_noise_density": 0.01, "accelerometer_random_walk": 0.0,
         "gyroscope_noise_density": 0.001, "gyroscope_random_walk": 1e-5,
     })
     with pytest.raises(ConfigError, match="'accelerometer_random_walk' must be > 0"):
         read_kalibr_imu(flat)
     with pytest.raises(ConfigError, match=r"k3 = 0\.01; camodocal's PINHOLE has no k3"):
-        read_camera_info(_camera_info(tmp_path / "k3.yaml", "plumb_bob", [*RADTAN, 0.01]))
+        read_camera_info(camera_info(tmp_path / "k3.yaml", "plumb_bob", [*RADTAN, 0.01]))
     with pytest.raises(ConfigError, match="'distortion_model' 'rational_polynomial' is not supported"):
-        read_camera_info(_camera_info(tmp_path / "rp.yaml", "rational_polynomial", [0.0] * 8))
+        read_camera_info(camera_info(tmp_path / "rp.yaml", "rational_polynomial", [0.0] * 8))
     with pytest.raises(ConfigError, match="'distortion_coefficients' must hold 4 numbers, got 5"):
-        read_camera_info(_camera_info(tmp_path / "eq.yaml", "equidistant", [*EQUI, 0.0]))
-    info = yaml.safe_load(_camera_info(tmp_path / "skew.yaml", "plumb_bob", RADTAN).read_text())
+        read_camera_info(camera_info(tmp_path / "eq.yaml", "equidistant", [*EQUI, 0.0]))
+    info = yaml.safe_load(camera_info(tmp_path / "skew.yaml", "plumb_bob", RADTAN).read_text())
     info["camera_matrix"]["data"][1] = 0.5
     with pytest.raises(ConfigError, match=r"'camera_matrix' must be .*no skew"):
-        read_camera_info(_dump(tmp_path / "skew.yaml", info))
+        read_camera_info(dump(tmp_path / "skew.yaml", info))
     del info["camera_matrix"]
     with pytest.raises(ConfigError, match="missing key 'camera_matrix'"):
-        read_camera_info(_dump(tmp_path / "skew.yaml", info))
+        read_camera_info(dump(tmp_path / "skew.yaml", info))
     with pytest.raises(ConfigError, match="does not exist"):
         read_camera_info(tmp_path / "nothing.yaml")
     (tmp_path / "bad.yaml").write_text("a: [1, 2\n")
