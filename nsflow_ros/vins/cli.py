@@ -57,14 +57,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image topic of cam0 (then cam1); default: Kalibr's rostopic, /cam<i>/image_raw "
                         "for camera_info")
     p.add_argument("--imu-topic", metavar="TOPIC", help="IMU topic (default: the IMU file's rostopic)")
-    p.add_argument("--imu-noise-scale", type=positive_float, default=1.0,
+    p.add_argument("--imu-noise-scale", type=positive_float, default=1.0, metavar="FACTOR",
                    help="multiply acc_n, gyr_n, acc_w, gyr_w by this: VINS configs often inflate the "
                         "calibrated values, e.g. by 10 (default: %(default)s)")
     p.add_argument("--estimate-extrinsic", type=int, choices=(0, 1, 2), default=0,
                    help="VINS's estimate_extrinsic: 0 trust, 1 refine, 2 no prior (default: %(default)s)")
-    p.add_argument("--td", type=finite_float,
+    p.add_argument("--td", type=finite_float, metavar="SECONDS",
                    help="camera-IMU time offset in seconds (default: Kalibr's timeshift_cam_imu, else 0)")
-    p.add_argument("--output-path", default="/tmp/vins_output/",
+    p.add_argument("--output-path", default="/tmp/vins_output/", metavar="DIR",
                    help="VINS-Fusion's output_path, where it writes vio.csv (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace config and camera files that exist")
     return p
