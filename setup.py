@@ -18,6 +18,7 @@ TOOLS = [
     ("nsflow-make-sample", "make_sample", "nsflow_ros.data.cli:main"),
     ("nsflow-train", "train", "nsflow_ros.tools:train"),
     ("nsflow-evaluate", "evaluate", "nsflow_ros.evaluation.cli:main"),
+    ("nsflow-config", "config", "nsflow_ros.vins.cli:main"),
 ]
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-SHORT_NAMES = ("tracker", "replay", "demo", "ate", "bench", "make_sample", "train", "evaluate")
+SHORT_NAMES = ("tracker", "replay", "demo", "ate", "bench", "make_sample", "train", "evaluate", "config")
 PACKAGE_FILES = ("package.xml", "setup.py", "setup.cfg", "resource", "nsflow_ros", "config", "models")
 
 CHECK_ENTRY_POINTS = """

@@ -8,6 +8,10 @@ Two layouts, both with ``points[i] = (x, y, 1)``, the undistorted normalised coo
 * VINS-Mono: five channels [id * num_of_cam + camera_id, u, v, velocity_x, velocity_y], only points tracked
   for more than one frame, camera by camera.
 
+Feature ids travel as float32 channel values, exact only below 2^24, so both encoders publish them modulo
+:data:`ID_MODULUS` (VINS-Mono: modulo ``ID_MODULUS // num_of_cam``, so that ``id * num_of_cam + camera``
+stays below 2^24 too), which keeps ids unique within any window an estimator holds however long the run.
+
 The decoders mirror the estimators' feature callbacks (they read channels by position, never by name) and
 return what the estimator builds: ``{feature_id: [(camera_id, [x, y, z, u, v, vx, vy]), ...]}``.
 
@@ -26,6 +30,7 @@ from nsflow_ros.errors import NSFlowError
 
 __all__ = [
     "FUSION_CHANNELS",
+    "ID_MODULUS",
     "LAYOUTS",
     "MONO_CHANNELS",
     "FeatureCloud",
@@ -37,6 +42,7 @@ __all__ = [
     "encode",
     "encode_fusion",
     "encode_mono",
+    "published_ids",
 ]
 
 Layout = Literal["fusion", "mono"]
@@ -63,6 +69,9 @@ MONO_CHANNELS: tuple[str, ...] = (
     "velocity_y_of_point",
 )
 """Channel names of the VINS-Mono layout, as its feature_tracker node names them."""
+
+ID_MODULUS = 2**24
+"""Published ids are taken modulo this: float32, the channels' type, holds every integer below it exactly."""
 
 FeatureFrame = dict[int, list[tuple[int, np.ndarray]]]
 
@@ -102,8 +111,35 @@ def _cloud(un: np.ndarray, columns: list[np.ndarray], names: tuple[str, ...]) ->
     return FeatureCloud(points, chans, names)
 
 
+def published_ids(ids: np.ndarray, layout: Layout, num_of_cam: int = 1) -> np.ndarray:
+    """Map tracker ids to the ids a message of ``layout`` carries (before VINS-Mono's camera packing).
+
+    Args:
+        ids: tracker feature ids (non-negative integers).
+        layout: "fusion" (modulo :data:`ID_MODULUS`) or "mono" (modulo ``ID_MODULUS // num_of_cam``).
+        num_of_cam: VINS ``NUM_OF_CAM`` of the mono layout.
+
+    Returns:
+        the wrapped ids, int64.
+
+    Shape:
+        ids: (N,) -> (N,).
+
+    Raises:
+        FeatureMessageError: an unknown layout or a num_of_cam below 1.
+    """
+    if layout not in LAYOUTS:
+        raise FeatureMessageError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    if num_of_cam < 1:
+        raise FeatureMessageError(f"num_of_cam must be >= 1, got {num_of_cam}")
+    modulus = ID_MODULUS if layout == "fusion" else ID_MODULUS // num_of_cam
+    return np.asarray(ids, np.int64) % modulus
+
+
 def encode_fusion(frame: FrameFeatures) -> FeatureCloud:
     """Encode a frame in the VINS-Fusion layout (nine channels; ids ascending, camera 0 first).
+
+    Ids are published modulo :data:`ID_MODULUS` and sorted by that published id.
 
     Args:
         frame: the tracker's output.
@@ -112,7 +148,7 @@ def encode_fusion(frame: FrameFeatures) -> FeatureCloud:
         the message content.
     """
     cams = frame.cameras
-    ids = np.concatenate([c.ids for c in cams])
+    ids = published_ids(np.concatenate([c.ids for c in cams]), "fusion")
     cam_ids = np.concatenate([np.full(len(c), c.camera_id, np.int64) for c in cams])
     order = np.lexsort((cam_ids, ids))  # by id, then camera
     px = np.concatenate([c.pixels for c in cams])[order]
@@ -124,6 +160,8 @@ def encode_fusion(frame: FrameFeatures) -> FeatureCloud:
 
 def encode_mono(frame: FrameFeatures, num_of_cam: int = 1) -> FeatureCloud:
     """Encode a frame in the VINS-Mono layout (five channels; only points with track count > 1).
+
+    Ids are published modulo ``ID_MODULUS // num_of_cam``, so the packed channel value stays below 2^24.
 
     Args:
         frame: the tracker's output.
@@ -138,7 +176,8 @@ def encode_mono(frame: FrameFeatures, num_of_cam: int = 1) -> FeatureCloud:
     parts = []
     for c in frame.cameras:
         keep = c.track_counts > 1
-        parts.append((c.ids[keep] * num_of_cam + c.camera_id, c.pixels[keep], c.undistorted[keep],
+        wrapped = published_ids(c.ids[keep], "mono", num_of_cam)
+        parts.append((wrapped * num_of_cam + c.camera_id, c.pixels[keep], c.undistorted[keep],
                       c.velocities[keep]))
     ids = np.concatenate([p[0] for p in parts])
     px = np.concatenate([p[1] for p in parts])

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from nsflow_ros.core.tracker import CameraFeatures, FrameFeatures
+from nsflow_ros.core.tracker import CameraFeatures, FeatureTracker, FrameFeatures, TrackerSettings
+from nsflow_ros.data.sample import make_sample_sequence
+from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.draw import draw_tracks, track_colour
 from nsflow_ros.vins.messages import (
+    ID_MODULUS,
     FeatureMessageError,
     decode,
     decode_fusion,
@@ -15,7 +20,10 @@ from nsflow_ros.vins.messages import (
     encode,
     encode_fusion,
     encode_mono,
+    published_ids,
 )
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _cam(cam_id: int, ids, counts) -> CameraFeatures:
@@ -68,6 +76,61 @@ def test_large_ids_survive_float32_channels():
     frame = FrameFeatures(0.0, (cam,), (320, 240))
     cloud = encode_fusion(frame)
     assert list(decode_fusion(cloud.points, cloud.channels)) == [2**24 - 3]
+
+
+def test_ids_past_float32_precision_wrap_and_round_trip_exactly():
+    limit = 2**24
+    assert limit == ID_MODULUS and float(np.float32(limit + 1)) == limit  # why: float32 loses them
+    left = _cam(0, [limit - 2, limit + 1, limit - 1, limit, 3 * limit + 5], [2, 2, 2, 2, 2])
+    right = _cam(1, [limit + 1, limit - 2, limit], [2, 2, 2])
+    frame = FrameFeatures(0.0, (left, right), (320, 240))
+    cloud = encode_fusion(frame)
+    # sorted by the published id, camera 0 before camera 1 within an id
+    assert cloud.channels[0].tolist() == [0, 0, 1, 1, 5, limit - 2, limit - 2, limit - 1]
+    assert cloud.channels[1].tolist() == [0, 1, 0, 1, 0, 0, 1, 0]
+    feats = decode_fusion(cloud.points, cloud.channels)
+    for cam in frame.cameras:
+        for j, fid in enumerate(cam.ids):
+            (_, row), = [e for e in feats[int(fid) % limit] if e[0] == cam.camera_id]
+            np.testing.assert_allclose(row[3:5], cam.pixels[j], rtol=1e-6)
+    # VINS-Mono packs id * NUM_OF_CAM + camera into one float32: ids wrap at 2^24 / NUM_OF_CAM
+    mono = encode_mono(frame, num_of_cam=2)
+    assert mono.channels[0].max() < limit
+    packed = decode_mono(mono.points, mono.channels, num_of_cam=2)
+    half = limit // 2
+    assert sorted(packed) == sorted({int(i) % half for i in left.ids})
+    assert {fid: [c for c, _ in e] for fid, e in packed.items()}[(limit + 1) % half] == [0, 1]
+    single = encode_mono(FrameFeatures(0.0, (left,), (320, 240)), num_of_cam=1)
+    assert sorted(decode_mono(single.points, single.channels)) == sorted(int(i) % limit for i in left.ids)
+    assert published_ids(np.array([limit + 7]), "mono", 3).tolist() == [(limit + 7) % (limit // 3)]
+    with pytest.raises(FeatureMessageError, match="num_of_cam"):
+        published_ids(np.array([1]), "mono", 0)
+
+
+def test_tracker_ids_crossing_2_24_stay_unique_in_messages(tmp_path):
+    seq = make_sample_sequence(tmp_path / "seq", seed=0, duration=0.5, stereo=True, formats=("asl",),
+                               progress=False)
+    cfg = load_vins_config(ROOT / "config" / "euroc" / "euroc_stereo_imu_config.yaml")
+    tracker = FeatureTracker(list(cfg.cameras), TrackerSettings(method="klt", stereo=True))
+    tracker._next_id = ID_MODULUS - 40  # no public way to start the counter elsewhere
+    published: dict[int, int] = {}  # published id -> tracker id, over the whole run
+    crossed = False
+    for i in range(len(seq)):
+        frame = tracker.process(seq.time(i), seq.image(i, 0), seq.image(i, 1))
+        crossed |= any(int(c.ids.max(initial=0)) >= ID_MODULUS for c in frame.cameras)
+        cloud = encode_fusion(frame)
+        feats = decode_fusion(cloud.points, cloud.channels)
+        expected = {int(fid) for c in frame.cameras for fid in c.ids}
+        assert sorted(feats) == sorted(fid % ID_MODULUS for fid in expected)  # no two ids merged
+        for fid in expected:
+            assert published.setdefault(fid % ID_MODULUS, fid) == fid  # never two tracker ids on one
+        for entries in feats.values():
+            assert [c for c, _ in entries] in ([0], [0, 1])
+        mono = encode_mono(frame, num_of_cam=2)
+        packed = decode_mono(mono.points, mono.channels, num_of_cam=2)
+        kept = {int(fid) % (ID_MODULUS // 2) for c in frame.cameras for fid in c.ids[c.track_counts > 1]}
+        assert sorted(packed) == sorted(kept)
+    assert crossed and tracker.next_id > ID_MODULUS + 100
 
 
 def test_decoders_reject_what_the_estimator_would_choke_on(stereo_frame):
