@@ -131,6 +131,7 @@ def run_tracker_benchmark(
     """
     from nsflow_ros.data.sample import make_sample_sequence
     from nsflow_ros.vins.config import load_vins_config
+    from nsflow_ros.vins.tracker import tracker_from_config
 
     names = list(dict.fromkeys([*methods, "klt"]))
     unknown = [m for m in names if m not in METHODS]
@@ -151,7 +152,7 @@ def run_tracker_benchmark(
             over: dict[str, Any] = {"stereo": mode == "stereo", "num_threads": threads}
             if model is not None:
                 over["model_path"] = model
-            runs[mode] = {m: _Run(FeatureTracker.from_vins_config(cfg, {**over, "method": m})) for m in names}
+            runs[mode] = {m: _Run(tracker_from_config(cfg, {**over, "method": m})) for m in names}
         frames = range(len(seq))
         if progress:
             from tqdm import tqdm

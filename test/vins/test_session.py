@@ -59,8 +59,8 @@ def test_fusion_layout_publishes_every_frame_and_skips_a_repeated_stamp(tmp_path
     back = s.process(T0 + pan.stamps[1], pan.frames[1])  # time going backwards: tracks restart
     assert back.tracked and "backwards" in back.note
     assert np.all(back.features.cameras[0].track_counts == 1)
-    assert s.counters["tracked"] == 5 and s.counters["resets"] == 1
-    assert s.counters["skipped:duplicate_stamp"] == 1
+    assert s.counters.tracked == 5 and s.counters.resets == 1
+    assert s.counters.skipped["duplicate_stamp"] == 1
 
 
 def test_mono_layout_first_frame_freq_and_restart(tmp_path, pan):
@@ -71,10 +71,10 @@ def test_mono_layout_first_frame_freq_and_restart(tmp_path, pan):
     assert all(o.tracked for o in outs[1:])
     published = [k for k, o in enumerate(outs) if o.features is not None]
     # 20 Hz in, freq 10: about every other frame, minus the first published one that VINS-Mono skips
-    assert 4 <= len(published) <= 6 and s.counters["throttled"] >= 4
+    assert 4 <= len(published) <= 6 and s.counters.throttled >= 4
     gap = s.process(T0 + 5.0, pan.frames[0])  # a 4.4 s gap restarts the estimator
     assert gap.restart and gap.features is None and "discontinuity" in gap.note
-    assert s.counters["restarts"] == 1
+    assert s.counters.restarts == 1
     again = s.process(T0 + 5.05, pan.frames[1])
     assert again.skipped == "first_frame"  # after a restart, VINS-Mono drops the first image again
 
@@ -112,7 +112,7 @@ def test_method_change_rebuilds_the_tracker_and_never_reuses_ids(tmp_path, pan):
     old_tracker = s.tracker
     notes = s.update(method="klt")
     assert s.tracker is not old_tracker and s.tracker.settings.method == "klt"
-    assert any("tracks restart" in n for n in notes) and s.counters["rebuilds"] == 1
+    assert any("tracks restart" in n for n in notes) and s.counters.rebuilds == 1
     after = s.process(T0 + pan.stamps[2], pan.frames[2]).features
     assert after.cameras[0].ids.min() > highest
     assert np.all(after.cameras[0].track_counts == 1)
