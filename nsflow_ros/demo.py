@@ -208,10 +208,10 @@ def run_demo(
     import rclpy
 
     from nsflow_ros.core.encoder import DEFAULT_MODEL
+    from nsflow_ros.data.images import image_for_tracker
     from nsflow_ros.data.sample import make_sample_sequence
     from nsflow_ros.offline import _write_png, contact_sheet
     from nsflow_ros.resources import ResourceError, share_file
-    from nsflow_ros.ros.image_conv import image_to_numpy
     from nsflow_ros.ros.transport import use_large_image_transport
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -246,7 +246,7 @@ def run_demo(
                 )
                 results.setdefault(level, {})[method] = figs
                 if dbg is not None:
-                    sheet.append(image_to_numpy(dbg))
+                    sheet.append(image_for_tracker(dbg))
                     labels.append(f"{method}, {level} perturbation")
     finally:
         rclpy.shutdown(context=ctx)

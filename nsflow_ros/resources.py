@@ -7,9 +7,13 @@ from pathlib import Path
 
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["ResourceError", "share_dir", "share_file"]
+__all__ = ["DEFAULT_CONFIG", "ResourceError", "share_dir", "share_file"]
 
 PACKAGE = "nsflow_ros"
+
+DEFAULT_CONFIG = "config/euroc/euroc_mono_imu_config.yaml"
+"""The VINS config used when none is given (the node's ``config_file`` default), relative to the share
+directory (:func:`share_file`)."""
 
 
 class ResourceError(NSFlowError):

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.sample import make_sample_sequence
 from nsflow_ros.data.sources import SensorSource
 from nsflow_ros.feature_bag import FEATURE_TOPIC, bag_format, write_feature_bag
 from nsflow_ros.replay import ReplayOptions
-from nsflow_ros.resources import share_file
+from nsflow_ros.resources import DEFAULT_CONFIG, share_file
 from nsflow_ros.ros.replay_node import main as replay_main
 from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.messages import decode_fusion
+from nsflow_ros.vins.tracker import tracker_from_config
 
 STEREO_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
 
@@ -58,9 +58,7 @@ def test_mono_ros1_bag_holds_every_frame_as_vins_fusion_reads_it(seq, tmp_path):
     assert imu == source_imu and summary.imu == len(imu) > 0
 
     # the same features the tracker makes from the same images, point for point
-    tracker = FeatureTracker.from_vins_config(
-        load_vins_config(share_file("config/euroc/euroc_mono_imu_config.yaml")), {"method": "klt"}
-    )
+    tracker = tracker_from_config(load_vins_config(share_file(DEFAULT_CONFIG)), {"method": "klt"})
     previous: set[int] = set()
     carried = 0
     for (_, _, frame, _), rec in zip(feats, SensorSource(seq.asl_dir, topics=["/cam0/image_raw"]).records(),

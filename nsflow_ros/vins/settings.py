@@ -21,13 +21,13 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING, Any
 
+from nsflow_ros.resources import DEFAULT_CONFIG
 from nsflow_ros.vins.errors import ConfigError
 
 if TYPE_CHECKING:
     from nsflow_ros.vins.config import VinsConfig
 
 __all__ = [
-    "DEFAULT_CONFIG",
     "KEEP",
     "SESSION_SETTINGS",
     "SETTINGS",
@@ -46,9 +46,6 @@ Value = bool | int | float | str
 
 KEEP = -1
 """A setting's value meaning "the default": the VINS config's value for a setting with a VINS key."""
-
-DEFAULT_CONFIG = "config/euroc/euroc_mono_imu_config.yaml"
-"""The VINS config used when none is given, relative to the package's share directory."""
 
 _KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
 
