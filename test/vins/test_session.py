@@ -157,3 +157,22 @@ def test_switches_reach_the_running_tracker(tmp_path, pan):
                      "show_track is now True"]
     assert s.update(flow_back=0) == []  # no change, nothing to say
     assert s.update(reject_with_f=-1) == ["reject_with_f is now False"]  # the layout's default again
+
+
+def test_settings_apply_by_their_mode_through_one_path(tmp_path, pan):
+    s = _session(tmp_path)
+    s.process(T0 + pan.stamps[0], pan.frames[0])
+    running = s.tracker
+    # live: the running tracker's settings change (max_cnt also bounds what is published)
+    assert s.update(max_cnt=30, reject_with_f=1) == ["max_cnt is now 30", "reject_with_f is now True"]
+    assert s.tracker is running and running.settings.max_cnt == 30 and running.settings.reject_with_f
+    out = s.process(T0 + pan.stamps[1], pan.frames[1]).features
+    assert 0 < len(out.cameras[0]) <= 30
+    # rebuild: a new tracker with every current setting
+    notes = s.update(equalize=1)
+    assert s.tracker is not running and s.tracker.settings.equalize and s.tracker.settings.max_cnt == 30
+    assert "equalize changed: new tracker" in notes[0] and s.counters.rebuilds == 1
+    # read-only: refused, nothing changes
+    with pytest.raises(ConfigError, match="use_imu_prediction cannot change"):
+        s.update(use_imu_prediction=True, max_cnt=10)
+    assert s.tracker.settings.max_cnt == 30
