@@ -136,3 +136,20 @@ def test_cli_writes_the_bag_and_refuses_to_overwrite(seq, tmp_path, capsys):
     assert replay_main(args) == 1
     assert "exists already" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.bag"]  # no temporary left behind
+
+
+def test_feature_bag_and_offline_run_give_the_same_features(seq, tmp_path):
+    # both go through the session's frame policy (VINS-Fusion layout for the shipped config)
+    from nsflow_ros.offline import run_offline
+
+    run_offline(ReplayOptions(seq.asl_dir), tmp_path / "offline", method="klt", progress=False)
+    write_feature_bag(ReplayOptions(seq.asl_dir), tmp_path / "f.bag", method="klt", progress=False)
+    feats, _ = _read(tmp_path / "f.bag")
+    rows = np.loadtxt(tmp_path / "offline" / "features.csv", delimiter=",", skiprows=1)
+    assert len(feats) == len(np.unique(rows[:, 0])) == len(seq)
+    for _, stamp, frame, _ in feats:
+        mine = rows[rows[:, 0] == stamp]
+        assert sorted(frame) == sorted(int(i) for i in mine[:, 2])
+        for fid, u, v in mine[:, 2:5]:
+            ((_, row),) = frame[int(fid)]
+            np.testing.assert_allclose(row[3:5], (u, v), atol=1e-3)
