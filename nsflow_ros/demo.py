@@ -41,9 +41,9 @@ def run_demo(
     import rclpy
 
     from nsflow_ros.core.encoder import DEFAULT_MODEL
+    from nsflow_ros.data.images import image_for_tracker
     from nsflow_ros.data.sample import make_sample_sequence
-    from nsflow_ros.resources import ResourceError, share_file
-    from nsflow_ros.ros.image_conv import image_to_numpy
+    from nsflow_ros.resources import DEFAULT_CONFIG, ResourceError, share_file
     from nsflow_ros.ros.live import run_live
     from nsflow_ros.ros.transport import use_large_image_transport
     from nsflow_ros.vins.sheet import contact_sheet, write_png
@@ -62,7 +62,7 @@ def run_demo(
     seq = make_sample_sequence(
         out_dir / "sample", seed=seed, duration=duration, stereo=False, formats=("ros2",), progress=True
     )
-    config = share_file("config/euroc/euroc_mono_imu_config.yaml")
+    config = share_file(DEFAULT_CONFIG)
     # a private DDS domain, so the demo neither hears nor disturbs other ROS 2 graphs on this machine
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(100, 200)))
     use_large_image_transport()  # this process and the tracker nodes it starts
@@ -80,7 +80,7 @@ def run_demo(
                 )
                 results.setdefault(level, {})[method] = figs
                 if dbg is not None:
-                    sheet.append(image_to_numpy(dbg))
+                    sheet.append(image_for_tracker(dbg))
                     labels.append(f"{method}, {level} perturbation")
     finally:
         rclpy.shutdown(context=ctx)

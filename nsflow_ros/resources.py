@@ -7,9 +7,16 @@ from pathlib import Path
 
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["ResourceError", "share_dir", "share_file"]
+__all__ = ["DEFAULT_CONFIG", "STEREO_CONFIG", "ResourceError", "share_dir", "share_file"]
 
 PACKAGE = "nsflow_ros"
+
+DEFAULT_CONFIG = "config/euroc/euroc_mono_imu_config.yaml"
+"""The VINS config used when none is given (the node's ``config_file`` default), relative to the share
+directory (:func:`share_file`)."""
+
+STEREO_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
+"""The shipped stereo VINS config (EuRoC cam0 + cam1), relative to the share directory."""
 
 
 class ResourceError(NSFlowError):

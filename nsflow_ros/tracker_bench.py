@@ -27,14 +27,14 @@ from nsflow_ros.core.methods import METHODS
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.scoring import FrameQuality
 from nsflow_ros.errors import NSFlowError
-from nsflow_ros.resources import share_file
+from nsflow_ros.resources import DEFAULT_CONFIG, STEREO_CONFIG, share_file
 
 __all__ = ["MODES", "format_tracker_table", "run_tracker_benchmark"]
 
 MODES = ("mono", "stereo")
 CONFIGS = {
-    "mono": "config/euroc/euroc_mono_imu_config.yaml",
-    "stereo": "config/euroc/euroc_stereo_imu_config.yaml",
+    "mono": DEFAULT_CONFIG,
+    "stereo": STEREO_CONFIG,
 }
 
 
@@ -108,6 +108,7 @@ def run_tracker_benchmark(
     """
     from nsflow_ros.data.sample import make_sample_sequence
     from nsflow_ros.vins.config import load_vins_config
+    from nsflow_ros.vins.tracker import tracker_from_config
 
     names = list(dict.fromkeys([*methods, "klt"]))
     unknown = [m for m in names if m not in METHODS]
@@ -128,7 +129,7 @@ def run_tracker_benchmark(
             over: dict[str, Any] = {"stereo": mode == "stereo", "num_threads": threads}
             if model is not None:
                 over["model_path"] = model
-            runs[mode] = {m: _Run(FeatureTracker.from_vins_config(cfg, {**over, "method": m})) for m in names}
+            runs[mode] = {m: _Run(tracker_from_config(cfg, {**over, "method": m})) for m in names}
         frames = range(len(seq))
         if progress:
             from tqdm import tqdm

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.replay import ReplayOptions
 from nsflow_ros.data.sample import make_sample_sequence
 from nsflow_ros.data.sources import SensorSource
 from nsflow_ros.feature_bag import FEATURE_TOPIC, bag_format, write_feature_bag
-from nsflow_ros.resources import share_file
+from nsflow_ros.resources import DEFAULT_CONFIG, share_file
 from nsflow_ros.ros.replay_node import main as replay_main
 from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.messages import decode_fusion
+from nsflow_ros.vins.tracker import tracker_from_config
 
 STEREO_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
 
@@ -58,9 +58,7 @@ def test_mono_ros1_bag_holds_every_frame_as_vins_fusion_reads_it(seq, tmp_path):
     assert imu == source_imu and summary.imu == len(imu) > 0
 
     # the same features the tracker makes from the same images, point for point
-    tracker = FeatureTracker.from_vins_config(
-        load_vins_config(share_file("config/euroc/euroc_mono_imu_config.yaml")), {"method": "klt"}
-    )
+    tracker = tracker_from_config(load_vins_config(share_file(DEFAULT_CONFIG)), {"method": "klt"})
     previous: set[int] = set()
     carried = 0
     for (_, _, frame, _), rec in zip(feats, SensorSource(seq.asl_dir, topics=["/cam0/image_raw"]).records(),
@@ -138,3 +136,20 @@ def test_cli_writes_the_bag_and_refuses_to_overwrite(seq, tmp_path, capsys):
     assert replay_main(args) == 1
     assert "exists already" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.bag"]  # no temporary left behind
+
+
+def test_feature_bag_and_offline_run_give_the_same_features(seq, tmp_path):
+    # both go through the session's frame policy (VINS-Fusion layout for the shipped config)
+    from nsflow_ros.vins.offline import run_offline
+
+    run_offline(ReplayOptions(seq.asl_dir), tmp_path / "offline", method="klt", progress=False)
+    write_feature_bag(ReplayOptions(seq.asl_dir), tmp_path / "f.bag", method="klt", progress=False)
+    feats, _ = _read(tmp_path / "f.bag")
+    rows = np.loadtxt(tmp_path / "offline" / "features.csv", delimiter=",", skiprows=1)
+    assert len(feats) == len(np.unique(rows[:, 0])) == len(seq)
+    for _, stamp, frame, _ in feats:
+        mine = rows[rows[:, 0] == stamp]
+        assert sorted(frame) == sorted(int(i) for i in mine[:, 2])
+        for fid, u, v in mine[:, 2:5]:
+            ((_, row),) = frame[int(fid)]
+            np.testing.assert_allclose(row[3:5], (u, v), atol=1e-3)

@@ -37,12 +37,10 @@ Nothing here imports rclpy or torch: the ROS node and the offline replayer/demo 
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -56,18 +54,12 @@ from nsflow_ros.core.methods import METHODS as _REGISTRY
 from nsflow_ros.core.methods import SolveKind, TrackingMethod, make_method
 from nsflow_ros.core.solver import Jacobian, LMConfig
 
-if TYPE_CHECKING:  # the core does not depend on the VINS layer at run time
-    from nsflow_ros.vins.config import VinsConfig
-
 __all__ = [
-    "FISHEYE_MASK_NAME",
     "METHODS",
     "CameraFeatures",
     "FeatureTracker",
     "FrameFeatures",
     "TrackerSettings",
-    "find_fisheye_mask",
-    "load_mask",
     "reject_with_fundamental",
 ]
 
@@ -315,43 +307,6 @@ def _velocities(
     return vel, match
 
 
-FISHEYE_MASK_NAME = "fisheye_mask.jpg"
-
-
-def find_fisheye_mask(config_path: str | os.PathLike[str]) -> Path:
-    """Where VINS-Mono keeps the fisheye mask for a config: ``fisheye_mask.jpg`` in the config's folder or
-    its parent (VINS-Mono: ``config/fisheye_mask.jpg`` beside ``config/<dataset>/<name>.yaml``).
-
-    Raises:
-        CoreError: naming the places looked at when neither exists.
-    """
-    folder = Path(config_path).parent
-    candidates = [folder / FISHEYE_MASK_NAME, folder.parent / FISHEYE_MASK_NAME]
-    for cand in candidates:
-        if cand.is_file():
-            return cand
-    looked = ", ".join(str(c) for c in candidates)
-    raise CoreError(
-        f"{config_path}: fisheye is 1 but no fisheye mask was found (looked at {looked}); "
-        "give its path (tracker parameter fisheye_mask) or set fisheye: 0"
-    )
-
-
-def load_mask(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read a mask image as uint8 0 / 255 (gray > 127 counts as usable: VINS-Mono's masks are JPEGs).
-
-    Raises:
-        CoreError: when the file is missing or not an image.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise CoreError(f"mask image not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise CoreError(f"cannot read mask image {path}")
-    return np.where(img > 127, 255, 0).astype(np.uint8)
-
-
 def _check_mask(mask: np.ndarray, camera: CameraModel) -> np.ndarray:
     if not isinstance(mask, np.ndarray) or mask.ndim != 2:
         got = f"shape {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
@@ -443,49 +398,6 @@ class FeatureTracker:
         self.mask = None if mask is None else _check_mask(mask, self.cameras[0])
         self._next_id = 0
         self.reset()
-
-    @classmethod
-    def from_vins_config(
-        cls,
-        config: VinsConfig,
-        overrides: Mapping[str, Any] | None = None,
-        *,
-        fisheye_mask: str | os.PathLike[str] | None = None,
-        **kwargs: Any,
-    ) -> FeatureTracker:
-        """Build a tracker from a :class:`nsflow_ros.vins.config.VinsConfig`.
-
-        The config supplies the cameras, ``body_T_cam0`` and the VINS settings (max_cnt, min_dist,
-        F_threshold, flow_back, equalize, stereo when num_of_cam == 2, fisheye); ``overrides`` replaces any
-        :class:`TrackerSettings` field (plus ``window`` / ``levels``) afterwards.
-
-        Args:
-            config: the VINS config.
-            overrides: settings to replace, e.g. ``{"method": "classical", "max_cnt": 200}``.
-            fisheye_mask: the mask image for a config with ``fisheye: 1``; None = look for it where
-                VINS-Mono keeps it (:func:`find_fisheye_mask`). Ignored when the config's fisheye is 0.
-            **kwargs: passed to the constructor (``encoder``).
-
-        Returns:
-            the tracker.
-
-        Raises:
-            CoreError: when ``fisheye: 1`` and no usable mask is found.
-        """
-        base = TrackerSettings(
-            max_cnt=int(config.max_cnt),
-            min_dist=float(config.min_dist),
-            F_threshold=float(config.F_threshold),
-            flow_back=bool(config.flow_back),
-            equalize=bool(config.equalize),
-            stereo=int(config.num_of_cam) == 2,
-        )
-        settings = base.with_overrides(overrides or {})
-        body_r = np.asarray(config.body_T_cam[0], dtype=np.float64)[:3, :3] if config.body_T_cam else None
-        if config.fisheye:
-            path = Path(fisheye_mask) if fisheye_mask is not None else find_fisheye_mask(config.path)
-            kwargs["mask"] = load_mask(path)
-        return cls(list(config.cameras), settings, body_R_cam0=body_r, **kwargs)
 
     # -- state -----------------------------------------------------------------------------------------
 

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from nsflow_ros.data.camera import EUROC_CAM0, EUROC_CAM1, PinholeRadtan
 from nsflow_ros.data.errors import DataError
-from nsflow_ros.data.messages import decode_image, image_message, record_to_cdr, to_gray
+from nsflow_ros.data.images import decode_image, to_gray
+from nsflow_ros.data.messages import image_message, record_to_cdr
 from nsflow_ros.data.motion import (
     EUROC_IMU_NOISE,
     NO_IMU_NOISE,

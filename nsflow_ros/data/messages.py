@@ -1,5 +1,7 @@
 """Build, serialise and decode the sensor messages the data layer handles, with rosbags typestores.
 
+Image pixels are decoded by :func:`nsflow_ros.data.images.decode_image`, the decoder the node shares.
+
 ROS 1 and ROS 2 differ in the header (ROS 1 has ``seq``) and in serialisation (ROS 1 wire format vs CDR):
 every builder takes the typestore to build for, :func:`ros2_store` (Jazzy) or :func:`ros1_store` (Noetic).
 """
@@ -15,18 +17,17 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.images import ENCODINGS, decode_image
 from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
 from nsflow_ros.stamps import stamp_to_ns
 
 __all__ = [
     "COMPRESSED_IMAGE",
-    "ENCODINGS",
     "IMAGE",
     "IMU",
     "POINT_CLOUD",
     "POINT_STAMPED",
     "decode_compressed",
-    "decode_image",
     "default_encoding",
     "image_message",
     "imu_message",
@@ -39,7 +40,6 @@ __all__ = [
     "ros1_store",
     "ros2_store",
     "serialize",
-    "to_gray",
 ]
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -47,19 +47,6 @@ COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMU = "sensor_msgs/msg/Imu"
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 POINT_CLOUD = "sensor_msgs/msg/PointCloud"
-
-# encoding -> (dtype, channels)
-ENCODINGS: dict[str, tuple[np.dtype, int]] = {
-    "mono8": (np.dtype(np.uint8), 1),
-    "8UC1": (np.dtype(np.uint8), 1),
-    "mono16": (np.dtype(np.uint16), 1),
-    "16UC1": (np.dtype(np.uint16), 1),
-    "bgr8": (np.dtype(np.uint8), 3),
-    "rgb8": (np.dtype(np.uint8), 3),
-    "bgra8": (np.dtype(np.uint8), 4),
-    "rgba8": (np.dtype(np.uint8), 4),
-}
-
 
 def default_encoding(dtype: np.dtype, channels: int) -> str | None:
     """The encoding OpenCV-style pixels get by default: mono8, mono16, bgr8 or bgra8 (None otherwise)."""
@@ -103,7 +90,8 @@ def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, e
         stamp_ns: header stamp in nanoseconds.
         frame_id: header frame id.
         image: (H, W) or (H, W, C) uint8 / uint16 pixels.
-        encoding: one of :data:`ENCODINGS`; default mono8 / mono16 / bgr8 / bgra8 from dtype and channels.
+        encoding: one of :data:`nsflow_ros.data.images.ENCODINGS`; default mono8 / mono16 / bgr8 / bgra8
+            from dtype and channels.
         seq: ROS 1 header sequence number (ignored for ROS 2).
         step: row length in bytes; larger than the packed row to pad rows (default: packed).
 
@@ -203,34 +191,6 @@ def serialize(store: Any, msg: Any, msgtype: str) -> bytes:
     return bytes(store.serialize_cdr(msg, msgtype))
 
 
-def decode_image(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
-    """Pixels of a sensor_msgs/Image, honouring ``step`` (padded rows) and ``is_bigendian``.
-
-    Returns:
-        ``(image, encoding)``: a writable copy, (H, W) or (H, W, C), uint8 or uint16.
-
-    Raises:
-        DataError: for an unknown encoding, a step shorter than a row, or too little data.
-    """
-    enc = str(msg.encoding)
-    where = topic or "image"
-    if enc not in ENCODINGS:
-        raise DataError(f"{where}: unknown image encoding {enc!r}; supported: {', '.join(ENCODINGS)}")
-    dtype, ch = ENCODINGS[enc]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    row = w * ch * dtype.itemsize
-    data = np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data
-    if step < row:
-        raise DataError(f"{where}: step {step} is shorter than a row of {w} x {ch} x {dtype.itemsize} bytes")
-    if h and data.size < step * (h - 1) + row:
-        raise DataError(f"{where}: {data.size} bytes of data for {h} rows of step {step}")
-    # Rows may be padded (step > row): view them with the step as stride, then copy packed.
-    rows = np.lib.stride_tricks.as_strided(data, shape=(h, row), strides=(step, 1))
-    wire = dtype.newbyteorder(">" if msg.is_bigendian else "<")
-    pixels = np.ascontiguousarray(rows).view(wire).astype(dtype)  # copy in native order
-    return pixels.reshape((h, w) if ch == 1 else (h, w, ch)), enc
-
-
 def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
     """Pixels of a sensor_msgs/CompressedImage (png / jpeg), as mono8 / mono16 / bgr8 / bgra8.
 
@@ -243,23 +203,6 @@ def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
     ch = 1 if img.ndim == 2 else img.shape[2]
     enc = {1: "mono8" if img.dtype == np.uint8 else "mono16", 3: "bgr8", 4: "bgra8"}[ch]
     return img, enc
-
-
-def to_gray(image: np.ndarray, encoding: str) -> np.ndarray:
-    """8-bit gray version of decoded pixels. Shape: (H, W[, C]) -> (H, W) uint8.
-
-    Raises:
-        DataError: for an unknown encoding.
-    """
-    if encoding not in ENCODINGS:
-        raise DataError(f"unknown image encoding {encoding!r}; supported: {', '.join(ENCODINGS)}")
-    if encoding in ("mono16", "16UC1"):
-        return (image >> 8).astype(np.uint8)
-    if encoding in ("mono8", "8UC1"):
-        return image
-    code = {"bgr8": cv2.COLOR_BGR2GRAY, "rgb8": cv2.COLOR_RGB2GRAY, "bgra8": cv2.COLOR_BGRA2GRAY,
-            "rgba8": cv2.COLOR_RGBA2GRAY}[encoding]
-    return cv2.cvtColor(image, code)
 
 
 def record_to_message(store: Any, record: Record, seq: int = 0) -> tuple[str, Any]:

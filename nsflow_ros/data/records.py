@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nsflow_ros.data.images import to_gray, tracker_image
+
 __all__ = ["ImageRecord", "ImuRecord", "RawMessage", "Record"]
 
 
@@ -30,9 +32,12 @@ class ImageRecord:
 
     def gray(self) -> np.ndarray:
         """The image as 8-bit gray, shape (H, W) (16-bit is scaled down, colour converted)."""
-        from nsflow_ros.data.messages import to_gray
-
         return to_gray(self.image, self.encoding)
+
+    def for_tracker(self) -> np.ndarray:
+        """The image as the tracker is given it, the same array the node decodes from the message
+        (:func:`nsflow_ros.data.images.tracker_image`): (H, W) mono8 or (H, W, 3) BGR."""
+        return tracker_image(self.image, self.encoding)
 
 
 @dataclass(frozen=True, eq=False)

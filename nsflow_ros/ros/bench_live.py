@@ -55,7 +55,7 @@ def run_live_benchmark(
     import rclpy
 
     from nsflow_ros.data.sample import make_sample_sequence
-    from nsflow_ros.resources import share_file
+    from nsflow_ros.resources import STEREO_CONFIG, share_file
     from nsflow_ros.ros.live import run_live
     from nsflow_ros.ros.transport import use_large_image_transport
 
@@ -63,7 +63,7 @@ def run_live_benchmark(
         raise NSFlowError(f"seconds and rate must be > 0, got {seconds} and {rate}")
     tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
     out: dict[str, Any] = {"setup": {"seconds": seconds, "rate": rate, "size": [752, 480], "stereo": True,
-                                     "config": "config/euroc/euroc_stereo_imu_config.yaml"}}
+                                     "config": STEREO_CONFIG}}
     try:
         root = Path(tmp.name if tmp else cache_dir)
         seq = make_sample_sequence(root / f"sample-live-seed{seed}-{seconds:g}s", seed=seed, duration=seconds,

@@ -9,7 +9,7 @@ camera topic, so a tracker started just before or after the replay still gets th
 ``--perturb`` applies the paper's illumination perturbation on the fly; ``--write-bag`` writes the
 (perturbed) stream to a new ROS 2 bag instead of publishing; ``--offline`` runs the tracker core straight
 over the data without middleware (see :mod:`nsflow_ros.vins.offline`); ``--features-bag`` tracks every frame
-offline and writes a VINS feature bag (see :mod:`nsflow_ros.feature_bag`).
+offline and writes a VINS feature bag (see :mod:`nsflow_ros.vins.feature_bag`).
 """
 
 from __future__ import annotations
@@ -290,10 +290,10 @@ def _check_tracked_topics(opts: argparse.Namespace) -> None:
     """--topics with --offline / --features-bag: they must hold the config's camera topics."""
     if opts.topics is None:
         return
-    from nsflow_ros.resources import share_file
+    from nsflow_ros.resources import DEFAULT_CONFIG, share_file
     from nsflow_ros.vins.config import load_vins_config
 
-    cfg = load_vins_config(opts.config or share_file("config/euroc/euroc_mono_imu_config.yaml"))
+    cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
     cams = list(cfg.image_topics) if opts.features_bag is not None else [cfg.image0_topic]
     missing = [t for t in cams if t not in opts.topics]
     if missing:
@@ -345,12 +345,18 @@ def main(args: list[str] | None = None) -> int:
             next(iter(SensorSource(opts.path, topics=opts.topics).raw_messages()), None)
             keep_large_buffers()  # the tracker runs in this process
         if opts.features_bag is not None:
-            from nsflow_ros.feature_bag import write_feature_bag
+            from dataclasses import replace
 
+            from nsflow_ros.data.replay import replay_records
+            from nsflow_ros.resources import DEFAULT_CONFIG, share_file
+            from nsflow_ros.vins.config import load_vins_config
+            from nsflow_ros.vins.feature_bag import feature_bag_topics, write_feature_bag
+
+            cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
             bag = write_feature_bag(
-                ropts,
+                replay_records(replace(ropts, topics=feature_bag_topics(cfg))),
                 opts.features_bag,
-                config=opts.config,
+                cfg,
                 method=opts.method,
                 fmt=opts.features_bag_format,
                 progress=not opts.no_progress,

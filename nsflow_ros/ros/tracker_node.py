@@ -18,7 +18,8 @@ The node is a thin shell: the frame policy (VINS-Mono's first-frame drop, ``freq
 and the tracker live in :class:`nsflow_ros.vins.session.FrontEndSession`. Images are decoded and paired
 in the subscription callbacks and handed to one worker thread through a bounded queue: when the tracker
 falls behind, the oldest waiting frame is dropped and counted, never silently. Parameter changes at run
-time land in the session (:data:`nsflow_ros.ros.tracker_params.PARAMETERS` says which can change).
+time land in the session (the settings table :data:`nsflow_ros.vins.settings.SETTINGS` says what each
+change does).
 
 A bad frame (unsupported encoding, wrong step, truncated data, wrong size, duplicate stamp) is logged once
 per cause, then counted, and skipped. A missing or malformed config or model file, or a parameter of the
@@ -33,7 +34,7 @@ import sys
 import threading
 import time
 from array import array
-from collections import Counter, deque
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,19 +53,23 @@ from std_msgs.msg import Bool
 
 from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.core.tracker import FrameFeatures
+from nsflow_ros.data.images import ImageDecodeError, image_for_tracker
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
+from nsflow_ros.ros.counters import WINDOWED, NodeCounters
 from nsflow_ros.ros.errors import ParameterError
-from nsflow_ros.ros.image_conv import ImageDecodeError, image_to_numpy, numpy_to_image_fields
+from nsflow_ros.ros.image_conv import numpy_to_image_fields
 from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
-from nsflow_ros.ros.tracker_params import NODE_NAME, PARAMETERS, spec, usage
+from nsflow_ros.ros.tracker_params import NODE_NAME, PARAMETERS, coerce, spec, usage
 from nsflow_ros.ros.transport import use_large_image_transport
 from nsflow_ros.stamps import stamp_to_ns, stamp_to_s
 from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.draw import draw_tracks
 from nsflow_ros.vins.errors import ConfigError
 from nsflow_ros.vins.messages import FeatureCloud, encode
-from nsflow_ros.vins.session import SESSION_SETTINGS, FrameOutcome, FrontEndSession
+from nsflow_ros.vins.pairing import StereoPairer
+from nsflow_ros.vins.session import FrameOutcome, FrontEndSession, Skip
+from nsflow_ros.vins.settings import SESSION_SETTINGS, Mode
 
 __all__ = ["FEATURE_QOS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "resolve_config_path"]
 
@@ -74,7 +79,6 @@ FEATURE_QOS = QoSProfile(
 IMU_QOS = QoSProfile(
     depth=400, reliability=QoSReliabilityPolicy.BEST_EFFORT, history=QoSHistoryPolicy.KEEP_LAST
 )
-MAX_PENDING = 10  # unpaired stereo images kept per side
 DIAGNOSTIC_NAME = f"{NODE_NAME}: front-end"
 
 
@@ -138,15 +142,11 @@ class TrackerNode(Node):
             desc = ParameterDescriptor(
                 description=ps.full_description,
                 additional_constraints=f"{ps.kind} (checked by the node)",
-                read_only=not ps.live,
+                read_only=ps.mode is Mode.READ_ONLY,
                 dynamic_typing=True,
             )
-            p[ps.name] = ps.coerce(self.declare_parameter(ps.name, ps.default, desc).value)
+            p[ps.name] = coerce(ps, self.declare_parameter(ps.name, ps.default, desc).value)
         self._params = p
-        if p["queue_size"] < 1:
-            raise ParameterError(f"parameter queue_size: got {p['queue_size']}, expected an integer >= 1")
-        if p["status_period"] < 0:
-            raise ParameterError(f"parameter status_period: got {p['status_period']}, expected a number >= 0")
 
         cfg = load_vins_config(resolve_config_path(str(p["config_file"])))
         use_imu = bool(p["use_imu_prediction"])
@@ -162,11 +162,13 @@ class TrackerNode(Node):
         )
         self.layout = self.session.layout
 
-        self.stats: Counter[str] = Counter()
+        self.stats = NodeCounters()
         self.latencies_ms: deque[float] = deque(maxlen=2000)
         self._lat_lock = threading.Lock()
         self._logged_causes: set[str] = set()
-        self._pending: tuple[dict[int, Any], dict[int, Any]] = ({}, {})
+        self._pairer: StereoPairer[tuple[Any, np.ndarray, float]] = StereoPairer(
+            2 if self.session.tracker.settings.stereo else 1
+        )
         self._lock = threading.Lock()  # the session and the publishers: worker vs. parameter updates
         self._queue: deque[_Frame] = deque()
         self._queue_size = int(p["queue_size"])
@@ -244,10 +246,8 @@ class TrackerNode(Node):
         if not ours:
             return SetParametersResult(successful=True)
         try:
-            values = {q.name: spec(q.name).coerce(q.value) for q in ours}
+            values = {q.name: coerce(spec(q.name), q.value) for q in ours}
             period = values.get("status_period")
-            if period is not None and period < 0:
-                raise ParameterError(f"parameter status_period: got {period}, expected a number >= 0")
             session = {k: v for k, v in values.items() if k in SESSION_SETTINGS}
             with self._lock:
                 notes = self.session.update(**session) if session else []
@@ -272,9 +272,11 @@ class TrackerNode(Node):
             image: an image that could not be decoded (before pairing) rather than a frame the session
                 refused.
         """
-        self.stats["bad_frames"] += 1
-        self.stats["bad_images" if image else "refused_frames"] += 1
-        self.stats[f"bad:{cause}"] += 1
+        if image:
+            self.stats.images_undecodable += 1
+        else:
+            self.stats.frames_refused += 1
+        self.stats.bad[cause] += 1
         if cause not in self._logged_causes:
             self._logged_causes.add(cause)
             self.get_logger().error(f"skipping frame: {message} (further frames like it are only counted)")
@@ -286,34 +288,29 @@ class TrackerNode(Node):
 
     def _on_image(self, cam: int, msg: Image) -> None:
         t_recv = time.perf_counter()
-        self.stats["images_received"] += 1
+        self.stats.images_received += 1
         try:
-            img = image_to_numpy(msg)
+            img = image_for_tracker(msg)
         except ImageDecodeError as err:
             self._bad(err.cause, f"camera {cam}: {err}", image=True)
             return
-        if not self.session.tracker.settings.stereo:
-            self._enqueue(_Frame(msg.header, img, None, t_recv))
+        pair = self._pairer.add(cam, stamp_to_ns(msg.header.stamp), (msg.header, img, t_recv))
+        self.stats.images_unpaired = self._pairer.unpaired
+        if pair is None:
             return
-        key = stamp_to_ns(msg.header.stamp)
-        other = self._pending[1 - cam].pop(key, None)
-        if other is None:
-            pending = self._pending[cam]
-            pending[key] = (msg.header, img, t_recv)
-            while len(pending) > MAX_PENDING:  # the partner never came
-                pending.pop(min(pending))
-                self.stats["unpaired_images"] += 1
-            return
-        left, right = ((msg.header, img, t_recv), other) if cam == 0 else (other, (msg.header, img, t_recv))
-        self._enqueue(_Frame(left[0], left[1], right[1], min(left[2], right[2])))
+        left, right = pair
+        if right is None:
+            self._enqueue(_Frame(left[0], left[1], None, left[2]))
+        else:
+            self._enqueue(_Frame(left[0], left[1], right[1], min(left[2], right[2])))
 
     def _enqueue(self, frame: _Frame) -> None:
-        self.stats["frames_missing"] += self._gaps.add(stamp_to_s(frame.header.stamp))
+        self.stats.frames_missing_upstream += self._gaps.add(stamp_to_s(frame.header.stamp))
         with self._wake:
-            self.stats["frames_received"] += 1
+            self.stats.frames_received += 1
             if len(self._queue) >= self._queue_size:  # the tracker is behind: drop the oldest frame
                 self._queue.popleft()
-                self.stats["dropped_busy"] += 1
+                self.stats.frames_dropped_busy += 1
             self._queue.append(frame)
             self._wake.notify()
 
@@ -336,8 +333,9 @@ class TrackerNode(Node):
     def _frame(self, item: _Frame) -> None:
         stamp = stamp_to_s(item.header.stamp)
         out: FrameOutcome = self.session.process(stamp, item.image0, item.image1)
-        if out.skipped in ("duplicate_stamp", "tracker"):
-            self._bad(out.skipped if out.skipped == "duplicate_stamp" else f"tracker:{out.note}", out.note)
+        if out.skipped in (Skip.DUPLICATE_STAMP, Skip.TRACKER):
+            cause = str(out.skipped) if out.skipped is Skip.DUPLICATE_STAMP else f"tracker:{out.note}"
+            self._bad(cause, out.note)
             return
         if out.restart:
             self.get_logger().warning(out.note)
@@ -347,7 +345,7 @@ class TrackerNode(Node):
             return
         if out.note:
             self.get_logger().warning(out.note)
-        self.stats["frames_processed"] += 1
+        self.stats.frames_processed += 1
         if out.features is None:
             return
         msg = self._cloud(item.header, out.features)
@@ -356,7 +354,7 @@ class TrackerNode(Node):
             self.latencies_ms.append(latency)
         self._status.add(latency, len(out.features.cameras[0]))
         self._feature_pub.publish(msg)
-        self.stats["published"] += 1
+        self.stats.frames_published += 1
         if self._track_pub is not None:
             self._publish_track(item.header, out.features, item.image0, item.image1)
 
@@ -390,25 +388,17 @@ class TrackerNode(Node):
     def counters(self) -> dict[str, Any]:
         """The run's counters: frames received / processed / dropped (and why), published, latency."""
         s = self.stats
-        dropped = {"busy": s["dropped_busy"], "refused": s["refused_frames"]}
         with self._lat_lock:
             lat = list(self.latencies_ms)
-        policy = self.session.counters["skipped:first_frame"] + self.session.counters["skipped:restart"]
+        settings = self.session.tracker.settings
         return {
             "node": self.get_fully_qualified_name(),
-            "method": self.session.tracker.settings.method,
-            "stereo": bool(self.session.tracker.settings.stereo),
-            "images_received": s["images_received"],
-            "frames_received": s["frames_received"],
-            "frames_processed": s["frames_processed"],
-            "frames_published": s["published"],
-            "frames_skipped_by_policy": policy,
-            "frames_dropped": sum(dropped.values()),
-            "dropped": dropped,
-            "frames_missing_upstream": s["frames_missing"],
-            "images_unpaired": s["unpaired_images"],
-            "images_undecodable": s["bad_images"],
-            "restarts": self.session.counters["restarts"],
+            "method": settings.method,
+            "stereo": bool(settings.stereo),
+            **s.totals(),
+            "frames_skipped_by_policy": self.session.counters.skipped_by_policy,
+            "dropped": {"busy": s.frames_dropped_busy, "refused": s.frames_refused},
+            "restarts": self.session.counters.restarts,
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p90": _percentile(lat, 90),
         }
@@ -435,34 +425,29 @@ class TrackerNode(Node):
     def _report_status(self) -> None:
         """Log one status line (WARN when frames were dropped) and publish it on /diagnostics."""
         c = self.counters()
-        window = self._status.take(c)
+        window = self._status.take(self.stats)
         level = DiagnosticStatus.OK
-        if window["frames_received"] == 0 and not window["unpaired"]:
+        if window["frames_received"] == 0 and not window["images_unpaired"]:
             message = f"no images on {', '.join(self._image_topics)}"
-        elif window["dropped"] or window["unpaired"] or window["missing"]:
+        elif window["frames_dropped"] or window["images_unpaired"] or window["frames_missing_upstream"]:
             level = DiagnosticStatus.WARN
             problems = []
-            if window["dropped"]:
+            if window["frames_dropped"]:
+                dropped, received = window["frames_dropped"], window["frames_received"]
+                problems.append(f"falling behind: dropped {dropped} of {received} frames")
+            if window["images_unpaired"]:
+                problems.append(f"{window['images_unpaired']} images without their stereo partner")
+            if window["frames_missing_upstream"]:
                 problems.append(
-                    f"falling behind: dropped {window['dropped']} of {window['frames_received']} frames"
+                    f"{window['frames_missing_upstream']} frames missing before the node (stamp gaps)"
                 )
-            if window["unpaired"]:
-                problems.append(f"{window['unpaired']} images without their stereo partner")
-            if window["missing"]:
-                problems.append(f"{window['missing']} frames missing before the node (stamp gaps)")
             message = "; ".join(problems)
         else:
             message = "tracking"
+        totals = ("frames_received", "frames_processed", "frames_dropped", "frames_published")
         values = {
-            "frames received": c["frames_received"],
-            "frames processed": c["frames_processed"],
-            "frames dropped": c["frames_dropped"],
-            "frames published": c["frames_published"],
-            "frames received (period)": window["frames_received"],
-            "frames processed (period)": window["frames_processed"],
-            "frames dropped (period)": window["dropped"],
-            "images unpaired (period)": window["unpaired"],
-            "frames missing upstream (period)": window["missing"],
+            **{_label(k): c[k] for k in totals},
+            **{f"{_label(k)} (period)": window[k] for k in WINDOWED},
             "features per frame (period)": window["features"],
             "latency p50 ms (period)": window["latency_p50"],
             "latency p90 ms (period)": window["latency_p90"],
@@ -487,7 +472,7 @@ class TrackerNode(Node):
             return
         line = (
             f"{message} (last {window['seconds']:.1f} s: {window['frames_received']} frames received, "
-            f"{window['frames_processed']} processed, {window['dropped']} dropped"
+            f"{window['frames_processed']} processed, {window['frames_dropped']} dropped"
         )
         if window["latency_p50"] is not None:
             line += (
@@ -506,8 +491,9 @@ class TrackerNode(Node):
         """Stop the frame worker (frames still waiting are counted as dropped)."""
         with self._wake:
             if not self._stopping:  # frames and images still waiting were not processed
-                self.stats["dropped_busy"] += len(self._queue)
-                self.stats["unpaired_images"] += sum(len(p) for p in self._pending)
+                self.stats.frames_dropped_busy += len(self._queue)
+                self._pairer.flush()
+                self.stats.images_unpaired = self._pairer.unpaired
             self._stopping = True
             self._queue.clear()
             self._wake.notify_all()
@@ -562,13 +548,7 @@ class _StatusWindow:
         self._lock = threading.Lock()
         self._latencies: list[float] = []
         self._features: list[int] = []
-        self._last: dict[str, int] = {
-            "frames_received": 0,
-            "frames_processed": 0,
-            "frames_dropped": 0,
-            "images_unpaired": 0,
-            "frames_missing_upstream": 0,
-        }
+        self._last: dict[str, int] = {}
         self._t = time.monotonic()
         self._idle = 0
 
@@ -577,19 +557,16 @@ class _StatusWindow:
             self._latencies.append(latency_ms)
             self._features.append(features)
 
-    def take(self, counters: dict[str, Any]) -> dict[str, Any]:
-        """The period's figures; starts the next period."""
+    def take(self, counters: NodeCounters) -> dict[str, Any]:
+        """The period's figures (the :data:`~nsflow_ros.ros.counters.WINDOWED` counts by their names,
+        features, latency); starts the next period."""
         with self._lock:
             lat, feats = self._latencies, self._features
             self._latencies, self._features = [], []
         now = time.monotonic()
-        out = {
+        out: dict[str, Any] = {
             "seconds": now - self._t,
-            "frames_received": counters["frames_received"] - self._last["frames_received"],
-            "frames_processed": counters["frames_processed"] - self._last["frames_processed"],
-            "dropped": counters["frames_dropped"] - self._last["frames_dropped"],
-            "unpaired": counters["images_unpaired"] - self._last["images_unpaired"],
-            "missing": counters["frames_missing_upstream"] - self._last["frames_missing_upstream"],
+            **counters.since(self._last),
             "features": float(np.mean(feats)) if feats else 0.0,
             "latency_p50": _percentile(lat, 50),
             "latency_p90": _percentile(lat, 90),
@@ -597,8 +574,13 @@ class _StatusWindow:
         self._idle = self._idle + 1 if out["frames_received"] == 0 else 0
         out["quiet"] = self._idle > 1
         self._t = now
-        self._last = {k: counters[k] for k in self._last}
+        self._last = counters.totals()
         return out
+
+
+def _label(name: str) -> str:
+    """A counter's name as /diagnostics shows it: frames_received -> "frames received"."""
+    return name.replace("_", " ")
 
 
 # -- the process ---------------------------------------------------------------------------------------

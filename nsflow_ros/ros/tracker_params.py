@@ -1,8 +1,9 @@
-"""The ``tracker`` node's parameters: one table that the node, its ``--help`` and the params file come from.
+"""The ``tracker`` node's parameters: a ROS view over the settings table.
 
-:data:`PARAMETERS` is the single source of truth: the node declares each entry with its description,
-``nsflow-tracker --help`` prints them (:func:`usage`), and ``config/tracker_params.yaml`` is
-:func:`render_params_yaml`'s output (a test keeps the shipped file equal to it).
+Every parameter is a row of :data:`nsflow_ros.vins.settings.SETTINGS`: the node declares each with its
+description (read-only unless its mode allows a change), ``nsflow-tracker --help`` prints them
+(:func:`usage`), ``config/tracker_params.yaml`` is :func:`render_params_yaml`'s output (a test keeps the
+shipped file equal to it) and :func:`coerce` checks a value's type as ROS hands it over.
 
 Imports no ROS package, so ``--help`` needs no middleware.
 """
@@ -11,174 +12,66 @@ from __future__ import annotations
 
 import math
 import textwrap
-from dataclasses import dataclass
 from typing import Any
 
 from nsflow_ros.ros.errors import ParameterError
+from nsflow_ros.vins.errors import ConfigError
+from nsflow_ros.vins.settings import SETTINGS, Setting, Value, setting
 
-__all__ = ["NODE_NAME", "PARAMETERS", "ParamSpec", "render_params_yaml", "spec", "usage"]
+__all__ = ["NODE_NAME", "PARAMETERS", "coerce", "render_params_yaml", "spec", "usage"]
 
 NODE_NAME = "nsflow_tracker"
 
-_KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    """One node parameter.
-
-    Attributes:
-        name: the ROS parameter name.
-        default: the default value; its Python type is the parameter's type.
-        description: what it does, its unit and what special values mean.
-        live: True = a change at run time takes effect; False = read-only (a set is refused).
-        example: a typical value for error messages (None = the default).
-    """
-
-    name: str
-    default: bool | int | float | str
-    description: str
-    live: bool
-    example: bool | int | float | str | None = None
-
-    @property
-    def kind(self) -> str:
-        """The type in words: boolean, integer, number or string."""
-        return _KINDS[type(self.default)]
-
-    @property
-    def full_description(self) -> str:
-        """The description plus whether the parameter can change at run time."""
-        when = "Can change at run time." if self.live else "Read-only: set at start-up."
-        return f"{self.description} {when}"
-
-    def coerce(self, value: Any) -> bool | int | float | str:
-        """Check ``value``'s type; an integer is accepted for a number (``-p F_threshold:=1``).
-
-        Raises:
-            ParameterError: naming the parameter, the value given and the type expected.
-        """
-        want = type(self.default)
-        if want is float and isinstance(value, int) and not isinstance(value, bool):
-            return float(value)
-        if isinstance(value, want) and (want is bool or not isinstance(value, bool)):
-            if want is float and not math.isfinite(value):
-                raise ParameterError(f"parameter {self.name}: got {value!r}, expected a finite number")
-            return value
-        got = "no value" if value is None else f"{value!r} ({_KINDS.get(type(value), type(value).__name__)})"
-        example = _yaml_value(self.default if self.example is None else self.example)
-        raise ParameterError(
-            f"parameter {self.name}: got {got}, expected {_article(self.kind)} {self.kind} "
-            f"(e.g. -p {self.name}:={example})"
-        )
-
-
-def _article(word: str) -> str:
-    return "an" if word[0] in "aeiou" else "a"
-
-
-_FROM_CONFIG = "-1 = from the VINS config."
-
-PARAMETERS: tuple[ParamSpec, ...] = (
-    ParamSpec(
-        "config_file", "config/euroc/euroc_mono_imu_config.yaml",
-        "VINS-Fusion or VINS-Mono config file (OpenCV YAML). A relative path is looked up in the package's "
-        "share directory (where config/ is installed), then in the working directory.", False),
-    ParamSpec(
-        "method", "nsflow",
-        "Tracking method: 'nsflow' (learned descriptors + Levenberg-Marquardt LK, the paper's tracker), "
-        "'nsflow_lk' (the same descriptors as uint8 through OpenCV's pyramidal LK, faster), 'classical' "
-        "(the image intensity through the LM solver) or 'klt' (OpenCV calcOpticalFlowPyrLK as VINS-Fusion "
-        "calls it: 21x21 window, maxLevel 3, 30 iterations / eps 0.01). A change restarts the tracks (ids "
-        "keep counting up).", True),
-    ParamSpec(
-        "model_path", "",
-        "ONNX encoder of the learned methods ('nsflow', 'nsflow_lk'); '' = the model shipped in the "
-        "package's models/ folder. Its maps are smoothed as its metadata 'smoothing' declares (the shipped "
-        "model: 1.0,1.0). A change restarts the tracks.", True),
-    ParamSpec("max_cnt", -1, f"Most features kept per image (VINS max_cnt, >= 1). {_FROM_CONFIG}", True, 150),
-    ParamSpec(
-        "min_dist", -1, f"Minimum distance between features in pixels (VINS min_dist, >= 0). {_FROM_CONFIG}",
-        True, 30),
-    ParamSpec(
-        "F_threshold", -1.0,
-        "RANSAC threshold in pixels of the fundamental-matrix check (VINS F_threshold, > 0; an integer "
-        f"is accepted). {_FROM_CONFIG}", True, 1.0),
-    ParamSpec(
-        "flow_back", -1,
-        f"Track back and drop points that do not return within 0.5 px (VINS flow_back), 0/1. {_FROM_CONFIG}",
-        True, 1),
-    ParamSpec(
-        "show_track", -1, f"Publish the image_track debug image (VINS show_track), 0/1. {_FROM_CONFIG}",
-        True),
-    ParamSpec(
-        "freq", -1,
-        "Feature publishing rate in Hz of the 'mono' layout (VINS-Mono freq; 0 = 100 Hz, in effect every "
-        "image, as in VINS-Mono); frames in between are tracked but not published. The 'fusion' layout "
-        f"publishes every frame and ignores it. {_FROM_CONFIG}", True, 10),
-    ParamSpec(
-        "equalize", -1,
-        "Equalise the image (CLAHE) before tracking (VINS-Mono equalize), 0/1. A change restarts the "
-        f"tracks. {_FROM_CONFIG}", True),
-    ParamSpec(
-        "reject_with_f", -1,
-        "Fundamental-matrix RANSAC on tracked points, 0/1. -1 = on for the 'mono' layout (VINS-Mono does "
-        "it), off for 'fusion' (VINS-Fusion does not).", True),
-    ParamSpec(
-        "output_layout", "",
-        "Feature message layout: 'fusion' (VINS-Fusion channels: id, camera, u, v, vx, vy + 3 zeros) or "
-        "'mono' (VINS-Mono channels: id * NUM_OF_CAM + camera, u, v, vx, vy; first frame dropped, freq "
-        "throttling, restart on stamp gaps). '' = the dialect of the config file.", False),
-    ParamSpec(
-        "feature_topic", "/feature_tracker/feature",
-        "Topic of the features (sensor_msgs/PointCloud, reliable, keep-last 2000); the VINS estimators "
-        "listen here.", False),
-    ParamSpec(
-        "restart_topic", "/feature_tracker/restart",
-        "Topic of the std_msgs/Bool restart signal of the 'mono' layout (stamp gap > 1 s or time going "
-        "backwards).", False),
-    ParamSpec(
-        "image_track_topic", "image_track", "Topic of the debug image (sensor_msgs/Image, bgr8).", False),
-    ParamSpec(
-        "use_imu_prediction", False,
-        "Predict feature positions from the gyroscope (needs imu_topic and body_T_cam0 in the VINS config).",
-        False),
-    ParamSpec(
-        "num_threads", 0, "CPU threads of the encoder; 0 = all usable cores. A change restarts the tracks.",
-        True),
-    ParamSpec(
-        "fisheye_mask", "",
-        "Mask image (255 = usable) for a VINS config with fisheye: 1 (VINS-Mono's fisheye mask): tracked "
-        "points on its zeros are dropped and no corners are detected there. '' = fisheye_mask.jpg in the "
-        "config's folder or its parent, where VINS-Mono keeps it. Unused when the config's fisheye is 0.",
-        False),
-    ParamSpec(
-        "queue_size", 4,
-        "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, the oldest waiting "
-        "frame is dropped and counted; a small queue keeps the latency low.", False),
-    ParamSpec(
-        "status_period", 5.0,
-        "Seconds between status lines in the log and on /diagnostics (frames received / processed / "
-        "dropped, features, latency); 0 = none.", True),
-    ParamSpec(
-        "summary_file", "",
-        "Write the run's counters as JSON to this file when the node stops ('' = no file).", False),
-)
+PARAMETERS: tuple[Setting, ...] = SETTINGS
 """Every parameter of the ``tracker`` node, in the order of the params file."""
 
-_BY_NAME = {p.name: p for p in PARAMETERS}
 
-
-def spec(name: str) -> ParamSpec:
-    """The :class:`ParamSpec` of a parameter.
+def spec(name: str) -> Setting:
+    """The settings-table row of a parameter.
 
     Raises:
         ParameterError: for an unknown name, listing the known ones.
     """
     try:
-        return _BY_NAME[name]
-    except KeyError:
-        raise ParameterError(f"unknown parameter {name!r}; known: {', '.join(_BY_NAME)}") from None
+        return setting(name)
+    except ConfigError as err:
+        known = ", ".join(p.name for p in SETTINGS)
+        raise ParameterError(f"unknown parameter {name!r}; known: {known}") from err
+
+
+def coerce(p: Setting, value: Any) -> Value:
+    """Check a parameter value's type; an integer is accepted for a number (``-p F_threshold:=1``).
+
+    Node-only parameters with a minimum (queue_size, status_period) are range-checked here too; the
+    session checks the ranges of its own settings.
+
+    Raises:
+        ParameterError: naming the parameter, the value given and the type (or range) expected.
+    """
+    want = p.type
+    if want is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if isinstance(value, want) and (want is bool or not isinstance(value, bool)):
+        if want is float and not math.isfinite(value):
+            raise ParameterError(f"parameter {p.name}: got {value!r}, expected a finite number")
+        low = p.minimum
+        if not p.session and low is not None and not (value > low if p.positive else value >= low):
+            raise ParameterError(
+                f"parameter {p.name}: got {value}, expected {_article(p.kind)} {p.kind} {p.bound}"
+            )
+        return value
+    got = "no value" if value is None else f"{value!r} ({_KINDS.get(type(value), type(value).__name__)})"
+    example = _yaml_value(p.default if p.example is None else p.example)
+    raise ParameterError(
+        f"parameter {p.name}: got {got}, expected {_article(p.kind)} {p.kind} (e.g. -p {p.name}:={example})"
+    )
+
+
+_KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
+
+
+def _article(word: str) -> str:
+    return "an" if word[0] in "aeiou" else "a"
 
 
 def _yaml_value(value: bool | int | float | str) -> str:
@@ -199,7 +92,7 @@ def render_params_yaml(width: int = 110) -> str:
     """The params file (``--params-file``) with every parameter at its default, described in comments."""
     intro = (
         f"ROS 2 parameters of the {NODE_NAME} node, each at its default (this file is generated from "
-        "nsflow_ros/ros/tracker_params.py). Tracker settings that also exist in the VINS config use -1 for "
+        "nsflow_ros/vins/settings.py). Tracker settings that also exist in the VINS config use -1 for "
         "'take the value from the VINS config file'; any other value overrides the file. Switches "
         "(flow_back, show_track, equalize) are integers for that reason: -1 = from the config, 0 = off, "
         "1 = on. Strings use '' for 'default'."
@@ -240,7 +133,8 @@ def usage(prog: str = "nsflow-tracker", width: int = 100) -> str:
         "Parameters (-p NAME:=VALUE, or a params file: config/tracker_params.yaml has them all):",
     ]
     for p in PARAMETERS:
-        lines.append(f"  {p.name} ({p.kind}, default {_yaml_value(p.default)})")
+        unit = f", {p.unit}" if p.unit else ""
+        lines.append(f"  {p.name} ({p.kind}{unit}, default {_yaml_value(p.default)})")
         lines += _wrap(p.full_description, width, "      ")
     lines += [
         "",

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ import numpy as np
 from nsflow_ros.core.camera import CameraError, CameraModel, camera_from_dict, load_camera
 from nsflow_ros.core.opencv_yaml import OpenCVYamlError, read_opencv_yaml
 from nsflow_ros.vins.errors import ConfigError
+from nsflow_ros.vins.settings import KEEP, SETTINGS, VINS_KEYS
 
 __all__ = [
     "DEFAULT_FREQ",
@@ -48,18 +48,9 @@ Dialect = Literal["fusion", "mono"]
 DEFAULT_FREQ = 100
 """Publishing rate (Hz) that ``freq: 0`` stands for, as in VINS-Mono (in effect: every image)."""
 
-OVERRIDABLE_KEYS: tuple[str, ...] = (
-    "max_cnt",
-    "min_dist",
-    "F_threshold",
-    "flow_back",
-    "show_track",
-    "freq",
-    "equalize",
-)
-"""Tracker settings :func:`apply_overrides` accepts, by their VINS config key."""
+OVERRIDABLE_KEYS: tuple[str, ...] = VINS_KEYS
+"""Tracker settings :func:`apply_overrides` accepts, by their VINS config key (from the settings table)."""
 
-_KEEP = -1  # override value meaning "keep the config's value" (ROS parameters cannot be None)
 _ROTATION_TOL = 1e-6  # |R R^T - I| bound for an extrinsic rotation
 _FUSION_KEYS = ("image0_topic", "num_of_cam", "cam0_calib")
 _MONO_KEYS = ("image_topic", "model_type")
@@ -348,45 +339,7 @@ def load_vins_config(path: str | os.PathLike[str]) -> VinsConfig:
 # Overrides
 
 
-def _override_int(key: str, value: Any, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise ConfigError(f"tracker setting '{key}' must be an integer, got {_describe(value)}")
-    if int(value) < minimum:
-        raise ConfigError(f"tracker setting '{key}' must be >= {minimum} (or {_KEEP} to keep), got {value}")
-    return int(value)
-
-
-def _override_flag(key: str, value: Any) -> bool:
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, numbers.Integral) and int(value) in (0, 1):
-        return bool(value)
-    raise ConfigError(
-        f"tracker setting '{key}' must be true/false or 0/1 (or {_KEEP} to keep), got {_describe(value)}"
-    )
-
-
-def _override_real(key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ConfigError(f"tracker setting '{key}' must be a number, got {_describe(value)}")
-    out = float(value)
-    if not math.isfinite(out) or out <= 0.0:
-        raise ConfigError(
-            f"tracker setting '{key}' must be a finite number > 0 (or {_KEEP} to keep), got {out}"
-        )
-    return out
-
-
-def _validate_override(key: str, value: Any) -> int | float | bool:
-    if key == "max_cnt":
-        return _override_int(key, value, 1)
-    if key == "min_dist":
-        return _override_int(key, value, 0)
-    if key == "freq":
-        return _override_int(key, value, 0) or DEFAULT_FREQ
-    if key == "F_threshold":
-        return _override_real(key, value)
-    return _override_flag(key, value)
+_BY_VINS_KEY = {s.vins_key: s for s in SETTINGS if s.vins_key is not None}
 
 
 def apply_overrides(config: VinsConfig, overrides: Mapping[str, Any]) -> VinsConfig:
@@ -394,10 +347,10 @@ def apply_overrides(config: VinsConfig, overrides: Mapping[str, Any]) -> VinsCon
 
     Args:
         config: the configuration read from the VINS file.
-        overrides: values by VINS key, a subset of :data:`OVERRIDABLE_KEYS`. A value of ``None`` or -1
-            (-1.0 for F_threshold) keeps the config's value: ROS parameters use -1 for "from the VINS config".
-            Types: max_cnt (>= 1), min_dist (>= 0) and freq (>= 0; 0 means :data:`DEFAULT_FREQ`) are
-            integers; F_threshold is a number > 0; flow_back, show_track and equalize are booleans or 0/1.
+        overrides: values by VINS key, a subset of :data:`OVERRIDABLE_KEYS`. A value of ``None`` or
+            :data:`~nsflow_ros.vins.settings.KEEP` (-1, -1.0 for F_threshold) keeps the config's value:
+            ROS parameters use -1 for "from the VINS config". Types and ranges are the settings table's
+            (:data:`nsflow_ros.vins.settings.SETTINGS`); ``freq`` 0 means :data:`DEFAULT_FREQ`.
 
     Returns:
         A new :class:`VinsConfig`; ``config`` is unchanged.
@@ -411,9 +364,10 @@ def apply_overrides(config: VinsConfig, overrides: Mapping[str, Any]) -> VinsCon
     for key, value in overrides.items():
         if key not in OVERRIDABLE_KEYS:
             raise ConfigError(f"unknown tracker setting {key!r} (overridable: {', '.join(OVERRIDABLE_KEYS)})")
-        if value is None:
+        keep = not isinstance(value, bool) and isinstance(value, int | float) and value == KEEP
+        if value is None or keep:
             continue
-        if not isinstance(value, bool) and isinstance(value, numbers.Real) and value == _KEEP:
-            continue
-        changes[key] = _validate_override(key, value)
+        changes[key] = _BY_VINS_KEY[key].check(value)
+        if key == "freq":
+            changes[key] = changes[key] or DEFAULT_FREQ
     return dataclasses.replace(config, **changes) if changes else config

@@ -29,7 +29,7 @@ from nsflow_ros.data.scoring import TrackStats
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.vins.draw import draw_tracks
-from nsflow_ros.vins.session import FrontEndSession
+from nsflow_ros.vins.session import FrontEndSession, Skip
 from nsflow_ros.vins.sheet import contact_sheet, write_png
 
 __all__ = ["CSV_HEADER", "OfflineSummary", "run_offline"]
@@ -105,12 +105,12 @@ def run_offline(
     """
     from tqdm import tqdm
 
-    from nsflow_ros.resources import share_file
+    from nsflow_ros.resources import DEFAULT_CONFIG, share_file
     from nsflow_ros.vins.config import load_vins_config
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = load_vins_config(config or share_file("config/euroc/euroc_mono_imu_config.yaml"))
+    cfg = load_vins_config(config or share_file(DEFAULT_CONFIG))
     # the same frame policy as the node (duplicate stamps, VINS-Mono's first frame and freq), camera 0 only
     fixed = {"stereo": False, **(overrides or {})}
     session = FrontEndSession(cfg, {"method": method}, tracker_overrides=fixed)
@@ -123,9 +123,8 @@ def run_offline(
         for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
             if not isinstance(rec, ImageRecord):
                 continue
-            gray = rec.gray()
-            outcome = session.process(rec.stamp_ns * 1e-9, gray)
-            if outcome.skipped == "tracker":
+            outcome = session.process(rec.stamp_ns * 1e-9, rec.for_tracker())
+            if outcome.skipped is Skip.TRACKER:
                 raise NSFlowError(f"frame at {rec.stamp_ns} ns: {outcome.note}")
             feats = outcome.features
             bar.update(1)
@@ -140,7 +139,7 @@ def run_offline(
                     f"{cf.velocities[j, 1]:.6f},{cf.track_counts[j]}"
                 )
             if stats.frames % 10 == 5 and len(sheet) < 4 * sheet_frames:
-                sheet.append((stats.frames, draw_tracks(feats, gray)))
+                sheet.append((stats.frames, draw_tracks(feats, rec.gray())))
     except NSFlowError as err:
         error = err  # keep what was processed; report after writing
     finally:

@@ -13,9 +13,10 @@ and tested once. Per frame (:meth:`FrontEndSession.process`) it
 * predicts the flow from the gyro samples given to :meth:`FrontEndSession.add_gyro` when that is on;
 * counts what it did (:attr:`FrontEndSession.counters`).
 
-:meth:`FrontEndSession.update` is where settings changed at run time land: most apply to the running
-tracker; a change of ``method``, ``model_path``, ``num_threads`` or ``equalize`` builds a new tracker (the
-tracks restart; ids keep counting up, so an id is never reused).
+:meth:`FrontEndSession.update` is where settings changed at run time land; the settings table
+(:data:`nsflow_ros.vins.settings.SETTINGS`) says what each change does: a live one applies to the running
+tracker, a rebuild one (``method``, ``model_path``, ``num_threads``, ``equalize``) builds a new tracker
+(the tracks restart; ids keep counting up, so an id is never reused), a read-only one is refused.
 
 Imports neither rclpy nor torch.
 """
@@ -27,7 +28,8 @@ import os
 import threading
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -35,37 +37,38 @@ import numpy as np
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import GyroBuffer
 from nsflow_ros.core.tracker import FeatureTracker, FrameFeatures
-from nsflow_ros.vins.config import OVERRIDABLE_KEYS, VinsConfig, apply_overrides
+from nsflow_ros.vins.config import VinsConfig, apply_overrides
 from nsflow_ros.vins.errors import ConfigError
 from nsflow_ros.vins.messages import LAYOUTS
+from nsflow_ros.vins.settings import (
+    SESSION_SETTINGS,
+    SETTINGS,
+    Mode,
+    Setting,
+    config_tracker_fields,
+    session_tracker_fields,
+)
+from nsflow_ros.vins.tracker import tracker_from_config
 
-__all__ = [
-    "KEEP",
-    "REBUILD_SETTINGS",
-    "RESTART_GAP_S",
-    "SESSION_SETTINGS",
-    "FrameOutcome",
-    "FrontEndSession",
-]
+__all__ = ["RESTART_GAP_S", "FrameOutcome", "FrontEndSession", "SessionCounters", "Skip"]
 
 RESTART_GAP_S = 1.0
 """VINS-Mono: a stamp gap larger than this (seconds) restarts the estimator."""
 
-KEEP = -1
-"""A setting's value meaning "the VINS config's value" (or the layout's default for reject_with_f)."""
+_SESSION = tuple(s for s in SETTINGS if s.session)
 
-SESSION_SETTINGS: tuple[str, ...] = (
-    *OVERRIDABLE_KEYS,
-    "method",
-    "model_path",
-    "num_threads",
-    "reject_with_f",
-    "use_imu_prediction",
-)
-"""Settings :class:`FrontEndSession` takes, at construction and in :meth:`FrontEndSession.update`."""
 
-REBUILD_SETTINGS: frozenset[str] = frozenset({"method", "model_path", "num_threads", "equalize"})
-"""Settings whose change builds a new tracker (its encoder or image preparation changes): tracks restart."""
+class Skip(StrEnum):
+    """Why :meth:`FrontEndSession.process` did not track a frame."""
+
+    FIRST_FRAME = "first_frame"
+    """VINS-Mono layout: the first image (at start or after a restart) is dropped."""
+    RESTART = "restart"
+    """VINS-Mono layout: a stamp gap or time going backwards; the estimator must restart."""
+    DUPLICATE_STAMP = "duplicate_stamp"
+    """The stamp repeats the previous frame's."""
+    TRACKER = "tracker"
+    """The tracker refused the frame (wrong size, missing stereo image, ...)."""
 
 
 @dataclass(frozen=True)
@@ -76,23 +79,43 @@ class FrameOutcome:
         features: the features to publish; None when nothing is published for this frame.
         tracked: the tracker ran on the frame (False for policy skips and errors).
         restart: VINS-Mono layout: the estimator must restart (publish ``restart``).
-        skipped: why the frame was not tracked: ``first_frame`` / ``restart`` (VINS-Mono policy),
-            ``duplicate_stamp`` or ``tracker`` (the tracker refused the frame); None when tracked.
+        skipped: why the frame was not tracked; None when tracked.
         note: a sentence for the log when something noteworthy happened (a skip, a reset), else "".
     """
 
     features: FrameFeatures | None
     tracked: bool
     restart: bool = False
-    skipped: str | None = None
+    skipped: Skip | None = None
     note: str = ""
 
 
-def _unset(value: Any) -> bool:
-    """True for the values that mean "default": None, -1 (not a bool) and ""."""
-    if value is None or (isinstance(value, str) and value == ""):
-        return True
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and value == KEEP
+@dataclass
+class SessionCounters:
+    """What a :class:`FrontEndSession` did, counted frame by frame.
+
+    Attributes:
+        tracked: frames the tracker ran on.
+        published: frames with features to publish.
+        skipped: frames not tracked, by reason.
+        restarts: VINS-Mono estimator restarts asked for.
+        resets: track resets after time went backwards (VINS-Fusion layout).
+        throttled: frames tracked but not published (VINS-Mono ``freq``).
+        rebuilds: new trackers built after a setting change.
+    """
+
+    tracked: int = 0
+    published: int = 0
+    skipped: Counter[Skip] = field(default_factory=Counter)
+    restarts: int = 0
+    resets: int = 0
+    throttled: int = 0
+    rebuilds: int = 0
+
+    @property
+    def skipped_by_policy(self) -> int:
+        """Frames the VINS-Mono policy dropped (first frames and restarts)."""
+        return self.skipped[Skip.FIRST_FRAME] + self.skipped[Skip.RESTART]
 
 
 class FrontEndSession:
@@ -100,8 +123,9 @@ class FrontEndSession:
 
     Args:
         config: the VINS config (cameras, topics and the file's tracker settings).
-        settings: values by name from :data:`SESSION_SETTINGS`; -1, None or "" keep the default (the VINS
-            config's value; for ``reject_with_f`` on in the VINS-Mono layout, off in VINS-Fusion's).
+        settings: values by name from :data:`~nsflow_ros.vins.settings.SESSION_SETTINGS`; -1, None or ""
+            keep the default (the VINS config's value; for ``reject_with_f`` on in the VINS-Mono layout,
+            off in VINS-Fusion's).
         layout: feature message layout, ``fusion`` or ``mono``; None = the config's dialect.
         fisheye_mask: mask image for a config with ``fisheye: 1``; None = where VINS-Mono keeps it.
         tracker_overrides: further :class:`~nsflow_ros.core.tracker.TrackerSettings` fields, fixed for the
@@ -127,14 +151,13 @@ class FrontEndSession:
         self._base_config = config
         self._fisheye_mask = fisheye_mask
         self._fixed = dict(tracker_overrides or {})
-        self._settings: dict[str, Any] = {}
         self._check_names(settings or {})
-        self._settings.update(settings or {})
-        self.config, overrides = self._resolve(self._settings)
-        self.tracker = self._build(overrides)
-        self.gyro: GyroBuffer | None = GyroBuffer() if overrides["use_imu_prediction"] else None
+        self._settings: dict[str, Any] = dict(settings or {})
+        self.config, self._fields = self._resolve(self._settings)
+        self.tracker = self._build()
+        self.gyro: GyroBuffer | None = GyroBuffer() if self._fields["use_imu_prediction"] else None
         self._gyro_lock = threading.Lock()  # IMU messages may arrive on another thread than the frames
-        self.counters: Counter[str] = Counter()
+        self.counters = SessionCounters()
         self._id_offset = 0
         self._withheld: set[int] = set()  # ids cut after max_cnt was lowered (see _trim)
         self._last_stamp: float | None = None
@@ -149,24 +172,21 @@ class FrontEndSession:
             raise ConfigError(f"unknown front-end setting(s) {unknown}; valid: {list(SESSION_SETTINGS)}")
 
     def _resolve(self, settings: Mapping[str, Any]) -> tuple[VinsConfig, dict[str, Any]]:
-        """The effective VINS config and the tracker overrides for ``settings``."""
-        cfg = apply_overrides(self._base_config, {k: settings.get(k) for k in OVERRIDABLE_KEYS})
-        reject = settings.get("reject_with_f")
-        method = settings.get("method")
-        threads = settings.get("num_threads")
-        overrides: dict[str, Any] = {
-            "method": "nsflow" if _unset(method) else str(method),
-            "model_path": None if _unset(settings.get("model_path")) else str(settings["model_path"]),
-            "num_threads": None if _unset(threads) or threads == 0 else int(threads),
-            "reject_with_f": self.layout == "mono" if _unset(reject) else bool(reject),
-            "use_imu_prediction": bool(settings.get("use_imu_prediction") or False),
-        }
-        return cfg, overrides
-
-    def _build(self, overrides: Mapping[str, Any]) -> FeatureTracker:
-        return FeatureTracker.from_vins_config(
-            self.config, {**overrides, **self._fixed}, fisheye_mask=self._fisheye_mask
+        """The effective VINS config and the session's TrackerSettings fields for ``settings``."""
+        cfg = apply_overrides(
+            self._base_config, {s.vins_key: settings.get(s.name) for s in _SESSION if s.vins_key}
         )
+        return cfg, session_tracker_fields(settings, self.layout)
+
+    def _build(self) -> FeatureTracker:
+        return tracker_from_config(
+            self.config, {**self._fields, **self._fixed}, fisheye_mask=self._fisheye_mask
+        )
+
+    @staticmethod
+    def _value(s: Setting, config: VinsConfig, fields: Mapping[str, Any]) -> Any:
+        """A session setting's effective value: the config's for a VINS key, else the tracker field's."""
+        return getattr(config, s.vins_key) if s.vins_key is not None else fields[s.name]
 
     @property
     def settings(self) -> dict[str, Any]:
@@ -186,61 +206,71 @@ class FrontEndSession:
     def update(self, **settings: Any) -> list[str]:
         """Change settings of the running session; all or nothing.
 
+        What a change does is its :class:`~nsflow_ros.vins.settings.Mode` in the settings table: a live
+        one replaces the running tracker's settings, a rebuild one builds a new tracker (tracks restart;
+        ids keep counting up), a read-only one is refused.
+
         Args:
-            **settings: names from :data:`SESSION_SETTINGS`; -1, None or "" restore the default.
+            **settings: names from :data:`~nsflow_ros.vins.settings.SESSION_SETTINGS`; -1, None or ""
+                restore the default.
 
         Returns:
             what changed, one sentence per change, for the log ([] when nothing changed).
 
         Raises:
-            ConfigError: an unknown name or a bad value; NSFlowError (CoreError, EncoderError) when the new
-                tracker cannot be built. The session is unchanged when it raises.
+            ConfigError: an unknown name, a bad value or a read-only setting changed; NSFlowError
+                (CoreError, EncoderError) when the new tracker cannot be built. The session is unchanged
+                when it raises.
         """
         self._check_names(settings)
-        imu = settings.get("use_imu_prediction", self.gyro is not None)
-        if bool(imu) != (self.gyro is not None):
-            raise ConfigError("use_imu_prediction cannot change while the session runs")
         merged = {**self._settings, **settings}
-        cfg, overrides = self._resolve(merged)
-        old_cfg, old = self._resolve(self._settings)
-        changed = {k for k in OVERRIDABLE_KEYS if getattr(cfg, k) != getattr(old_cfg, k)}
-        changed |= {k for k in overrides if overrides[k] != old[k]}
+        cfg, fields = self._resolve(merged)
+        changed = [
+            s for s in _SESSION if self._value(s, cfg, fields) != self._value(s, self.config, self._fields)
+        ]
+        refused = [s.name for s in changed if s.mode is Mode.READ_ONLY]
+        if refused:
+            raise ConfigError(f"{', '.join(refused)} cannot change while the session runs")
+        rebuild = sorted(s.name for s in changed if s.mode is Mode.REBUILD)
+        live = [s for s in changed if s.mode is Mode.LIVE]
         notes = []
-        if changed & REBUILD_SETTINGS:
-            prev_config, self.config = self.config, cfg
-            try:
-                tracker = self._build(overrides)
-            except Exception:
-                self.config = prev_config
-                raise
-            self._id_offset += self.tracker.next_id
-            self.tracker = tracker
-            self._withheld.clear()
-            self.counters["rebuilds"] += 1
-            what = ", ".join(sorted(changed & REBUILD_SETTINGS))
+        if rebuild:
+            self._rebuild(cfg, fields)
+            what = ", ".join(rebuild)
             notes.append(f"{what} changed: new tracker, tracks restart (ids continue from {self._id_offset})")
-        elif changed:
-            soft = {
-                "max_cnt": int(cfg.max_cnt),
-                "min_dist": float(cfg.min_dist),
-                "F_threshold": float(cfg.F_threshold),
-                "flow_back": bool(cfg.flow_back),
-                "reject_with_f": overrides["reject_with_f"],
-            }
-            try:
-                new = self.tracker.settings.with_overrides(soft)
-            except CoreError as err:
-                raise ConfigError(str(err)) from err
-            self.tracker.settings = new
-            self.config = cfg
-        if "freq" in changed:
+        elif live:
+            self._apply_live(cfg, fields, [s.name for s in live if s.tracker])
+        if any(s.name == "freq" for s in changed):
             self._first_time = self._last_time
             self._pub_count = 0
         self._settings = merged
-        for key in sorted(changed - REBUILD_SETTINGS):
-            value = overrides[key] if key in overrides else getattr(cfg, key)
-            notes.append(f"{key} is now {value}")
+        for s in sorted(live, key=lambda s: s.name):
+            notes.append(f"{s.name} is now {self._value(s, cfg, fields)}")
         return notes
+
+    def _rebuild(self, config: VinsConfig, fields: dict[str, Any]) -> None:
+        """Build a new tracker for new settings; ids continue after the old tracker's."""
+        prev = self.config, self._fields
+        self.config, self._fields = config, fields
+        try:
+            tracker = self._build()
+        except Exception:
+            self.config, self._fields = prev
+            raise
+        self._id_offset += self.tracker.next_id
+        self.tracker = tracker
+        self._withheld.clear()
+        self.counters.rebuilds += 1
+
+    def _apply_live(self, config: VinsConfig, fields: dict[str, Any], names: list[str]) -> None:
+        """Give the running tracker new values of live settings (the one place its settings change)."""
+        target = {**config_tracker_fields(config), **fields}
+        try:
+            new = self.tracker.settings.with_overrides({**{n: target[n] for n in names}, **self._fixed})
+        except CoreError as err:
+            raise ConfigError(str(err)) from err
+        self.tracker.settings = new
+        self.config, self._fields = config, fields
 
     # -- frames ----------------------------------------------------------------------------------------
 
@@ -302,20 +332,18 @@ class FrontEndSession:
             what to publish and what happened (:class:`FrameOutcome`); counted in :attr:`counters`.
         """
         out = self._process(stamp, image0, image1)
-        if out.tracked:
-            self.counters["tracked"] += 1
-        if out.features is not None:
-            self.counters["published"] += 1
-        if out.skipped:
-            self.counters[f"skipped:{out.skipped}"] += 1
-        if out.restart:
-            self.counters["restarts"] += 1
+        c = self.counters
+        c.tracked += out.tracked
+        c.published += out.features is not None
+        c.restarts += out.restart
+        if out.skipped is not None:
+            c.skipped[out.skipped] += 1
         return out
 
     def _process(self, stamp: float, image0: np.ndarray, image1: np.ndarray | None) -> FrameOutcome:
         last = self._last_stamp
         if last is not None and stamp == last:
-            return FrameOutcome(None, False, skipped="duplicate_stamp",
+            return FrameOutcome(None, False, skipped=Skip.DUPLICATE_STAMP,
                                 note=f"stamp {stamp:.9f} repeats the previous frame's")
         publish = True
         note = ""
@@ -324,12 +352,12 @@ class FrontEndSession:
             if gate is None:
                 restart = bool(note)
                 return FrameOutcome(None, False, restart=restart,
-                                    skipped="restart" if restart else "first_frame", note=note)
+                                    skipped=Skip.RESTART if restart else Skip.FIRST_FRAME, note=note)
             publish = gate
         elif last is not None and stamp < last:
             note = f"time went backwards ({last:.3f} -> {stamp:.3f} s): tracks reset"
             self.tracker.reset()
-            self.counters["resets"] += 1
+            self.counters.resets += 1
         gyro = None
         prev = self.tracker.last_stamp
         if self.gyro is not None and prev is not None:
@@ -338,14 +366,14 @@ class FrontEndSession:
         try:
             frame = self.tracker.process(stamp, image0, image1, gyro, detect=publish)
         except CoreError as err:
-            return FrameOutcome(None, False, skipped="tracker", note=str(err))
+            return FrameOutcome(None, False, skipped=Skip.TRACKER, note=str(err))
         self._last_stamp = stamp
         if self.gyro is not None:
             with self._gyro_lock:
                 self.gyro.prune(stamp)
         if self.layout == "mono":
             if not publish:
-                self.counters["throttled"] += 1
+                self.counters.throttled += 1
                 return FrameOutcome(None, True, note=note)
             self._pub_count += 1
             if not self._init_pub:  # VINS-Mono skips the first published frame
@@ -360,7 +388,7 @@ class FrontEndSession:
         an id cut once is never published again: the estimator assumes an id's observations are contiguous.
         """
         cam0 = frame.cameras[0]
-        limit = int(self.config.max_cnt)
+        limit = self.tracker.settings.max_cnt
         if not self._withheld and len(cam0) <= limit:
             return frame
         keep = ~np.isin(cam0.ids, np.fromiter(self._withheld, np.int64, len(self._withheld)))

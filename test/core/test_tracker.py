@@ -274,19 +274,6 @@ def test_settings_validation_and_overrides():
         TrackerSettings().with_overrides({"maxcnt": 3})
 
 
-def test_from_vins_config_takes_the_vins_settings():
-    from nsflow_ros.vins.config import load_vins_config
-
-    cfg = load_vins_config(ROOT / "config/euroc/euroc_stereo_imu_config.yaml")
-    tracker = FeatureTracker.from_vins_config(cfg, {"method": "classical", "max_cnt": 99})
-    s = tracker.settings
-    assert s.stereo and s.flow_back and s.max_cnt == 99 and s.min_dist == cfg.min_dist
-    np.testing.assert_allclose(tracker.body_R_cam0, cfg.body_T_cam[0][:3, :3])
-    frame = np.zeros((cfg.image_height, cfg.image_width), np.uint8)
-    out = tracker.process(0.0, frame, frame)
-    assert out.num_cameras == 2 and len(out.cameras[0]) == 0  # black image: nothing to detect
-
-
 def test_klt_method_tracks_a_known_shift_through_the_same_pipeline(pan):
     tracker = FeatureTracker([syn.camera()], TrackerSettings(method="klt", min_dist=20))
     assert tracker.encoder is None
@@ -357,35 +344,6 @@ def test_mask_must_match_camera_0():
         FeatureTracker([cam], _classical(), mask=np.zeros((cam.height, cam.width), np.float32))
     with pytest.raises(CoreError, match="2-D"):
         FeatureTracker([cam], _classical(), mask=np.zeros((cam.height, cam.width, 3), np.uint8))
-
-
-def test_fisheye_config_finds_the_mask_where_vins_mono_keeps_it(tmp_path):
-    from nsflow_ros.vins.config import load_vins_config
-
-    folder = tmp_path / "euroc"
-    folder.mkdir()
-    src = ROOT / "config/euroc"
-    for name in ("cam0_pinhole.yaml", "cam1_pinhole.yaml"):
-        (folder / name).write_text((src / name).read_text())
-    text = (src / "euroc_mono_imu_config.yaml").read_text() + "\nfisheye: 1\n"
-    (folder / "cfg.yaml").write_text(text)
-    cfg = load_vins_config(folder / "cfg.yaml")
-    assert cfg.fisheye
-    with pytest.raises(CoreError, match=r"fisheye is 1 but no fisheye mask was found \(looked at .*euroc"):
-        FeatureTracker.from_vins_config(cfg, {"method": "classical"})
-    # VINS-Mono keeps config/fisheye_mask.jpg beside config/<dataset>/; JPEG noise is thresholded away
-    mask = _circle_mask(cfg.cameras[0], 200)
-    cv2.imwrite(str(tmp_path / "fisheye_mask.jpg"), mask)
-    tracker = FeatureTracker.from_vins_config(cfg, {"method": "classical"})
-    assert tracker.mask is not None and set(np.unique(tracker.mask)) == {0, 255}
-    assert (tracker.mask == mask).mean() > 0.999
-    # an explicit path wins; a missing one is named
-    with pytest.raises(CoreError, match=r"mask image not found: .*nope\.png"):
-        FeatureTracker.from_vins_config(cfg, {"method": "classical"}, fisheye_mask=tmp_path / "nope.png")
-    bad = tmp_path / "bad.png"
-    bad.write_bytes(b"not an image")
-    with pytest.raises(CoreError, match="cannot read mask image"):
-        FeatureTracker.from_vins_config(cfg, {"method": "classical"}, fisheye_mask=bad)
 
 
 def test_a_bad_right_image_leaves_the_state_as_it_was():

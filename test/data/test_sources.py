@@ -130,7 +130,7 @@ def test_unknown_encoding_in_a_bag_is_named(tmp_path):
         bag.write_image("/cam0/image_raw", 500, np.zeros((4, 6), np.uint8), "cam0")
         bag.write_message("/cam0/image_raw", IMAGE, 1_000, msg)
     got = []
-    with pytest.raises(DataError, match="/cam0/image_raw: unknown image encoding 'bayer_rggb8'"):
+    with pytest.raises(DataError, match="/cam0/image_raw: unsupported image encoding 'bayer_rggb8'"):
         got.extend(SensorSource(tmp_path / "bag"))
     assert len(got) == 1
 

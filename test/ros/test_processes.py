@@ -69,7 +69,7 @@ def test_help_prints_usage_and_creates_no_node(capsys):
 def test_help_from_the_command_line():
     out = subprocess.run(_tracker("--help"), capture_output=True, text=True, env=_env(), timeout=60)
     assert out.returncode == 0 and "usage: " in out.stdout
-    assert "F_threshold (number, default -1.0)" in out.stdout
+    assert "F_threshold (number, px, default -1.0)" in out.stdout
     assert out.stderr == ""
 
 

@@ -246,9 +246,9 @@ def test_garbage_frames_are_skipped_and_features_keep_coming(tmp_path, prefix, p
         h.send(0, image_msg(pan.frames[0], T0 + 10.1))
         assert len(h.clouds) == good + 1
         stats = h.tracker.stats
-        assert stats["bad:encoding:bayer_rggb8"] == 2 and stats["bad:step"] == 2
-        assert stats["bad:truncated"] == 2
-        assert stats["bad:duplicate_stamp"] == 1 and stats["bad_frames"] == 10
+        assert stats.bad["encoding:bayer_rggb8"] == 2 and stats.bad["step"] == 2
+        assert stats.bad["truncated"] == 2
+        assert stats.bad["duplicate_stamp"] == 1 and stats.bad_frames == 10
     finally:
         h.close()
 
@@ -343,9 +343,12 @@ def test_parameter_changes_apply_at_run_time_or_are_refused(tmp_path, prefix, pa
     try:
         h.send(0, image_msg(pan.frames[0], T0 + pan.stamps[0]))
         assert len(_cloud_arrays(h.clouds[-1])[0]) > 40
+        running = h.tracker.tracker
         (res,) = _set_remote(h, max_cnt=20)
         assert res.successful
         assert h.tracker.get_parameter("max_cnt").value == 20
+        # a live setting: node -> session -> the same tracker, whose settings now say 20
+        assert h.tracker.tracker is running and running.settings.max_cnt == 20
         for k in range(1, 4):
             h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
             assert 0 < len(_cloud_arrays(h.clouds[-1])[0]) <= 20
@@ -359,6 +362,8 @@ def test_parameter_changes_apply_at_run_time_or_are_refused(tmp_path, prefix, pa
         assert res.successful and h.tracker.config.F_threshold == 2.0
         results = _set_remote(h, method="klt", show_track=0)
         assert all(r.successful for r in results) and h.tracker.tracker.settings.method == "klt"
+        assert h.tracker.tracker is not running  # a rebuild setting: a new tracker
+        assert h.tracker.tracker.settings.max_cnt == 20 and h.tracker.session.counters.rebuilds == 1
         assert h.tracker._track_pub is None
         before = int(max(_cloud_arrays(h.clouds[-1])[1][0]))
         h.send(0, image_msg(pan.frames[4], T0 + pan.stamps[4]))
@@ -405,7 +410,7 @@ def test_status_on_diagnostics_and_dropped_frames_are_counted(tmp_path, prefix, 
         for k in range(8):
             h.pubs[0].publish(image_msg(pan.frames[k], T0 + pan.stamps[k]))
             h.spin_until(lambda: False, 0.01)
-        assert h.spin_until(lambda: h.tracker.stats["frames_received"] == 8 and not h.tracker._queue, 10.0)
+        assert h.spin_until(lambda: h.tracker.stats.frames_received == 8 and not h.tracker._queue, 10.0)
         h.spin_until(lambda: False, 0.3)  # the last frame leaves the tracker
         c = h.tracker.counters()
         assert c["frames_received"] == 8 and c["dropped"]["busy"] >= 3
@@ -451,3 +456,18 @@ def test_frames_lost_before_the_node_are_inferred_from_stamp_gaps():
     stamps = [0.05 * k for k in range(10)] + [0.05 * k for k in (12, 13, 17, 18)]  # 2, then 3 frames lost
     assert [gaps.add(t) for t in stamps] == [0] * 10 + [2, 0, 3, 0]
     assert gaps.add(0.1) == 0  # time going back is not a gap
+
+
+def test_declared_parameters_are_the_settings_table(tmp_path, prefix):
+    from nsflow_ros.vins.settings import SETTINGS, Mode
+
+    h = Harness(write_config(tmp_path, prefix), prefix)
+    try:
+        node = h.tracker
+        names = [p.name for p in SETTINGS]
+        assert all(node.has_parameter(n) for n in names)
+        for p, desc in zip(SETTINGS, node.describe_parameters(names), strict=True):
+            assert desc.description == p.full_description
+            assert desc.read_only == (p.mode is Mode.READ_ONLY)
+    finally:
+        h.close()

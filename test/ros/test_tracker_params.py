@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from nsflow_ros.ros.errors import ParameterError
-from nsflow_ros.ros.tracker_params import PARAMETERS, render_params_yaml, spec, usage
+from nsflow_ros.ros.tracker_params import PARAMETERS, coerce, render_params_yaml, spec, usage
+from nsflow_ros.vins.settings import SESSION_SETTINGS, SETTINGS, VINS_KEYS, Mode
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -27,21 +28,39 @@ def test_params_file_parses_to_every_default():
 def test_usage_lists_every_parameter_with_its_default():
     text = usage("nsflow-tracker")
     for p in PARAMETERS:
-        assert f"  {p.name} ({p.kind}, default " in text
+        unit = f", {p.unit}" if p.unit else ""
+        assert f"  {p.name} ({p.kind}{unit}, default " in text
+        assert " ".join(p.full_description.split()) in " ".join(text.split())
     flat = " ".join(text.split())
-    assert "freq (integer, default -1)" in flat and "0 = 100 Hz, in effect every image" in flat
+    assert "freq (integer, Hz, default -1)" in flat and "0 = 100 Hz, in effect every image" in flat
     assert "/diagnostics" in text and "qos_overrides" in text
 
 
 def test_coerce_accepts_an_integer_for_a_number_and_names_slips():
-    assert spec("F_threshold").coerce(1) == 1.0 and isinstance(spec("F_threshold").coerce(1), float)
-    assert spec("max_cnt").coerce(20) == 20
+    assert coerce(spec("F_threshold"), 1) == 1.0 and isinstance(coerce(spec("F_threshold"), 1), float)
+    assert coerce(spec("max_cnt"), 20) == 20
     with pytest.raises(ParameterError, match=r"parameter max_cnt: got 'abc' \(string\), expected an integer"):
-        spec("max_cnt").coerce("abc")
+        coerce(spec("max_cnt"), "abc")
     with pytest.raises(ParameterError, match="parameter max_cnt: got True"):
-        spec("max_cnt").coerce(True)
+        coerce(spec("max_cnt"), True)
     with pytest.raises(ParameterError, match=r"parameter use_imu_prediction: got 1 .*expected a boolean"):
-        spec("use_imu_prediction").coerce(1)
+        coerce(spec("use_imu_prediction"), 1)
+    with pytest.raises(ParameterError, match=r"parameter queue_size: got 0, expected an integer >= 1"):
+        coerce(spec("queue_size"), 0)
+    with pytest.raises(ParameterError, match=r"parameter status_period: got -1.0, expected a number >= 0"):
+        coerce(spec("status_period"), -1.0)
     with pytest.raises(ParameterError, match="unknown parameter"):
         spec("maxcnt")
-    assert sum(not p.live for p in PARAMETERS) >= 5  # the topics and the config are read-only
+    assert sum(p.mode is Mode.READ_ONLY for p in PARAMETERS) >= 5  # the topics and the config are read-only
+
+
+def test_the_node_parameters_are_the_settings_table():
+    # every derived view names the same settings: node parameters, VINS overrides, session settings
+    assert PARAMETERS is SETTINGS
+    assert all(spec(k).vins_key == k for k in VINS_KEYS)
+    assert set(SESSION_SETTINGS) <= {p.name for p in PARAMETERS}
+    assert {p.name for p in PARAMETERS if p.mode is Mode.REBUILD} == {"method", "model_path", "num_threads",
+                                                                       "equalize"}
+    text = render_params_yaml()
+    for p in PARAMETERS:  # the mode reaches the params file's comments
+        assert " ".join(p.full_description.split()) in " ".join(text.replace("#", " ").split())

@@ -59,8 +59,8 @@ def test_fusion_layout_publishes_every_frame_and_skips_a_repeated_stamp(tmp_path
     back = s.process(T0 + pan.stamps[1], pan.frames[1])  # time going backwards: tracks restart
     assert back.tracked and "backwards" in back.note
     assert np.all(back.features.cameras[0].track_counts == 1)
-    assert s.counters["tracked"] == 5 and s.counters["resets"] == 1
-    assert s.counters["skipped:duplicate_stamp"] == 1
+    assert s.counters.tracked == 5 and s.counters.resets == 1
+    assert s.counters.skipped["duplicate_stamp"] == 1
 
 
 def test_mono_layout_first_frame_freq_and_restart(tmp_path, pan):
@@ -71,10 +71,10 @@ def test_mono_layout_first_frame_freq_and_restart(tmp_path, pan):
     assert all(o.tracked for o in outs[1:])
     published = [k for k, o in enumerate(outs) if o.features is not None]
     # 20 Hz in, freq 10: about every other frame, minus the first published one that VINS-Mono skips
-    assert 4 <= len(published) <= 6 and s.counters["throttled"] >= 4
+    assert 4 <= len(published) <= 6 and s.counters.throttled >= 4
     gap = s.process(T0 + 5.0, pan.frames[0])  # a 4.4 s gap restarts the estimator
     assert gap.restart and gap.features is None and "discontinuity" in gap.note
-    assert s.counters["restarts"] == 1
+    assert s.counters.restarts == 1
     again = s.process(T0 + 5.05, pan.frames[1])
     assert again.skipped == "first_frame"  # after a restart, VINS-Mono drops the first image again
 
@@ -112,7 +112,7 @@ def test_method_change_rebuilds_the_tracker_and_never_reuses_ids(tmp_path, pan):
     old_tracker = s.tracker
     notes = s.update(method="klt")
     assert s.tracker is not old_tracker and s.tracker.settings.method == "klt"
-    assert any("tracks restart" in n for n in notes) and s.counters["rebuilds"] == 1
+    assert any("tracks restart" in n for n in notes) and s.counters.rebuilds == 1
     after = s.process(T0 + pan.stamps[2], pan.frames[2]).features
     assert after.cameras[0].ids.min() > highest
     assert np.all(after.cameras[0].track_counts == 1)
@@ -157,3 +157,22 @@ def test_switches_reach_the_running_tracker(tmp_path, pan):
                      "show_track is now True"]
     assert s.update(flow_back=0) == []  # no change, nothing to say
     assert s.update(reject_with_f=-1) == ["reject_with_f is now False"]  # the layout's default again
+
+
+def test_settings_apply_by_their_mode_through_one_path(tmp_path, pan):
+    s = _session(tmp_path)
+    s.process(T0 + pan.stamps[0], pan.frames[0])
+    running = s.tracker
+    # live: the running tracker's settings change (max_cnt also bounds what is published)
+    assert s.update(max_cnt=30, reject_with_f=1) == ["max_cnt is now 30", "reject_with_f is now True"]
+    assert s.tracker is running and running.settings.max_cnt == 30 and running.settings.reject_with_f
+    out = s.process(T0 + pan.stamps[1], pan.frames[1]).features
+    assert 0 < len(out.cameras[0]) <= 30
+    # rebuild: a new tracker with every current setting
+    notes = s.update(equalize=1)
+    assert s.tracker is not running and s.tracker.settings.equalize and s.tracker.settings.max_cnt == 30
+    assert "equalize changed: new tracker" in notes[0] and s.counters.rebuilds == 1
+    # read-only: refused, nothing changes
+    with pytest.raises(ConfigError, match="use_imu_prediction cannot change"):
+        s.update(use_imu_prediction=True, max_cnt=10)
+    assert s.tracker.settings.max_cnt == 30

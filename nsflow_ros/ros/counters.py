@@ -1,0 +1,65 @@
+"""The ``tracker`` node's counters: one set of names for its status line, /diagnostics and summary file."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+__all__ = ["WINDOWED", "NodeCounters"]
+
+
+@dataclass
+class NodeCounters:
+    """What the node saw and did with images and frames (the session counts its own policy).
+
+    Attributes:
+        images_received: images that arrived, either camera.
+        images_undecodable: images that could not be decoded.
+        images_unpaired: stereo images whose partner never came.
+        frames_received: frames (image pairs for stereo) queued for the tracker.
+        frames_processed: frames the tracker ran on.
+        frames_published: feature messages published.
+        frames_dropped_busy: frames dropped because the tracker was behind (or waiting at shutdown).
+        frames_refused: frames the session refused (duplicate stamp, tracker error).
+        frames_missing_upstream: frames lost before the node, inferred from stamp gaps.
+        bad: undecodable images and refused frames by cause (logged once per cause).
+    """
+
+    images_received: int = 0
+    images_undecodable: int = 0
+    images_unpaired: int = 0
+    frames_received: int = 0
+    frames_processed: int = 0
+    frames_published: int = 0
+    frames_dropped_busy: int = 0
+    frames_refused: int = 0
+    frames_missing_upstream: int = 0
+    bad: Counter[str] = field(default_factory=Counter)
+
+    @property
+    def frames_dropped(self) -> int:
+        """Frames received but not tracked: the tracker was busy, or the session refused them."""
+        return self.frames_dropped_busy + self.frames_refused
+
+    @property
+    def bad_frames(self) -> int:
+        """Undecodable images plus refused frames."""
+        return self.images_undecodable + self.frames_refused
+
+    def totals(self) -> dict[str, int]:
+        """Every count by its name (``bad`` aside), plus ``frames_dropped``."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "bad"}
+        out["frames_dropped"] = self.frames_dropped
+        return out
+
+    def since(self, before: dict[str, Any]) -> dict[str, int]:
+        """The change of the :data:`WINDOWED` counts since an earlier :meth:`totals`."""
+        now = self.totals()
+        return {k: now[k] - before.get(k, 0) for k in WINDOWED}
+
+
+WINDOWED = (
+    "frames_received", "frames_processed", "frames_dropped", "images_unpaired", "frames_missing_upstream"
+)
+"""The counts the status line reports per period."""

@@ -1,0 +1,184 @@
+"""A VINS feature bag from a recorded stream: features plus IMU, no images.
+
+The bag holds ``/feature_tracker/feature`` (sensor_msgs/PointCloud in the VINS-Fusion layout of
+:func:`nsflow_ros.vins.messages.encode_fusion`: points (x, y, 1) undistorted, channels id, camera_id, u, v,
+velocity_x, velocity_y, 0, 0, 0; header stamp = image stamp) and the IMU messages, so ``rosbag play`` (ROS 1)
+or ``ros2 bag play`` feeds a stock VINS-Fusion estimator without running any front-end live.
+
+Frames go through the node's frame policy (:class:`~nsflow_ros.vins.session.FrontEndSession` in the
+VINS-Fusion layout: a repeated stamp is skipped, time going backwards restarts the tracks) and the node's
+stereo pairing (:class:`~nsflow_ros.vins.pairing.StereoPairer`); unlike the node, no frame is dropped for
+speed, so the result depends only on the data, the config, the method and the perturbation seed.
+
+The bag is built under a hidden name beside the output and renamed when complete; when the source is
+damaged part-way, the frames before the damage are still written and the error is raised afterwards.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from nsflow_ros.data.errors import DataError
+from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
+from nsflow_ros.data.writers import BagWriter, temp_sibling
+from nsflow_ros.errors import NSFlowError
+from nsflow_ros.vins.config import VinsConfig
+from nsflow_ros.vins.messages import encode_fusion
+from nsflow_ros.vins.pairing import StereoPairer
+from nsflow_ros.vins.session import FrontEndSession, Skip
+
+__all__ = [
+    "FEATURE_TOPIC",
+    "BagFormat",
+    "FeatureBagSummary",
+    "bag_format",
+    "feature_bag_topics",
+    "write_feature_bag",
+]
+
+FEATURE_TOPIC = "/feature_tracker/feature"
+"""The topic the VINS-Fusion estimator subscribes to for features."""
+
+BagFormat = Literal["ros1", "ros2"]
+
+
+@dataclass(frozen=True)
+class FeatureBagSummary:
+    """What :func:`write_feature_bag` wrote.
+
+    Attributes:
+        path: the bag written.
+        format: ``ros1`` or ``ros2``.
+        frames: feature messages written (one per tracked image stamp).
+        features: features written, summed over frames.
+        imu: IMU messages written.
+        unpaired: stereo images dropped because the other camera has no image of the same stamp.
+    """
+
+    path: Path
+    format: BagFormat
+    frames: int
+    features: int
+    imu: int
+    unpaired: int = 0
+
+    def text(self) -> str:
+        """One line for the command line."""
+        per = self.features / max(self.frames, 1)
+        extra = f", {self.unpaired} stereo image(s) without a partner skipped" if self.unpaired else ""
+        return (f"wrote {self.path} ({self.format}): {self.frames} feature messages on {FEATURE_TOPIC} "
+                f"({per:.1f} features/frame), {self.imu} IMU messages{extra}")
+
+
+def bag_format(path: str | Path, requested: str | None = None) -> BagFormat:
+    """The format to write: ``requested`` if given, else ROS 1 for a ``.bag`` path and ROS 2 otherwise.
+
+    Raises:
+        DataError: for an unknown format, or ROS 1 asked for a path without ``.bag``.
+    """
+    suffix_ros1 = Path(path).suffix == ".bag"
+    if requested is None:
+        return "ros1" if suffix_ros1 else "ros2"
+    if requested not in ("ros1", "ros2"):
+        raise DataError(f"unknown bag format {requested!r}; expected ros1 or ros2")
+    if requested == "ros1" and not suffix_ros1:
+        raise DataError(f"a ROS 1 bag is a file ending in .bag; got {path}")
+    return requested  # type: ignore[return-value]
+
+
+def feature_bag_topics(config: VinsConfig) -> list[str]:
+    """The topics a feature bag reads: the config's cameras, then its IMU when it uses one."""
+    return list(config.image_topics) + ([config.imu_topic] if config.use_imu and config.imu_topic else [])
+
+
+def write_feature_bag(
+    records: Iterable[Record],
+    out: str | Path,
+    config: VinsConfig,
+    *,
+    method: str = "nsflow",
+    fmt: str | None = None,
+    overrides: dict[str, Any] | None = None,
+    progress: bool = True,
+) -> FeatureBagSummary:
+    """Track every image of a stream and write the features and IMU as a new bag.
+
+    Args:
+        records: the stream in time order (images of the config's camera topics, IMU samples);
+            see :func:`feature_bag_topics`.
+        out: the bag to create (must not exist): a ``.bag`` file for ROS 1, a folder for ROS 2 (mcap).
+        config: the VINS config (cameras, topics, max_cnt, min_dist, ...; stereo when ``num_of_cam: 2``).
+        method: tracker method, e.g. ``nsflow`` or ``klt``.
+        fmt: ``ros1`` or ``ros2``; None = from the suffix of ``out``.
+        overrides: further TrackerSettings fields, fixed for the run.
+        progress: show a progress bar.
+
+    Returns:
+        what was written.
+
+    Raises:
+        NSFlowError: an existing output, a bad source (DataError), config (ConfigError) or model
+            (EncoderError), or a frame the tracker refuses. When the source is damaged part-way, the bag
+            with the frames before the damage is written first.
+    """
+    from tqdm import tqdm
+
+    path = Path(out)
+    kind = bag_format(path, fmt)
+    if path.exists():
+        raise DataError(f"bag {path} exists already; not overwriting")
+    session = FrontEndSession(config, {"method": method}, layout="fusion", tracker_overrides=overrides)
+    cams = list(config.image_topics)
+    pairer: StereoPairer[ImageRecord] = StereoPairer(len(cams))
+
+    tmp = temp_sibling(path)
+    try:
+        tmp.mkdir(parents=True)
+    except OSError as err:
+        raise DataError(f"cannot create {path}: {err.strerror}") from None
+    frames = features = imu = 0
+    error: NSFlowError | None = None
+    bar = tqdm(desc=f"feature bag {method}", unit="frame", disable=not progress)
+    try:
+        with BagWriter(tmp / path.name, ros1=kind == "ros1") as bag:
+            try:
+                for rec in records:
+                    if isinstance(rec, ImuRecord):
+                        bag.write_record(rec)
+                        imu += 1
+                        continue
+                    if not isinstance(rec, ImageRecord) or rec.topic not in cams:
+                        continue
+                    pair = pairer.add(cams.index(rec.topic), rec.stamp_ns, rec)
+                    if pair is None:
+                        continue
+                    left, right = pair
+                    outcome = session.process(left.stamp_ns * 1e-9, left.for_tracker(),
+                                              None if right is None else right.for_tracker())
+                    if outcome.skipped is Skip.TRACKER:
+                        raise NSFlowError(f"frame at {left.stamp_ns} ns: {outcome.note}")
+                    if outcome.features is None:
+                        continue
+                    cloud = encode_fusion(outcome.features)
+                    bag.write_point_cloud(FEATURE_TOPIC, left.stamp_ns, cloud.points, cloud.channels,
+                                          cloud.names, frame_id=left.frame_id or "world")
+                    frames += 1
+                    features += len(cloud)
+                    bar.update(1)
+            except NSFlowError as err:
+                error = err  # keep what was tracked; report after the bag is complete
+        pairer.flush()
+        try:
+            (tmp / path.name).rename(path)
+        except OSError as err:
+            raise DataError(f"cannot write {path}: {err.strerror}") from None
+    finally:
+        bar.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+    if error is not None:
+        raise NSFlowError(f"{error} (the {frames} frames before it were tracked and written to {path})")
+    return FeatureBagSummary(path, kind, frames, features, imu, pairer.unpaired)

@@ -1,0 +1,348 @@
+"""The front-end's settings: one typed table that every other view of them is derived from.
+
+:data:`SETTINGS` lists every setting of the ``tracker`` node with its type (the type of its default),
+default, unit, when it may change (:class:`Mode`), the VINS config key it overrides and its description.
+From it come the node's declared parameters and ``--help`` (:mod:`nsflow_ros.ros.tracker_params`), the
+params file ``config/tracker_params.yaml``, the VINS-config overrides
+(:func:`nsflow_ros.vins.config.apply_overrides`), the tracker's settings
+(:func:`tracker_settings`) and what :class:`~nsflow_ros.vins.session.FrontEndSession` does with a change
+at run time.
+
+A setting with a VINS key takes :data:`KEEP` (-1) for "the VINS config's value"; switches are integers
+(-1 / 0 / 1) for that reason. Imports neither rclpy nor torch, so ``--help`` needs no middleware.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Mapping
+from dataclasses import dataclass
+from enum import Enum
+from typing import TYPE_CHECKING, Any
+
+from nsflow_ros.resources import DEFAULT_CONFIG
+from nsflow_ros.vins.errors import ConfigError
+
+if TYPE_CHECKING:
+    from nsflow_ros.vins.config import VinsConfig
+
+__all__ = [
+    "KEEP",
+    "SESSION_SETTINGS",
+    "SETTINGS",
+    "TRACKER_SETTINGS",
+    "VINS_KEYS",
+    "Mode",
+    "Setting",
+    "Value",
+    "config_tracker_fields",
+    "is_unset",
+    "session_tracker_fields",
+    "setting",
+]
+
+Value = bool | int | float | str
+
+KEEP = -1
+"""A setting's value meaning "the default": the VINS config's value for a setting with a VINS key."""
+
+_KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
+
+
+class Mode(Enum):
+    """When a setting may change."""
+
+    LIVE = "live"
+    """A change at run time applies to the running tracker."""
+    REBUILD = "rebuild"
+    """A change at run time builds a new tracker (its encoder or image preparation changes)."""
+    READ_ONLY = "read-only"
+    """Set at start-up; a change at run time is refused."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One setting.
+
+    Attributes:
+        name: the ROS parameter name (and the TrackerSettings field for a tracker setting).
+        default: the default value; its Python type is the setting's type.
+        mode: when it may change.
+        description: what it does and what special values mean (its mode and unit are added).
+        unit: the unit of its value ("" = none).
+        vins_key: the VINS config key it overrides (:data:`KEEP` = the file's value); None = none.
+        tracker: a field of :class:`~nsflow_ros.core.tracker.TrackerSettings` of the same name.
+        session: taken by :class:`~nsflow_ros.vins.session.FrontEndSession` (else the node's alone).
+        minimum: the smallest value allowed (numbers; :data:`KEEP` aside); None = any.
+        positive: the value must be > ``minimum`` rather than >= it.
+        switch: an integer 0/1 (or true/false) switch.
+        none_value: the value that stands for None in TrackerSettings ("" = shipped model, 0 = all cores).
+        tracker_type: the TrackerSettings field's type where it differs from the setting's (None = same).
+        example: a typical value for error messages (None = the default).
+    """
+
+    name: str
+    default: Value
+    mode: Mode
+    description: str
+    unit: str = ""
+    vins_key: str | None = None
+    tracker: bool = False
+    session: bool = False
+    minimum: float | None = None
+    positive: bool = False
+    switch: bool = False
+    none_value: Value | None = None
+    tracker_type: type | None = None
+    example: Value | None = None
+
+    @property
+    def type(self) -> type:
+        """The Python type of the setting's values."""
+        return type(self.default)
+
+    @property
+    def kind(self) -> str:
+        """The type in words: boolean, integer, number or string."""
+        return _KINDS[self.type]
+
+    @property
+    def full_description(self) -> str:
+        """The description plus the VINS key's default and when it may change."""
+        text = self.description
+        if self.vins_key is not None:
+            text += f" {KEEP} = from the VINS config."
+        when = {
+            Mode.LIVE: "Can change at run time.",
+            Mode.REBUILD: "Can change at run time; a change restarts the tracks (ids keep counting up).",
+            Mode.READ_ONLY: "Read-only: set at start-up.",
+        }[self.mode]
+        return f"{text} {when}"
+
+    def check(self, value: Any) -> Value:
+        """Check the type and range of a value that overrides the VINS config (not :data:`KEEP`).
+
+        Args:
+            value: the value given; a switch takes true/false or 0/1, a number setting an integer too.
+
+        Returns:
+            the value: int for integers, bool for switches, float for numbers.
+
+        Raises:
+            ConfigError: naming the setting, the value and what is expected.
+        """
+        name = self.name
+        if self.switch:
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, numbers.Integral) and int(value) in (0, 1):
+                return bool(value)
+            got = _describe(value)
+            raise ConfigError(
+                f"tracker setting '{name}' must be true/false or 0/1 (or {KEEP} to keep), got {got}"
+            )
+        if self.type is int:
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ConfigError(f"tracker setting '{name}' must be an integer, got {_describe(value)}")
+            if self.minimum is not None and int(value) < self.minimum:
+                raise ConfigError(
+                    f"tracker setting '{name}' must be >= {self.minimum:g} (or {KEEP} to keep), got {value}"
+                )
+            return int(value)
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ConfigError(f"tracker setting '{name}' must be a number, got {_describe(value)}")
+        out = float(value)
+        low = self.minimum
+        if not math.isfinite(out) or (low is not None and (out <= low if self.positive else out < low)):
+            bound = "" if low is None else f" {'>' if self.positive else '>='} {low:g}"
+            raise ConfigError(
+                f"tracker setting '{name}' must be a finite number{bound} (or {KEEP} to keep), got {out}"
+            )
+        return out
+
+    @property
+    def bound(self) -> str:
+        """The range in words, e.g. ">= 1"; "" when any value of the type is allowed."""
+        if self.minimum is None:
+            return ""
+        return f"{'>' if self.positive else '>='} {self.minimum:g}"
+
+
+def _describe(value: Any) -> str:
+    return "no value" if value is None else f"{type(value).__name__} {value!r}"
+
+
+def is_unset(value: Any) -> bool:
+    """True for the values that mean "the default": None, "" and :data:`KEEP` (not a bool)."""
+    if value is None or (isinstance(value, str) and value == ""):
+        return True
+    return not isinstance(value, bool) and isinstance(value, int | float) and value == KEEP
+
+
+SETTINGS: tuple[Setting, ...] = (
+    Setting(
+        "config_file", DEFAULT_CONFIG, Mode.READ_ONLY,
+        "VINS-Fusion or VINS-Mono config file (OpenCV YAML). A relative path is looked up in the package's "
+        "share directory (where config/ is installed), then in the working directory."),
+    Setting(
+        "method", "nsflow", Mode.REBUILD,
+        "Tracking method: 'nsflow' (learned descriptors + Levenberg-Marquardt LK, the paper's tracker), "
+        "'nsflow_lk' (the same descriptors as uint8 through OpenCV's pyramidal LK, faster), 'classical' "
+        "(the image intensity through the LM solver) or 'klt' (OpenCV calcOpticalFlowPyrLK as VINS-Fusion "
+        "calls it: 21x21 window, maxLevel 3, 30 iterations / eps 0.01).",
+        tracker=True, session=True),
+    Setting(
+        "model_path", "", Mode.REBUILD,
+        "ONNX encoder of the learned methods ('nsflow', 'nsflow_lk'); '' = the model shipped in the "
+        "package's models/ folder. Its maps are smoothed as its metadata 'smoothing' declares (the shipped "
+        "model: 1.0,1.0).",
+        tracker=True, session=True, none_value=""),
+    Setting(
+        "max_cnt", KEEP, Mode.LIVE, "Most features kept per image (VINS max_cnt, >= 1).", unit="features",
+        vins_key="max_cnt", tracker=True, session=True, minimum=1, example=150),
+    Setting(
+        "min_dist", KEEP, Mode.LIVE, "Minimum distance between features in pixels (VINS min_dist, >= 0).",
+        unit="px", vins_key="min_dist", tracker=True, session=True, minimum=0, tracker_type=float,
+        example=30),
+    Setting(
+        "F_threshold", float(KEEP), Mode.LIVE,
+        "RANSAC threshold in pixels of the fundamental-matrix check (VINS F_threshold, > 0; an integer "
+        "is accepted).",
+        unit="px", vins_key="F_threshold", tracker=True, session=True, minimum=0, positive=True, example=1.0),
+    Setting(
+        "flow_back", KEEP, Mode.LIVE,
+        "Track back and drop points that do not return within 0.5 px (VINS flow_back), 0/1.",
+        vins_key="flow_back", tracker=True, session=True, switch=True, example=1),
+    Setting(
+        "show_track", KEEP, Mode.LIVE, "Publish the image_track debug image (VINS show_track), 0/1.",
+        vins_key="show_track", session=True, switch=True),
+    Setting(
+        "freq", KEEP, Mode.LIVE,
+        "Feature publishing rate in Hz of the 'mono' layout (VINS-Mono freq; 0 = 100 Hz, in effect every "
+        "image, as in VINS-Mono); frames in between are tracked but not published. The 'fusion' layout "
+        "publishes every frame and ignores it.",
+        unit="Hz", vins_key="freq", session=True, minimum=0, example=10),
+    Setting(
+        "equalize", KEEP, Mode.REBUILD,
+        "Equalise the image (CLAHE) before tracking (VINS-Mono equalize), 0/1.",
+        vins_key="equalize", tracker=True, session=True, switch=True),
+    Setting(
+        "reject_with_f", KEEP, Mode.LIVE,
+        "Fundamental-matrix RANSAC on tracked points, 0/1. -1 = on for the 'mono' layout (VINS-Mono does "
+        "it), off for 'fusion' (VINS-Fusion does not).",
+        tracker=True, session=True, switch=True),
+    Setting(
+        "output_layout", "", Mode.READ_ONLY,
+        "Feature message layout: 'fusion' (VINS-Fusion channels: id, camera, u, v, vx, vy + 3 zeros) or "
+        "'mono' (VINS-Mono channels: id * NUM_OF_CAM + camera, u, v, vx, vy; first frame dropped, freq "
+        "throttling, restart on stamp gaps). '' = the dialect of the config file."),
+    Setting(
+        "feature_topic", "/feature_tracker/feature", Mode.READ_ONLY,
+        "Topic of the features (sensor_msgs/PointCloud, reliable, keep-last 2000); the VINS estimators "
+        "listen here."),
+    Setting(
+        "restart_topic", "/feature_tracker/restart", Mode.READ_ONLY,
+        "Topic of the std_msgs/Bool restart signal of the 'mono' layout (stamp gap > 1 s or time going "
+        "backwards)."),
+    Setting(
+        "image_track_topic", "image_track", Mode.READ_ONLY,
+        "Topic of the debug image (sensor_msgs/Image, bgr8)."),
+    Setting(
+        "use_imu_prediction", False, Mode.READ_ONLY,
+        "Predict feature positions from the gyroscope (needs imu_topic and body_T_cam0 in the VINS config).",
+        tracker=True, session=True),
+    Setting(
+        "num_threads", 0, Mode.REBUILD, "CPU threads of the encoder; 0 = all usable cores.",
+        tracker=True, session=True, minimum=0, none_value=0),
+    Setting(
+        "fisheye_mask", "", Mode.READ_ONLY,
+        "Mask image (255 = usable) for a VINS config with fisheye: 1 (VINS-Mono's fisheye mask): tracked "
+        "points on its zeros are dropped and no corners are detected there. '' = fisheye_mask.jpg in the "
+        "config's folder or its parent, where VINS-Mono keeps it. Unused when the config's fisheye is 0."),
+    Setting(
+        "queue_size", 4, Mode.READ_ONLY,
+        "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, the oldest waiting "
+        "frame is dropped and counted; a small queue keeps the latency low.",
+        unit="frames", minimum=1),
+    Setting(
+        "status_period", 5.0, Mode.LIVE,
+        "Seconds between status lines in the log and on /diagnostics (frames received / processed / "
+        "dropped, features, latency); 0 = none.",
+        unit="s", minimum=0),
+    Setting(
+        "summary_file", "", Mode.READ_ONLY,
+        "Write the run's counters as JSON to this file when the node stops ('' = no file)."),
+)
+"""Every setting of the ``tracker`` node, in the order of the params file."""
+
+_BY_NAME = {s.name: s for s in SETTINGS}
+
+SESSION_SETTINGS: tuple[str, ...] = tuple(s.name for s in SETTINGS if s.session)
+"""Settings :class:`~nsflow_ros.vins.session.FrontEndSession` takes, at construction and at run time."""
+
+VINS_KEYS: tuple[str, ...] = tuple(s.vins_key for s in SETTINGS if s.vins_key is not None)
+"""The VINS config keys a setting overrides (:func:`nsflow_ros.vins.config.apply_overrides`)."""
+
+TRACKER_SETTINGS: tuple[str, ...] = tuple(s.name for s in SETTINGS if s.tracker)
+"""Settings that are fields of :class:`~nsflow_ros.core.tracker.TrackerSettings`."""
+
+
+def setting(name: str) -> Setting:
+    """The :class:`Setting` of a name.
+
+    Raises:
+        ConfigError: for an unknown name, listing the known ones.
+    """
+    try:
+        return _BY_NAME[name]
+    except KeyError:
+        raise ConfigError(f"unknown setting {name!r}; known: {', '.join(_BY_NAME)}") from None
+
+
+def config_tracker_fields(config: VinsConfig) -> dict[str, Any]:
+    """The TrackerSettings fields a VINS config sets: its settings with a VINS key, and ``stereo``.
+
+    Args:
+        config: the VINS config (with any overrides applied: :func:`~nsflow_ros.vins.config.apply_overrides`).
+
+    Returns:
+        keyword arguments of :class:`~nsflow_ros.core.tracker.TrackerSettings`, by field name.
+    """
+    out: dict[str, Any] = {}
+    for s in SETTINGS:
+        if s.tracker and s.vins_key is not None:
+            value = getattr(config, s.vins_key)
+            out[s.name] = bool(value) if s.switch else (s.tracker_type or s.type)(value)
+    out["stereo"] = int(config.num_of_cam) == 2
+    return out
+
+
+def session_tracker_fields(values: Mapping[str, Any], layout: str) -> dict[str, Any]:
+    """The TrackerSettings fields of the tracker settings without a VINS key, from setting values.
+
+    An unset value (:func:`is_unset`) takes the setting's default and :attr:`Setting.none_value` becomes
+    None; ``reject_with_f`` unset follows the layout: on for VINS-Mono's (which runs it), off for
+    VINS-Fusion's.
+
+    Args:
+        values: setting values by name; other names are ignored.
+        layout: the feature message layout, ``mono`` or ``fusion``.
+
+    Returns:
+        keyword arguments of :class:`~nsflow_ros.core.tracker.TrackerSettings`, by field name.
+    """
+    out: dict[str, Any] = {}
+    for s in SETTINGS:
+        if not s.tracker or s.vins_key is not None:
+            continue
+        value = values.get(s.name)
+        if is_unset(value):
+            value = s.default
+        if s.name == "reject_with_f" and is_unset(value):
+            out[s.name] = layout == "mono"
+        elif s.none_value is not None and value == s.none_value:
+            out[s.name] = None
+        else:
+            out[s.name] = bool(value) if s.switch or s.type is bool else value
+    return out
