@@ -46,6 +46,7 @@ from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
 __all__ = [
+    "BASELINE",
     "CHECK_LEVELS",
     "CLAHE",
     "DEPLOYED_LM",
@@ -587,6 +588,11 @@ class MethodSpec:
             )
 
     @property
+    def learned(self) -> bool:
+        """Whether the method needs the learned ONNX encoder."""
+        return self.encoder is EncoderSource.LEARNED
+
+    @property
     def is_lm(self) -> bool:
         """Whether the method runs the LM solver (else OpenCV's LK)."""
         return self.lm is not None
@@ -631,6 +637,9 @@ METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     ),
 })
 """The registry of tracking methods: name -> its whole configuration (learned methods first)."""
+
+BASELINE = "klt"
+"""The method every other is compared with: VINS-Fusion's own front-end."""
 
 
 def _spec(method: str | MethodSpec) -> MethodSpec:

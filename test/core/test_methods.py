@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ast
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -333,3 +335,41 @@ def test_nsflow_lk_tracks_quantised_descriptors(pair, tmp_path):
     np.testing.assert_array_equal(q, [[[0, 128, 255, 255]]])
     with pytest.raises(CoreError, match="1-4 descriptor channels"):
         quantise_descriptors(np.zeros((4, 4, 5), np.float32))
+
+
+PACKAGE = Path(__file__).resolve().parents[2] / "nsflow_ros"
+ENCODER_TYPES = {"IntensityEncoder", "OnnxEncoder"}
+
+
+def _names_a_method(source: str, filename: str = "<snippet>") -> list[str]:
+    """Where ``source`` branches on a method's name (a comparison with a registry key as a string
+    literal, ``x == "klt"``, ``x in ("klt", ...)``) or on an encoder's type (``isinstance(e,
+    IntensityEncoder)``): the choices only the registry may make."""
+    found = []
+    for node in ast.walk(ast.parse(source, filename)):
+        if isinstance(node, ast.Compare):
+            for operand in (node.left, *node.comparators):
+                items = operand.elts if isinstance(operand, (ast.Tuple, ast.List, ast.Set)) else [operand]
+                if any(isinstance(i, ast.Constant) and i.value in METHODS for i in items):
+                    found.append(f"{filename}:{node.lineno} compares with a method name")
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "isinstance":
+            kinds = node.args[1].elts if isinstance(node.args[1], ast.Tuple) else [node.args[1]]
+            if any(isinstance(k, ast.Name) and k.id in ENCODER_TYPES for k in kinds):
+                found.append(f"{filename}:{node.lineno} branches on an encoder's type")
+    return found
+
+
+def test_the_detector_catches_a_branch_on_a_method():
+    assert len(_names_a_method('if settings.method == "klt":\n    pass\n')) == 1
+    assert len(_names_a_method('ok = name in ("nsflow", "nsflow_lk")\n')) == 1
+    assert len(_names_a_method('ok = isinstance(enc, (OnnxEncoder, str))\n')) == 1
+    assert _names_a_method('spec = METHODS["klt"]\nok = spec.encoder is EncoderSource.NONE\n') == []
+
+
+def test_no_module_but_the_registry_names_a_method():
+    registry = PACKAGE / "core" / "methods.py"
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path != registry:
+            found += _names_a_method(path.read_text(), str(path.relative_to(PACKAGE)))
+    assert found == []
