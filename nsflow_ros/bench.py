@@ -1,17 +1,17 @@
 """Speed benchmark of the tracking core, with OpenCV's pyramidal KLT measured side by side.
 
 ``nsflow-bench`` (or ``ros2 run nsflow_ros bench``) times, per frame of a 752x480 real-texture sequence
-with 150 GFTT points: the encoder, the LM solver (pyramid build + tracking), GFTT detection and the total;
-and in the same run OpenCV's ``calcOpticalFlowPyrLK`` (VINS-Fusion's 21x21 window and criteria, 3 levels
-like the solver) plus GFTT, and the classical (intensity) mode through the same solver. The methods take
-turns frame by frame, so a drifting machine load hits them alike. It also times the encoder alone at
-320x240 and 752x480 (the paper's Table II sizes). Medians and 90th percentiles in milliseconds; with
-``--json`` the figures are printed as one JSON object. First of all it runs the whole VINS-style tracker
-per frame, mono and stereo, every tracking method interleaved with ``klt``, and reports time, ratio to
-``klt`` and track quality (:mod:`nsflow_ros.tracker_bench`). A solver cost model (:func:`solver_cost_model`)
-splits each mode's solver time into passes x a fixed price per pass and point evaluations x a price
-per point, fitted on the same frames: where the time goes, and so what any optimisation can save.
-"""
+with 150 fresh GFTT points: the encoder, the LM solver (pyramid build + the tracker's solve from zero
+flow) and GFTT detection, for the registry's ``nsflow`` and ``classical`` methods exactly as the tracker
+builds them (:func:`nsflow_ros.core.methods.make_method`), and in the same run the registry's ``klt``
+(OpenCV's ``calcOpticalFlowPyrLK`` as VINS-Fusion calls it) plus GFTT. The methods take turns frame by
+frame, so a drifting machine load hits them alike. It also times the encoder alone at 320x240 and
+752x480 (the paper's Table II sizes). Medians and 90th percentiles in milliseconds; with ``--json`` the
+figures are printed as one JSON object. First of all it runs the whole VINS-style tracker per frame,
+mono and stereo, every tracking method interleaved with ``klt``, and reports time, ratio to ``klt`` and
+track quality (:mod:`nsflow_ros.tracker_bench`). A solver cost model (:func:`solver_cost_model`) splits
+each LM method's solver time into passes x a fixed price per pass and point evaluations x a price per
+point, fitted on the same frames: where the time goes, and so what any optimisation can save."""
 
 from __future__ import annotations
 
@@ -32,59 +32,24 @@ import numpy as np
 
 from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_int, program_name
-from nsflow_ros.core import (
-    Encoder,
-    IntensityEncoder,
-    LMConfig,
-    build_pyramid,
-    detect_corners,
-    load_encoder,
-    to_gray,
-    track,
-)
-from nsflow_ros.core.methods import klt_track, pyramid_smoothing
+from nsflow_ros.core import detect_corners, load_encoder, to_gray
+from nsflow_ros.core.methods import LMMethod, SolveKind, make_method
+from nsflow_ros.core.tracker import GFTT_QUALITY
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.evaluation.timing import make_frames, time_encoder, timing_stats
+from nsflow_ros.evaluation.timing import timed as _timed
 from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
 
 __all__ = [
     "main",
-    "make_frames",
     "paper_encoder_onnx",
     "run_benchmark",
     "solver_cost_model",
-    "time_encoder",
-    "timing_stats",
 ]
 
 WIDTH, HEIGHT = 752, 480
 # Frames whose solver work the cost model counts (it also builds their pyramids).
 COST_MODEL_FRAMES = 21
-
-
-def make_frames(count: int, size: tuple[int, int] = (WIDTH, HEIGHT), seed: int = 0) -> list[np.ndarray]:
-    """A smooth camera-like sequence over a real photo: small rotations, zoom and translation per frame.
-
-    Args:
-        count: number of frames.
-        size: (width, height).
-        seed: motion seed.
-
-    Returns:
-        ``count`` BGR uint8 frames.
-    """
-    from skimage import data as skdata
-
-    w, h = size
-    base = cv2.resize(cv2.cvtColor(skdata.astronaut(), cv2.COLOR_RGB2BGR), (w + 80, h + 80))
-    rng = np.random.default_rng(seed)
-    frames = []
-    for i in range(count):
-        ang = 1.5 * np.sin(0.2 * i + rng.uniform(0, 0.1))
-        scale = 1.0 + 0.02 * np.sin(0.13 * i)
-        m = cv2.getRotationMatrix2D(((w + 80) / 2, (h + 80) / 2), ang, scale)
-        m[:, 2] += [3.0 * np.sin(0.1 * i) - 40, 2.0 * np.cos(0.17 * i) - 40]
-        frames.append(cv2.warpAffine(base, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT))
-    return frames
 
 
 def paper_encoder_onnx(path: Path, c_in: int = 3, d: int = 3, seed: int = 0) -> Path:
@@ -123,18 +88,6 @@ def paper_encoder_onnx(path: Path, c_in: int = 3, d: int = 3, seed: int = 0) -> 
     return path
 
 
-def timing_stats(samples: list[float]) -> dict[str, float]:
-    """``{"median_ms", "p90_ms"}`` of millisecond samples."""
-    arr = np.asarray(samples, dtype=np.float64)
-    return {"median_ms": float(np.median(arr)), "p90_ms": float(np.percentile(arr, 90))}
-
-
-def _timed(fn: Callable[[], Any]) -> tuple[Any, float]:
-    t0 = time.perf_counter()
-    out = fn()
-    return out, (time.perf_counter() - t0) * 1e3
-
-
 class _Method:
     """Per-frame timings (milliseconds, one list per stage) and tracked shares of one benchmarked method."""
 
@@ -153,22 +106,24 @@ class _Method:
 
 
 class _Pipeline(_Method):
-    """One mode of the project's front-end: encoder, pyramid + LM solver, GFTT, one frame per ``step``."""
+    """One LM method of the registry: encoder, pyramid + the tracker's solve from zero flow, GFTT."""
 
-    def __init__(self, encoder: Encoder, cfg: LMConfig, points: int) -> None:
+    def __init__(self, method: LMMethod, points: int) -> None:
         super().__init__(("encoder", "solver", "detection", "total"))
-        self.encoder, self.cfg, self.points = encoder, cfg, points
+        self.method, self.points = method, points
         self.prev_pyr: Any = None
         self.pts = np.zeros((0, 2))
 
     def step(self, frame: np.ndarray) -> None:
         gray = to_gray(frame)
-        desc, t_enc = _timed(lambda: self.encoder(frame))
+        m = self.method
+        desc, t_enc = _timed(lambda: m.encoder(m.encoder_input(frame, gray)))
         t0 = time.perf_counter()
-        pyr = build_pyramid(desc, self.cfg.levels, pyramid_smoothing(self.encoder))
+        pyr = m.pyramid(desc)
         if self.prev_pyr is not None:
-            res = track(self.prev_pyr, pyr, self.pts, config=self.cfg)
-            self.tracked.append(float(res.status.mean()) if len(self.pts) else 0.0)
+            # fresh corners with no prior: the tracker's solve from zero flow on the whole pyramid
+            _, status = m.solve(SolveKind.FORWARD, self.prev_pyr, pyr, self.pts)
+            self.tracked.append(float(status.mean()) if len(self.pts) else 0.0)
         t_solve = (time.perf_counter() - t0) * 1e3
         self.pts, t_det = _timed(lambda: detect_corners(gray, self.points, min_distance=30))
         first = self.prev_pyr is None
@@ -178,13 +133,11 @@ class _Pipeline(_Method):
 
 
 class _OpenCVKLT(_Method):
-    """OpenCV's calcOpticalFlowPyrLK with VINS-Fusion's window and criteria, and GFTT, one frame per step.
-
-    Three pyramid levels (maxLevel 2; VINS-Fusion uses 4), like the solver figures it is compared with.
-    """
+    """The registry's ``klt``: OpenCV's calcOpticalFlowPyrLK as VINS-Fusion calls it, and GFTT."""
 
     def __init__(self, points: int) -> None:
         super().__init__(("klt", "detection", "total"))
+        self.method = make_method("klt")
         self.points = points
         self.prev: np.ndarray | None = None
         self.pts = np.zeros((0, 2))
@@ -193,35 +146,14 @@ class _OpenCVKLT(_Method):
         gray = to_gray(frame)
         t_klt = 0.0
         if self.prev is not None and len(self.pts):
-            (_, st), t_klt = _timed(lambda: klt_track(self.prev, gray, self.pts, max_level=2))
+            prev = self.prev
+            (_, st), t_klt = _timed(lambda: self.method.solve(SolveKind.FORWARD, prev, gray, self.pts))
             self.tracked.append(float(st.mean()))
-        found, t_det = _timed(lambda: cv2.goodFeaturesToTrack(gray, self.points, 0.01, 30))
+        found, t_det = _timed(lambda: cv2.goodFeaturesToTrack(gray, self.points, GFTT_QUALITY, 30))
         self.pts = found.reshape(-1, 2).astype(np.float64) if found is not None else np.zeros((0, 2))
         if self.prev is not None:
             self._record(t_klt, t_det, t_klt + t_det)
         self.prev = gray
-
-
-def time_encoder(
-    encoder: Encoder, size: tuple[int, int], repeats: int, warmup: int = 1
-) -> dict[str, float]:
-    """Median and p90 milliseconds of one encoder call on a real-photo frame of ``size``.
-
-    Args:
-        encoder: any encoder (ONNX or intensity).
-        size: (width, height) of the frame.
-        repeats: timed calls.
-        warmup: untimed calls first (onnxruntime allocates its buffers on the first run).
-
-    Returns:
-        ``{"median_ms", "p90_ms"}``.
-    """
-    if repeats < 1 or warmup < 0:
-        raise NSFlowError(f"repeats must be >= 1 and warmup >= 0, got {repeats} and {warmup}")
-    frame = make_frames(1, size)[0]
-    for _ in range(warmup):
-        encoder(frame)
-    return timing_stats([_timed(lambda: encoder(frame))[1] for _ in range(repeats)])
 
 
 def _median_ms(fn: Callable[[], Any], repeats: int) -> float:
@@ -237,20 +169,20 @@ def _fit_pass_costs(work: np.ndarray, ms: np.ndarray) -> tuple[float, float]:
 
 
 def solver_cost_model(
-    encoder: Encoder, cfg: LMConfig, frames: list[np.ndarray], points: int, repeats: int = 3
+    method: LMMethod, frames: list[np.ndarray], points: int, repeats: int = 3
 ) -> dict[str, float]:
-    """Where the solver's time goes: its work per frame and the price of each unit of work.
+    """Where an LM method's solver time goes: its work per frame and the price of each unit of work.
 
     The solver is batched: a pass (one LM iteration of every still-active point at one level, or the
     evaluation of all points at a level's starting flow) costs a fixed amount whatever the number of
     points (NumPy and OpenCV call overhead), plus an amount per point evaluated in it. This tracks each
-    pair of consecutive ``frames`` with the first 1, 4, 16, 64 and all corners, counts passes P and point
-    evaluations E, times each run (median of ``repeats``) and fits t = a P + b E by least squares. With
-    all corners, a P and b E bound what fewer calls per pass, or cheaper per-point arithmetic, can save.
+    pair of consecutive ``frames`` with the first 1, 4, 16, 64 and all corners from zero flow with the
+    method's own solver settings, counts passes P and point evaluations E, times each run (median of
+    ``repeats``) and fits t = a P + b E by least squares. With all corners, a P and b E bound what fewer
+    calls per pass, or cheaper per-point arithmetic, can save.
 
     Args:
-        encoder: the descriptor encoder of the mode to model.
-        cfg: solver settings.
+        method: the LM method to model (:func:`~nsflow_ros.core.methods.make_method`).
         frames: a sequence of at least two frames (the benchmark's).
         points: GFTT corners per frame.
         repeats: timed runs per sample.
@@ -265,17 +197,18 @@ def solver_cost_model(
     """
     if len(frames) < 2:
         raise NSFlowError(f"the solver cost model needs at least 2 frames, got {len(frames)}")
-    pyrs = [build_pyramid(encoder(f), cfg.levels, pyramid_smoothing(encoder)) for f in frames]
-    corners = [detect_corners(to_gray(f), points, min_distance=30) for f in frames]
-    nlev = min(cfg.levels, pyrs[0].num_levels)
+    grays = [to_gray(f) for f in frames]
+    pyrs = [method.prepare(f, g) for f, g in zip(frames, grays, strict=True)]
+    corners = [detect_corners(g, points, min_distance=30) for g in grays]
+    nlev = min(method.lm.levels, pyrs[0].num_levels)
     rows, times, full = [], [], []
     for prev, cur, pts in zip(pyrs, pyrs[1:], corners, strict=False):
         for count in sorted({min(c, len(pts)) for c in (1, 4, 16, 64, len(pts))} - {0}):
             sub = pts[:count]
-            res = track(prev, cur, sub, config=cfg, record=True)
+            res = method.track_pair_result(prev, cur, sub, record=True)
             # each level also evaluates every point once at its starting flow: a pass of its own
             work = (len(res.history) + nlev, int(res.iterations.sum()) + nlev * count)
-            ms = _median_ms(functools.partial(track, prev, cur, sub, config=cfg), repeats)
+            ms = _median_ms(functools.partial(method.track_pair_result, prev, cur, sub), repeats)
             rows.append(work)
             times.append(ms)
             if count == len(pts):
@@ -332,12 +265,14 @@ def run_benchmark(
             encoder = load_encoder(path, threads=threads)
             model_desc = "paper architecture, random weights (no shipped model found)"
             trained = False
-        cfg = LMConfig()
+        # the deployed methods, exactly as the tracker builds them (the encoder as given)
+        classical = make_method("classical")
         methods: dict[str, _Pipeline | _OpenCVKLT] = {}
         if trained:
             # random descriptors never converge, so solver figures would only time the iteration limit
-            methods["nsflow"] = _Pipeline(encoder, cfg, points)
-        methods["classical"] = _Pipeline(IntensityEncoder(), cfg, points)
+            nsflow = make_method("nsflow", encoder=encoder)
+            methods["nsflow"] = _Pipeline(nsflow, points)  # type: ignore[arg-type]
+        methods["classical"] = _Pipeline(classical, points)  # type: ignore[arg-type]
         methods["opencv_klt"] = _OpenCVKLT(points)
         out: dict[str, Any] = {
             "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "threads": threads},
@@ -347,7 +282,7 @@ def run_benchmark(
                 "size": [WIDTH, HEIGHT],
                 "model": model_desc,
                 "descriptor_channels": encoder.channels,
-                "solver": cfg.as_dict(),
+                "solver": classical.spec.lm.as_dict(),  # type: ignore[union-attr]
                 "interleaved": True,
             },
         }
@@ -364,7 +299,7 @@ def run_benchmark(
         if progress:
             print("[bench] solver cost model ...", file=sys.stderr, flush=True)
         out["solver_cost_model"] = {
-            name: solver_cost_model(method.encoder, cfg, seq[:COST_MODEL_FRAMES], points)
+            name: solver_cost_model(method.method, seq[:COST_MODEL_FRAMES], points)
             for name, method in methods.items()
             if isinstance(method, _Pipeline)
         }
@@ -379,10 +314,11 @@ def run_benchmark(
     out["ratios"] = {
         "classical_solver_vs_klt": out["classical"]["solver"]["median_ms"] / klt["klt"]["median_ms"]
     }
-    if "nsflow" in out:
-        out["ratios"]["nsflow_solver_vs_klt"] = out["nsflow"]["solver"]["median_ms"] / klt["klt"]["median_ms"]
+    nsflow = out.get("nsflow")
+    if nsflow is not None:
+        out["ratios"]["nsflow_solver_vs_klt"] = nsflow["solver"]["median_ms"] / klt["klt"]["median_ms"]
         out["ratios"]["nsflow_total_vs_klt_total"] = (
-            out["nsflow"]["total"]["median_ms"] / klt["total"]["median_ms"]
+            nsflow["total"]["median_ms"] / klt["total"]["median_ms"]
         )
     return out
 
@@ -409,7 +345,7 @@ def format_table(res: dict[str, Any]) -> str:
             continue
         for stage in ("encoder", "solver", "detection", "total"):
             row(f"{mode} {stage}", res[mode][stage])
-    row("opencv KLT 21x21 x3 levels", res["opencv_klt"]["klt"])
+    row("opencv KLT 21x21 x4 levels", res["opencv_klt"]["klt"])
     row("opencv GFTT", res["opencv_klt"]["detection"])
     row("opencv total", res["opencv_klt"]["total"])
     row("encoder alone 320x240", res["encoder_320x240"])

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from nsflow_ros.core.methods import METHODS
+from nsflow_ros.core.methods import BASELINE, METHODS
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.scoring import FrameQuality
 from nsflow_ros.errors import NSFlowError
@@ -152,8 +152,8 @@ def run_tracker_benchmark(
     out["ratios"] = {}
     for mode, by_method in runs.items():
         out[mode] = {m: run.figures() for m, run in by_method.items()}
-        base = out[mode]["klt"]["total"]["median_ms"]
-        out["ratios"][mode] = {m: out[mode][m]["total"]["median_ms"] / base for m in names if m != "klt"}
+        base = out[mode][BASELINE]["total"]["median_ms"]
+        out["ratios"][mode] = {m: out[mode][m]["total"]["median_ms"] / base for m in names if m != BASELINE}
     return out
 
 

@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 from onnx_models import conv_encoder
 
-from nsflow_ros.bench import _fit_pass_costs, main, make_frames, run_benchmark, solver_cost_model
-from nsflow_ros.core import IntensityEncoder, LMConfig
+from nsflow_ros.bench import _fit_pass_costs, main, run_benchmark, solver_cost_model
+from nsflow_ros.core import make_method
+from nsflow_ros.core.methods import DEPLOYED_LM
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.evaluation.timing import make_frames
 
 
 def test_benchmark_measures_every_stage_beside_opencv(tmp_path):
@@ -36,6 +38,7 @@ def test_cli_json_and_errors(tmp_path, capsys):
     assert main(["--frames", "3", "--points", "20", "--model", str(model), "--json", *stages_only]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["setup"]["descriptor_channels"] == 1
+    assert out["setup"]["solver"] == DEPLOYED_LM.as_dict()  # the benchmark times what the tracker runs
     assert main(["--model", str(tmp_path / "missing.onnx"), "--frames", "2", *stages_only]) == 1
     assert "missing.onnx" in capsys.readouterr().err
 
@@ -51,8 +54,9 @@ def test_cost_fit_recovers_known_prices():
 
 def test_solver_cost_model_counts_the_work_of_real_frames():
     frames = make_frames(3, (320, 240))
-    cfg = LMConfig()
-    model = solver_cost_model(IntensityEncoder(), cfg, frames, points=30, repeats=1)
+    method = make_method("classical")  # the deployed method, as the tracker runs it
+    cfg = method.lm
+    model = solver_cost_model(method, frames, points=30, repeats=1)
     # at least the starting evaluation and one LM pass per level, every pass evaluating >= 1 point
     assert cfg.levels * 2 <= model["passes"] <= cfg.levels * (cfg.max_iterations + 1)
     assert model["passes"] <= model["point_evaluations"] <= model["passes"] * 30
@@ -60,7 +64,7 @@ def test_solver_cost_model_counts_the_work_of_real_frames():
     assert model["modelled_ms"] == pytest.approx(model["fixed_ms"] + model["per_point_ms"])
     assert model["fixed_ms"] == pytest.approx(model["fixed_us_per_pass"] * model["passes"] / 1e3)
     with pytest.raises(NSFlowError, match="at least 2 frames"):
-        solver_cost_model(IntensityEncoder(), cfg, frames[:1], points=30)
+        solver_cost_model(method, frames[:1], points=30)
     blank = [np.zeros((240, 320, 3), np.uint8)] * 2
     with pytest.raises(NSFlowError, match="no corners"):
-        solver_cost_model(IntensityEncoder(), cfg, blank, points=30)
+        solver_cost_model(method, blank, points=30)

@@ -15,8 +15,17 @@ from nsflow_ros.core.encoder import (
     to_gray,
 )
 from nsflow_ros.core.errors import CoreError, EncoderError
-from nsflow_ros.core.methods import METHODS, SolveKind, TrackingMethod, klt_track, make_method
-from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid, descriptor_gradients
+from nsflow_ros.core.methods import (
+    METHODS,
+    MethodSpec,
+    SolveKind,
+    SolvePolicy,
+    Solver,
+    TrackingMethod,
+    klt_track,
+    make_method,
+)
+from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
 from nsflow_ros.core.solver import IterationRecord, Jacobian, LMConfig, TrackResult, sample_windows, track
 
 __all__ = [
@@ -30,13 +39,15 @@ __all__ = [
     "IterationRecord",
     "Jacobian",
     "LMConfig",
+    "MethodSpec",
     "OnnxEncoder",
     "Smoothing",
     "SolveKind",
+    "SolvePolicy",
+    "Solver",
     "TrackResult",
     "TrackingMethod",
     "build_pyramid",
-    "descriptor_gradients",
     "detect_corners",
     "klt_track",
     "load_encoder",

@@ -9,24 +9,19 @@ Two kinds share one interface (callable on an image, with ``channels`` and ``nam
 ONNX contract (checked at load time): one float32 input of shape (1, c_in, H, W) with c_in 1 (gray) or
 3 (RGB), values in [0, 1]; one float32 output of shape (1, d, H, W). Height and width may be dynamic.
 
-Speed (752x480, 2 threads, in the tracking pipeline; measured with the width-8 teacher model
-``models/nsflow_encoder_w8.onnx``; ``nsflow-bench`` times the shipped one):
+Speed (docs/benchmarks.md, "Why the settings are what they are", has the figures):
 
 * Strips. A fully convolutional encoder is run on horizontal strips of about ``TILE_PIXELS`` pixels,
   each with ``halo`` extra rows above and below (its receptive-field radius), and only the strip's own
-  rows are kept. Every kept pixel sees exactly the inputs it sees in a whole-frame run, so the result
-  is the same (tested bit for bit on the shipped model), while the intermediate maps of one strip (w
-  and 2w channels for an encoder of width w) stay in cache. The halo is measured at load time,
-  model-agnostically: flip one row of a random image and see which output rows change. A model whose
-  output depends on far-away rows (pooling over the image, normalisation, attention) is run
-  whole-frame; so is one whose tiled and whole runs of a second random image disagree.
+  rows are kept: every kept pixel sees exactly the inputs of a whole-frame run, so the result is the
+  same, while one strip's intermediate maps stay in cache. The halo is measured at load time: flip one
+  row of a random image and see which output rows change. A model whose output depends on far-away rows
+  (pooling, normalisation, attention), or whose tiled and whole runs disagree, is run whole-frame.
 * One single-threaded session per thread, each taking every n-th strip, instead of one session with n
-  intra-op threads: onnxruntime wakes its pool for every operator, and between frames (while the solver
-  runs) the pool sleeps, so in the pipeline a 2-thread session cost 10.6-12.6 ms per frame where two
-  1-thread sessions on strips cost 9.0-9.9 ms (interleaved A/B runs). Sessions never spin: busy-waiting
-  workers steal the cores from the solver that runs next (solver 10.8 -> 8.6 ms per frame).
-* The (1, d, H, W) output becomes (H, W, d) with ``cv2.merge`` (0.13 ms) instead of a NumPy transpose
-  copy (1.0 ms), inside each strip's worker, written straight into the frame's map.
+  intra-op threads: onnxruntime's pool wakes for every operator and sleeps between frames. Sessions
+  never spin: busy-waiting workers steal the cores from the solver that runs next.
+* The (1, d, H, W) output becomes (H, W, d) with ``cv2.merge`` inside each strip's worker, written
+  straight into the frame's map (cheaper than a NumPy transpose copy).
 
 Smoothing. A model may declare, in its metadata key ``smoothing`` ("fine,coarse", Gaussian sigmas in
 pixels; :class:`~nsflow_ros.core.pyramid.Smoothing`), how its maps are smoothed before the solver

@@ -1,41 +1,41 @@
-"""Tracking methods: one object per method, chosen once from :data:`METHODS`, then called.
+"""Tracking methods: one registry, :data:`METHODS`, whose entries are each method's whole configuration.
 
-A method knows two things: how it represents a frame (:meth:`TrackingMethod.prepare`: a descriptor
-pyramid, the gray image, a uint8 descriptor pyramid) and, for each kind of solve the VINS tracker runs
-(:class:`SolveKind`: forward, flow-back, left -> right, right -> left), which start, which levels and
-which points it uses (:meth:`TrackingMethod.solve`). The tracker's routine is method-blind: it asks for
-a solve and its check, and applies the same thresholds and border rule whatever the method. Each method
-wraps its solver in exactly one place (:meth:`TrackingMethod.track_pair`), which the tracker, the
-evaluation suite and the benchmark all call, so what is deployed, evaluated and benchmarked is the same
-code.
+A :class:`MethodSpec` says everything the tracker deploys for a method: where its descriptors come from
+(:class:`EncoderSource`) and whether the model's declared smoothing is applied, the LM solver settings
+(:class:`~nsflow_ros.core.solver.LMConfig`), the solve policy (:class:`SolvePolicy`), OpenCV's LK
+arguments for the OpenCV methods (:class:`KLTConfig`) and the CLAHE used when equalising (:data:`CLAHE`).
+:func:`make_method` builds the method object from a spec; the tracker, the evaluation suite, the
+benchmark and the training command's final comparison all build theirs this way, so what is deployed,
+evaluated and benchmarked is the same code with the same settings.
+
+A method object knows how it represents a frame (:meth:`TrackingMethod.prepare`) and, for each kind of
+solve the VINS tracker runs (:class:`SolveKind`), which start, levels and points it uses
+(:meth:`TrackingMethod.solve`). Each method wraps its solver in one place (:meth:`TrackingMethod.track_pair`).
 
 The methods:
 
-* ``nsflow``: the learned ONNX encoder's descriptor pyramid through the paper's LM solver (Algorithm 1,
-  :func:`nsflow_ros.core.solver.track`);
+* ``nsflow``: the learned ONNX encoder's descriptor pyramid through the LM solver
+  (:func:`nsflow_ros.core.solver.track`);
 * ``classical``: the same solver on image intensity;
-* ``klt``: OpenCV's ``calcOpticalFlowPyrLK`` on the gray image, called exactly as VINS-Fusion calls it (the
+* ``klt``: OpenCV's ``calcOpticalFlowPyrLK`` on the gray image, called as VINS-Fusion calls it (the
   baseline);
-* ``nsflow_lk``: the learned descriptors quantised to uint8 and tracked by OpenCV's pyramidal LK with
-  VINS-Fusion's arguments (the first author's own deployment path, LET-NET2 style).
+* ``nsflow_lk``: the learned descriptors quantised to uint8 through the same OpenCV calls.
 
-Known starts (LM methods): a check (flow-back, right -> left) starts at the point it must return to, and
-a forward or stereo solve may start from a per-point prior (the point's previous flow, the id's previous
-disparity). A solve from a trusted start needs fewer pyramid levels; points without one (a feature new
-since the last frame) start from the median of the others' flows on one level more
-(``LMMethod.fill_levels``), all in the same call (:func:`nsflow_ros.core.solver.track` ``first_level``),
-with the fine window on every level. Only a solve where no point has a prior runs from zero flow on the
-whole pyramid, with the solver's coarse window. The VINS-Fusion-exact ``klt`` baseline ignores priors,
-as VINS does.
+Known starts (LM methods): a check (flow-back, right -> left) starts at the point it must return to; a
+forward or stereo solve may start each point from a prior (its previous flow, the id's previous
+disparity) on fewer levels, points without one from the median of the others' flows
+(:class:`SolvePolicy`). Only a solve where no point has a prior runs from zero flow on the whole
+pyramid, with the solver's coarse window. ``klt`` ignores priors, as VINS does.
 """
 
 from __future__ import annotations
 
 import enum
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any, ClassVar
+from types import MappingProxyType
+from typing import Any
 
 import cv2
 import numpy as np
@@ -46,15 +46,27 @@ from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
 __all__ = [
+    "BASELINE",
+    "CHECK_LEVELS",
+    "CLAHE",
+    "DEPLOYED_LM",
     "KLT_CRITERIA",
     "KLT_GUIDED_MAX_LEVEL",
     "KLT_MAX_LEVEL",
     "KLT_WINDOW",
     "METHODS",
+    "PAPER_LM",
+    "PREDICTED_LEVELS",
+    "Clahe",
     "DescriptorKLTMethod",
+    "EncoderSource",
+    "KLTConfig",
     "KLTMethod",
     "LMMethod",
+    "MethodSpec",
     "SolveKind",
+    "SolvePolicy",
+    "Solver",
     "TrackingMethod",
     "klt_track",
     "make_method",
@@ -69,6 +81,148 @@ KLT_WINDOW = (21, 21)
 KLT_MAX_LEVEL = 3
 KLT_GUIDED_MAX_LEVEL = 1
 KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+
+CHECK_LEVELS = 2
+"""Levels of an LM check solve (it starts at its answer): two levels with the residual test catch the
+occluded points a full-pyramid check catches, at half its cost (docs/benchmarks.md)."""
+PREDICTED_LEVELS = 1
+"""Levels of an LM forward solve from the IMU prediction (VINS: maxLevel 1, i.e. two levels for OpenCV;
+the LM solver's fine level suffices from a start that close)."""
+
+
+@dataclass(frozen=True)
+class Clahe:
+    """Contrast-limited histogram equalisation, applied to the gray image when the tracker equalises.
+
+    Attributes:
+        clip: clip limit.
+        tiles: tile grid (columns, rows).
+    """
+
+    clip: float = 3.0
+    tiles: tuple[int, int] = (8, 8)
+
+    def create(self) -> cv2.CLAHE:
+        """An OpenCV CLAHE object with these parameters."""
+        return cv2.createCLAHE(clipLimit=self.clip, tileGridSize=self.tiles)
+
+
+CLAHE = Clahe()
+"""VINS-Mono's equalisation (``equalize: 1``: clip 3, 8x8 tiles), used by the tracker and the evaluation."""
+
+DEPLOYED_LM = LMConfig(
+    levels=4, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05, zero_mean=True,
+    coarse_window=21, coarse_from=2,
+)
+"""The LM solver settings the tracker deploys. Each differs from :data:`PAPER_LM` for a measured reason
+(docs/benchmarks.md, "Why the settings are what they are"):
+
+* ``levels`` 4 (paper 3): VINS's maxLevel 3, the capture range stereo disparity and fast motion need;
+* ``margin`` 1 (paper: half the window): a point may be tracked until its window reaches past the edge,
+  as OpenCV's LK allows;
+* ``tail_share`` 0.4 after ``tail_passes`` 2 (paper: every point to its own stop test): a level ends when
+  only stragglers are left;
+* ``jacobian`` ESM (paper: forward): a wider basin for ~2 % of the frame time;
+* ``zero_mean`` (paper: off): a lighting change's offset between descriptor windows costs nothing;
+* ``eps`` 0.05 (paper 0.01): pays back part of the zero-mean sums' cost at the same accuracy;
+* ``coarse_window`` 21 from level ``coarse_from`` 2 (paper: 11 everywhere): a wider basin for solves from
+  zero flow.
+"""
+
+PAPER_LM = LMConfig()
+"""The paper's Algorithm 1 as written (the solver's defaults): see :data:`DEPLOYED_LM` for the differences."""
+
+
+class Solver(enum.Enum):
+    """Which LM configuration :func:`make_method` gives an LM method."""
+
+    DEPLOYED = "deployed"
+    """What the tracker runs: :data:`DEPLOYED_LM` and the default :class:`SolvePolicy`."""
+    PAPER = "paper"
+    """Algorithm 1 as written: :data:`PAPER_LM` and :meth:`SolvePolicy.paper` (no priors, no residual
+    test); the tracker's VINS steps (checks, IMU prediction) are unchanged."""
+
+
+@dataclass(frozen=True)
+class SolvePolicy:
+    """How an LM method runs each kind of tracker solve (see :meth:`LMMethod.solve`).
+
+    Attributes:
+        prior_levels: levels for points with a prior (previous flow / disparity); 0 = ignore priors.
+        fill_levels: levels for the points of a prior solve without a prior of their own (they start
+            from the median of the others' flows); 0 = the full pyramid. One level fewer than the
+            pyramid: the coarsest does more harm than good from a start that close.
+        max_residual: the residual test of forward and stereo solves: a point is lost when its final
+            residual energy exceeds this fraction of its template's contrast energy
+            (:meth:`LMMethod.residual_ratio`); inf = no test. True tracks have ratios of 0.01-0.1,
+            points tracked onto an occluder 0.3-10.
+        check_jacobian: the Jacobian of check solves, whatever the solver's: forward, because where an
+            ESM solve stalled off the answer an ESM check started there stalls too and "returns".
+        check_eps: the stop tolerance of check solves, whatever the solver's: a check starts at its
+            answer, and a loose stop test would let it stop there.
+
+    Raises:
+        CoreError: a negative level count, a residual bound <= 0, a non-:class:`Jacobian` or eps <= 0.
+    """
+
+    prior_levels: int = 2
+    fill_levels: int = 3
+    max_residual: float = 0.5
+    check_jacobian: Jacobian = Jacobian.FORWARD
+    check_eps: float = 0.01
+
+    def __post_init__(self) -> None:
+        for label in ("prior_levels", "fill_levels"):
+            if getattr(self, label) < 0:
+                raise CoreError(f"SolvePolicy.{label} must be >= 0, got {getattr(self, label)}")
+        if not self.max_residual > 0:
+            raise CoreError(f"SolvePolicy.max_residual must be > 0, got {self.max_residual}")
+        if not isinstance(self.check_jacobian, Jacobian):
+            raise CoreError(f"SolvePolicy.check_jacobian must be a Jacobian, got {self.check_jacobian!r}")
+        if not self.check_eps > 0:
+            raise CoreError(f"SolvePolicy.check_eps must be > 0, got {self.check_eps}")
+
+    @classmethod
+    def paper(cls) -> SolvePolicy:
+        """Every solve as Algorithm 1 runs it: no priors (zero flow on the full pyramid), no residual test."""
+        return cls(prior_levels=0, fill_levels=0, max_residual=float("inf"))
+
+
+@dataclass(frozen=True)
+class KLTConfig:
+    """OpenCV LK's window and stop criteria (the OpenCV methods; VINS-Fusion's values by default).
+
+    Raises:
+        CoreError: a window that is not odd and >= 3, max_iterations < 1 or eps <= 0.
+    """
+
+    window: int = KLT_WINDOW[0]
+    max_iterations: int = 30
+    eps: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.window < 3 or self.window % 2 == 0:
+            raise CoreError(f"KLTConfig.window must be odd and >= 3, got {self.window}")
+        if self.max_iterations < 1:
+            raise CoreError(f"KLTConfig.max_iterations must be >= 1, got {self.max_iterations}")
+        if not self.eps > 0:
+            raise CoreError(f"KLTConfig.eps must be > 0, got {self.eps}")
+
+    @property
+    def criteria(self) -> tuple[int, int, float]:
+        """OpenCV's ``TermCriteria`` tuple."""
+        return (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, self.max_iterations, self.eps)
+
+
+class EncoderSource(enum.Enum):
+    """Where a method's descriptors come from."""
+
+    LEARNED = "learned"
+    """The ONNX encoder (``model_path``, or the shipped model)."""
+    INTENSITY = "intensity"
+    """Image intensity (:class:`~nsflow_ros.core.encoder.IntensityEncoder`)."""
+    NONE = "none"
+    """No encoder: OpenCV tracks the gray image."""
 
 
 class SolveKind(enum.Enum):
@@ -147,14 +301,21 @@ def quantise_descriptors(desc: np.ndarray) -> np.ndarray:
     return cv2.convertScaleAbs(desc, alpha=255.0)
 
 
+
 class TrackingMethod(ABC):
     """A tracking method: a frame representation plus a rule per :class:`SolveKind`.
 
-    Subclasses set ``name`` and implement :meth:`prepare`, :meth:`track_pair` and :meth:`solve`.
+    Built by :func:`make_method`; ``spec`` is the registry entry (with any changes) it was built from.
+    Subclasses implement :meth:`prepare`, :meth:`track_pair` and :meth:`solve`.
     """
 
-    name: ClassVar[str]
+    spec: MethodSpec
     encoder: Encoder | None = None
+
+    @property
+    def name(self) -> str:
+        """The registry name."""
+        return self.spec.name
 
     def encoder_input(self, image: np.ndarray, gray: np.ndarray) -> np.ndarray:
         """What the encoder gets: the gray image for gray encoders (already made), else the image."""
@@ -225,77 +386,25 @@ def pyramid_smoothing(encoder: Encoder) -> Smoothing | None:
 
 
 class LMMethod(TrackingMethod):
-    """An encoder's descriptor pyramid through the paper's LM solver (``nsflow``, ``classical``).
+    """An encoder's descriptor pyramid through the LM solver (``nsflow``, ``classical``).
 
     Args:
-        name: registry name.
-        encoder: the descriptor encoder.
-        lm: solver settings; ``lm.levels`` is the full pyramid.
-        prior_levels: levels for points with a prior (previous flow / disparity); 0 = ignore priors.
-        check_levels: levels of a check solve started at its answer; 0 = the full pyramid. Two levels
-            with the residual test catch the occluded points that the full-pyramid check catches (the
-            occlusion test), at half its cost.
-        predicted_levels: levels of a forward solve from the IMU prediction (VINS: one level).
-        fill_levels: levels for the points of a prior solve that have no prior of their own (they
-            start from the median of the others' flows); 0 = the full pyramid. The coarsest level
-            does more harm than good from a start that close: on the 752x480 sample sequence, 3
-            levels instead of 4 cut the stereo matches more than 1 px off from 2.2 % to 1.0 % and
-            the stereo frame time by 4 %. Such a solve (every point near its start) also keeps the
-            fine window on every level: ``lm.coarse_window`` serves solves from zero flow, and here it
-            cost 2-3 % of the frame for no better tracks.
-        max_residual: the residual test of forward and stereo solves: a point is lost when its final
-            residual energy exceeds this fraction of its template's contrast energy (sum of squared
-            deviations from the window mean); inf = no test. See :meth:`residual_ratio`. On the 752x480
-            sample sequence true tracks have ratios of 0.01-0.1 (95 % below 0.06), points tracked onto an
-            occluder 0.3-10.
-        check_iterations: K_max of check solves; 0 = the solver's (checks start at their answer and
-            stop in 2-3 iterations, so a cap changes little: measured 1 % of the frame time at 4-6).
-        check_jacobian: the Jacobian of check solves, whatever ``lm.jacobian`` is. The paper's forward
-            one by default: ESM's step treats the two frames alike, so where an ESM solve stalled off
-            the answer (a step that LM keeps rejecting) an ESM check started there stalls too and
-            "returns" to the start; a forward check slides to the nearest minimum instead. With ESM
-            forward solves on the 752x480 sample sequence, carried features more than 1 px off fell
-            from 0.72 % (ESM checks) to 0.47 % (forward checks; forward everywhere: 0.39 %, ``klt``
-            0.54 %), at the same speed.
-        check_eps: the stop tolerance of check solves, whatever ``lm.eps`` is. A check starts at its
-            answer, and a loose stop test lets it stop there: with the tracker's looser 0.03 on every
-            solve, a point tracked onto an occluder passed its flow-back check on a synthetic sequence
-            where 0.01 caught it.
+        spec: the method's configuration; ``spec.lm.levels`` is the full pyramid, ``spec.policy`` the
+            solve policy.
+        encoder: the descriptor encoder. The pyramid's coarser levels are smoothed as it declares
+            (``encoder.smoothing.coarse``; it has applied the ``fine`` part already).
 
-    The pyramid's coarser levels are smoothed as the encoder declares (``encoder.smoothing.coarse``; its
-    ``fine`` part the encoder has applied already): the shipped NSFlow model declares it, intensity not.
+    Raises:
+        CoreError: a spec without LM settings or solve policy.
     """
 
-    def __init__(
-        self, name: str, encoder: Encoder, lm: LMConfig, *, prior_levels: int = 2, check_levels: int = 2,
-        predicted_levels: int = 1, fill_levels: int = 3, max_residual: float = 0.5,
-        check_iterations: int = 0, check_jacobian: Jacobian = Jacobian.FORWARD, check_eps: float = 0.01,
-    ) -> None:
-        self.name = name  # type: ignore[misc]
+    def __init__(self, spec: MethodSpec, encoder: Encoder) -> None:
+        if spec.lm is None or spec.policy is None:
+            raise CoreError(f"method {spec.name!r}: an LM method needs lm and policy in its spec")
+        self.spec = spec
         self.encoder = encoder
-        self.lm = lm
-        for label, v in (("prior_levels", prior_levels), ("check_levels", check_levels),
-                         ("fill_levels", fill_levels)):
-            if v < 0:
-                raise CoreError(f"{label} must be >= 0, got {v}")
-        if predicted_levels < 1:
-            raise CoreError(f"predicted_levels must be >= 1, got {predicted_levels}")
-        self.prior_levels = prior_levels
-        self.check_levels = check_levels
-        self.predicted_levels = predicted_levels
-        self.fill_levels = fill_levels
-        if not max_residual > 0:
-            raise CoreError(f"max_residual must be > 0, got {max_residual}")
-        self.max_residual = max_residual
-        if check_iterations < 0:
-            raise CoreError(f"check_iterations must be >= 0, got {check_iterations}")
-        self.check_iterations = check_iterations
-        if not isinstance(check_jacobian, Jacobian):
-            raise CoreError(f"check_jacobian must be a Jacobian, got {check_jacobian!r}")
-        self.check_jacobian = check_jacobian
-        if not check_eps > 0:
-            raise CoreError(f"check_eps must be > 0, got {check_eps}")
-        self.check_eps = check_eps
+        self.lm: LMConfig = spec.lm
+        self.policy: SolvePolicy = spec.policy
         self.pyramid_smoothing = pyramid_smoothing(encoder)
 
     @staticmethod
@@ -308,57 +417,66 @@ class LMMethod(TrackingMethod):
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(result.contrast > 0, 2.0 * result.cost / result.contrast, np.inf)
 
-    def prepare(self, image: np.ndarray, gray: np.ndarray) -> DescriptorPyramid:
-        desc = self.encoder(self.encoder_input(image, gray))
+    def pyramid(self, desc: np.ndarray) -> DescriptorPyramid:
+        """The solver's pyramid of a descriptor map from :attr:`encoder` (``lm.levels`` deep)."""
         return build_pyramid(desc, self.lm.levels, self.pyramid_smoothing)
 
-    def run(
+    def prepare(self, image: np.ndarray, gray: np.ndarray) -> DescriptorPyramid:
+        return self.pyramid(self.encoder(self.encoder_input(image, gray)))
+
+    def track_pair_result(
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         flow0: np.ndarray | None = None, config: LMConfig | None = None, *, record: bool = False,
         first_level: np.ndarray | None = None,
     ) -> TrackResult:
-        """The solver call itself (:func:`~nsflow_ros.core.solver.track`), with its full result."""
+        """The solver call itself (:func:`~nsflow_ros.core.solver.track`) with its full result.
+
+        Args:
+            frame1, frame2: pyramids from :meth:`prepare`.
+            pts: (N, 2) points in frame 1.
+            flow0: (N, 2) initial flow; None = zero.
+            config: solver settings of this call; None = :attr:`lm`.
+            record: keep the per-iteration history.
+            first_level: (N,) the level each point starts on; None = the coarsest.
+        """
         return track(frame1, frame2, pts, flow0, config or self.lm, record=record, first_level=first_level)
 
     def track_pair(
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, levels: int | None = None, first_level: np.ndarray | None = None,
-        *, residual_test: bool = False, max_iterations: int | None = None, jacobian: Jacobian | None = None,
-        eps: float | None = None, coarse_window: bool = True,
+        *, residual_test: bool = False, jacobian: Jacobian | None = None, eps: float | None = None,
+        coarse_window: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
-        cfg = replace(self.lm, levels=levels or self.lm.levels,
-                      max_iterations=max_iterations or self.lm.max_iterations,
-                      jacobian=jacobian or self.lm.jacobian, eps=eps or self.lm.eps,
-                      coarse_window=self.lm.coarse_window if coarse_window else None)
+        cfg = replace(self.lm, levels=levels or self.lm.levels, jacobian=jacobian or self.lm.jacobian,
+                      eps=eps or self.lm.eps, coarse_window=self.lm.coarse_window if coarse_window else None)
         flow0 = None if start is None else start - pts
-        res = self.run(frame1, frame2, pts, flow0, cfg, first_level=first_level)
+        res = self.track_pair_result(frame1, frame2, pts, flow0, cfg, first_level=first_level)
         status = res.status
-        if residual_test and np.isfinite(self.max_residual) and status.any():
-            status = status & (self.residual_ratio(res) <= self.max_residual)
+        if residual_test and np.isfinite(self.policy.max_residual) and status.any():
+            status = status & (self.residual_ratio(res) <= self.policy.max_residual)
         return np.where(np.isfinite(res.flow), pts + res.flow, pts), status
 
     def solve(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
+        p = self.policy
         if kind.is_check:
-            # Started at its answer; the full pyramid only when asked (check_levels 0).
-            return self.track_pair(frame1, frame2, pts, start, self.check_levels or None,
-                                   max_iterations=self.check_iterations or None, jacobian=self.check_jacobian,
-                                   eps=self.check_eps)
+            return self.track_pair(frame1, frame2, pts, start, CHECK_LEVELS, jacobian=p.check_jacobian,
+                                   eps=p.check_eps)
         if start is not None:  # the IMU prediction, trusted as VINS trusts it
             usable = np.isfinite(start).all(axis=1)
             return self.track_pair(
-                frame1, frame2, pts, np.where(usable[:, None], start, pts), self.predicted_levels,
+                frame1, frame2, pts, np.where(usable[:, None], start, pts), PREDICTED_LEVELS,
                 residual_test=True,
             )
         known = np.zeros(len(pts), bool)
-        if self.prior_levels > 0 and prior is not None:
+        if p.prior_levels > 0 and prior is not None:
             known = np.isfinite(prior).all(axis=1)
         if prior is None or not known.any():  # no prior, or the median of nothing: all from zero flow
             return self.track_pair(frame1, frame2, pts, residual_test=True)
         flow0 = _fill_prior(pts, prior, known)
-        first = np.where(known, self.prior_levels, self.fill_levels or self.lm.levels).astype(np.int64) - 1
+        first = np.where(known, p.prior_levels, p.fill_levels or self.lm.levels).astype(np.int64) - 1
         # Every point starts near its answer: the coarse window, there for starts far off, is not needed.
         return self.track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,
                                coarse_window=False)
@@ -368,15 +486,19 @@ class KLTMethod(TrackingMethod):
     """OpenCV's pyramidal LK on the gray image, call for call as VINS-Fusion's ``trackImage`` (``klt``).
 
     Args:
-        window: window side (VINS: 21).
-        max_iterations, eps: stop criteria (VINS: 30, 0.01).
+        spec: the method's configuration (``spec.klt``: window and stop criteria); None = ``klt``'s.
+
+    Raises:
+        CoreError: a spec without OpenCV LK settings.
     """
 
-    name = "klt"
-
-    def __init__(self, window: int = KLT_WINDOW[0], max_iterations: int = 30, eps: float = 0.01) -> None:
-        self.window = (window, window)
-        self.criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, max_iterations, eps)
+    def __init__(self, spec: MethodSpec | None = None) -> None:
+        spec = spec or METHODS["klt"]
+        if spec.klt is None:
+            raise CoreError(f"method {spec.name!r}: an OpenCV LK method needs klt in its spec")
+        self.spec = spec
+        self.window = (spec.klt.window, spec.klt.window)
+        self.criteria = spec.klt.criteria
 
     def prepare(self, image: np.ndarray, gray: np.ndarray) -> Any:
         return gray  # VINS hands OpenCV the images; OpenCV builds its pyramids per call
@@ -404,30 +526,23 @@ class KLTMethod(TrackingMethod):
 class DescriptorKLTMethod(KLTMethod):
     """The learned descriptors as uint8, tracked by OpenCV's pyramidal LK with VINS's calls (``nsflow_lk``).
 
-    Each frame is encoded and quantised once. OpenCV builds its pyramids inside every call, as for
-    ``klt`` (its Python binding takes no pre-built pyramid). The maps are not smoothed: a model's declared
-    smoothing is chosen for the LM solver's 11x11 window, and on OpenCV's 21x21 one it cost more under
-    light than it gave (evaluation: trackable region under a lighting change 91.2 -> 86.5 %, illumination
-    pairs 99.2 -> 98.7 %; demo tracks 6-8 % shorter).
+    Each frame is encoded and quantised once; OpenCV builds its pyramids inside every call, as for
+    ``klt``. The maps are not smoothed: a model's declared smoothing is chosen for the LM solver's 11x11
+    window and costs more than it gives on OpenCV's 21x21 one (models/README.md).
 
     Args:
-        encoder: the descriptor encoder (1-4 channels in [0, 1]), without smoothing (``load_encoder(...,
-            smoothing=Smoothing())``; the registry loads it so).
-        window, max_iterations, eps: as :class:`KLTMethod`.
+        spec: the method's configuration.
+        encoder: the descriptor encoder (1-4 channels in [0, 1]), without smoothing.
 
     Raises:
         CoreError: an encoder that smooths its maps.
     """
 
-    name = "nsflow_lk"
-
-    def __init__(
-        self, encoder: Encoder, window: int = KLT_WINDOW[0], max_iterations: int = 30, eps: float = 0.01
-    ) -> None:
-        super().__init__(window, max_iterations, eps)
+    def __init__(self, spec: MethodSpec, encoder: Encoder) -> None:
+        super().__init__(spec)
         if encoder.smoothing.fine > 0:
             raise CoreError(
-                f"nsflow_lk tracks unsmoothed descriptors, but the encoder smooths them "
+                f"{spec.name} tracks unsmoothed descriptors, but the encoder smooths them "
                 f"({encoder.smoothing}); load it with smoothing=Smoothing()"
             )
         self.encoder = encoder
@@ -436,97 +551,164 @@ class DescriptorKLTMethod(KLTMethod):
         return quantise_descriptors(self.encoder(self.encoder_input(image, gray)))
 
 
-MethodFactory = Callable[..., TrackingMethod]
-
-
 @dataclass(frozen=True)
-class _Entry:
-    factory: MethodFactory
-    learned: bool  # needs the ONNX encoder
+class MethodSpec:
+    """One tracking method's whole configuration: what :func:`make_method` builds and the tracker runs.
+
+    Attributes:
+        name: registry name (the tracker's ``method`` setting).
+        label: name in evaluation tables and plots.
+        summary: one line for help texts and the README.
+        encoder: where the descriptors come from.
+        smoothed: whether the learned model's declared smoothing is applied (the LM methods: yes).
+        lm: LM solver settings (LM methods); None for the OpenCV methods.
+        policy: the LM solve policy; None for the OpenCV methods.
+        klt: OpenCV LK's window and criteria (OpenCV methods); None for the LM methods.
+        clahe: the equalisation applied to the gray image when the tracker equalises.
+
+    Raises:
+        CoreError: neither or both of (lm, policy) and klt.
+    """
+
+    name: str
+    label: str
     summary: str
-    smoothed: bool = True  # applies the model's declared smoothing (the LM methods do)
+    encoder: EncoderSource
+    smoothed: bool = True
+    lm: LMConfig | None = None
+    policy: SolvePolicy | None = None
+    klt: KLTConfig | None = None
+    clahe: Clahe = CLAHE
+
+    def __post_init__(self) -> None:
+        is_lm = self.lm is not None and self.policy is not None
+        if is_lm == (self.klt is not None) or (self.lm is None) != (self.policy is None):
+            raise CoreError(
+                f"method {self.name!r}: give lm and policy (LM solver) or klt (OpenCV LK), not both"
+            )
+
+    @property
+    def learned(self) -> bool:
+        """Whether the method needs the learned ONNX encoder."""
+        return self.encoder is EncoderSource.LEARNED
+
+    @property
+    def is_lm(self) -> bool:
+        """Whether the method runs the LM solver (else OpenCV's LK)."""
+        return self.lm is not None
+
+    def with_solver(self, solver: Solver | str) -> MethodSpec:
+        """This spec with the LM configuration of ``solver`` (OpenCV methods: unchanged).
+
+        Raises:
+            CoreError: an unknown solver name.
+        """
+        try:
+            which = Solver(solver)
+        except ValueError:
+            raise CoreError(f"solver must be one of {[s.value for s in Solver]}, got {solver!r}") from None
+        if not self.is_lm:
+            return self
+        if which is Solver.PAPER:
+            return replace(self, lm=PAPER_LM, policy=SolvePolicy.paper())
+        return replace(self, lm=DEPLOYED_LM, policy=SolvePolicy())
+
+    def with_levels(self, levels: int) -> MethodSpec:
+        """This spec with ``levels`` pyramid levels (LM methods; the OpenCV ones take levels per call)."""
+        return replace(self, lm=replace(self.lm, levels=levels)) if self.lm is not None else self
 
 
-def _nsflow(encoder: Encoder, lm: LMConfig) -> TrackingMethod:
-    return LMMethod("nsflow", encoder, lm)
-
-
-def _classical(encoder: Encoder, lm: LMConfig) -> TrackingMethod:
-    return LMMethod("classical", encoder, lm)
-
-
-def _klt(encoder: Encoder | None, lm: LMConfig) -> TrackingMethod:
-    return KLTMethod()
-
-
-def _nsflow_lk(encoder: Encoder, lm: LMConfig) -> TrackingMethod:
-    return DescriptorKLTMethod(encoder)
-
-
-METHODS: dict[str, _Entry] = {
-    "nsflow": _Entry(_nsflow, True, "learned encoder + the paper's LM solver (NumPy)"),
-    "classical": _Entry(_classical, False, "image intensity + the same LM solver"),
-    "klt": _Entry(_klt, False, "OpenCV calcOpticalFlowPyrLK on the gray image, as VINS-Fusion calls it"),
-    "nsflow_lk": _Entry(
-        _nsflow_lk, True, "learned encoder as uint8 + OpenCV's pyramidal LK (VINS's calls)", smoothed=False
+METHODS: Mapping[str, MethodSpec] = MappingProxyType({
+    "nsflow": MethodSpec(
+        "nsflow", "NSFlow", "learned encoder + the LM solver (NumPy)", EncoderSource.LEARNED,
+        lm=DEPLOYED_LM, policy=SolvePolicy(),
     ),
-}
-"""The registry of tracking methods: name -> factory, whether it needs the learned encoder, summary."""
+    "nsflow_lk": MethodSpec(
+        "nsflow_lk", "NSFlow + OpenCV LK", "learned encoder as uint8 + OpenCV's pyramidal LK (VINS's calls)",
+        EncoderSource.LEARNED, smoothed=False, klt=KLTConfig(),
+    ),
+    "classical": MethodSpec(
+        "classical", "LM (intensity)", "image intensity + the same LM solver", EncoderSource.INTENSITY,
+        lm=DEPLOYED_LM, policy=SolvePolicy(),
+    ),
+    "klt": MethodSpec(
+        "klt", "OpenCV KLT", "OpenCV calcOpticalFlowPyrLK on the gray image, as VINS-Fusion calls it",
+        EncoderSource.NONE, klt=KLTConfig(),
+    ),
+})
+"""The registry of tracking methods: name -> its whole configuration (learned methods first)."""
+
+BASELINE = "klt"
+"""The method every other is compared with: VINS-Fusion's own front-end."""
+
+
+def _spec(method: str | MethodSpec) -> MethodSpec:
+    if isinstance(method, MethodSpec):
+        return method
+    spec = METHODS.get(method)
+    if spec is None:
+        raise CoreError(f"method must be one of {tuple(METHODS)}, got {method!r}")
+    return spec
 
 
 def make_method(
-    name: str,
+    method: str | MethodSpec,
     *,
-    lm: LMConfig | None = None,
+    solver: Solver | str = Solver.DEPLOYED,
     encoder: Encoder | None = None,
     model_path: str | None = None,
     threads: int | None = None,
 ) -> TrackingMethod:
-    """Build the tracking method ``name`` from :data:`METHODS`.
+    """Build a tracking method: ``make_method("nsflow")`` is exactly what the tracker runs.
 
     Args:
-        name: a key of :data:`METHODS`.
-        lm: LM solver settings (LM methods); None = ``LMConfig(levels=4)``, the tracker's.
-        encoder: encoder to use instead of the method's own (tests, benchmarks); not for ``klt``.
-        model_path: ONNX encoder for the learned methods; None = the shipped model.
+        method: a key of :data:`METHODS`, or a spec (a registry entry with changes, e.g.
+            ``METHODS["nsflow"].with_levels(1)``), used as given.
+        solver: for a registry name, :attr:`Solver.PAPER` gives an LM method Algorithm 1's settings
+            instead of the deployed ones; ignored for a spec.
+        encoder: encoder to use instead of the one the spec names (tests, benchmarks, a loaded model);
+            not for a method without one.
+        model_path: ONNX encoder of the learned methods; None = the shipped model.
         threads: encoder threads; None = all usable cores.
 
     Returns:
-        the method.
+        the method; its ``spec`` is the configuration it runs.
 
     Raises:
-        CoreError: unknown name, or an encoder given to ``klt``.
+        CoreError: unknown name or solver, or an encoder given to a method without one.
         EncoderError: the learned model cannot be loaded.
     """
-    entry = _entry(name)
-    if name == "klt" and encoder is not None:
-        raise CoreError("method 'klt' tracks the gray image with OpenCV; an encoder cannot be given")
+    spec = method if isinstance(method, MethodSpec) else _spec(method).with_solver(solver)
+    if spec.encoder is EncoderSource.NONE:
+        if encoder is not None:
+            raise CoreError(
+                f"method {spec.name!r} tracks the gray image with OpenCV; an encoder cannot be given"
+            )
+        return KLTMethod(spec)
     if encoder is None:
-        encoder = method_encoder(name, model_path, threads)
-    return entry.factory(encoder, lm or LMConfig(levels=4))
+        encoder = method_encoder(spec, model_path, threads)
+    assert encoder is not None
+    if spec.is_lm:
+        return LMMethod(spec, encoder)
+    return DescriptorKLTMethod(spec, encoder)
 
 
-def _entry(name: str) -> _Entry:
-    entry = METHODS.get(name)
-    if entry is None:
-        raise CoreError(f"method must be one of {tuple(METHODS)}, got {name!r}")
-    return entry
+def method_encoder(
+    method: str | MethodSpec, model_path: str | None = None, threads: int | None = None
+) -> Encoder | None:
+    """The encoder :func:`make_method` gives a method when none is passed.
 
-
-def method_encoder(name: str, model_path: str | None = None, threads: int | None = None) -> Encoder | None:
-    """The encoder :func:`make_method` gives method ``name`` when none is passed.
-
-    The learned model for ``nsflow`` (smoothed as the model declares) and ``nsflow_lk`` (unsmoothed),
-    intensity for ``classical``, None for ``klt``.
+    The learned model (smoothed as the model declares when ``spec.smoothed``, else unsmoothed), intensity,
+    or None (OpenCV on the gray image), as the spec's :class:`EncoderSource` says.
 
     Raises:
         CoreError: unknown name.
         EncoderError: the learned model cannot be loaded.
     """
-    entry = _entry(name)
-    if name == "klt":
+    spec = _spec(method)
+    if spec.encoder is EncoderSource.NONE:
         return None
-    if not entry.learned:
+    if spec.encoder is EncoderSource.INTENSITY:
         return IntensityEncoder()
-    smoothing = None if entry.smoothed else Smoothing()  # None: as the model declares
+    smoothing = None if spec.smoothed else Smoothing()  # None: as the model declares
     return load_encoder(model_path, threads=threads, smoothing=smoothing)

@@ -3,14 +3,13 @@
 Each level holds the descriptor map as C-contiguous float32 (H, W, K) chunks of at most 4 channels. One
 ``cv2.remap`` call per chunk fetches a window's descriptors (the solver's inner loop); the Jacobian is the
 Scharr derivative of that same sampled patch (see ``nsflow_ros.core.solver``), so no derivative maps are
-stored. The layout is a measured necessity: remap on a non-contiguous slice is ~30x slower, and OpenCV's
-remap interpolates exactly only up to 4 channels (its generic path for more quantises positions to
-1/32 px). Storing [D, Dx, Dy] maps per channel instead, as an earlier version did, cost 5.4 ms per 752x480
-pyramid at d = 4 against 0.5 ms now, and three times the memory.
+stored (storing derivative maps costs ten times the time and three times the memory: docs/benchmarks.md).
+The layout is a necessity: remap on a non-contiguous slice is ~30x slower, and OpenCV's remap
+interpolates exactly only up to 4 channels (its generic path for more quantises positions to 1/32 px).
 
 Coarser levels are made by ``cv2.pyrDown`` of the descriptor map (Gaussian blur + decimation), not by
-running the encoder on a smaller image: it costs ~1 ms instead of a second encoder pass, and the solver's
-coarse levels only need a smooth, aliasing-free approximation.
+running the encoder on a smaller image: far cheaper than a second encoder pass, and the solver's coarse
+levels only need a smooth, aliasing-free approximation.
 
 Optional Gaussian smoothing (:class:`Smoothing`): level 0 is smoothed with ``fine`` before the coarser
 levels are made from it, and each coarser level is then smoothed with ``coarse`` (in its own pixels; the
@@ -48,6 +47,9 @@ _BORDER = cv2.BORDER_REPLICATE
 
 def descriptor_gradients(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return the x- and y-derivatives of a descriptor map (normalised Scharr, replicated border).
+
+    The reference of the derivative the solver's J equals (it takes the Scharr of sampled patches
+    instead) and that the torch training layer mirrors; not used on the tracking path.
 
     Args:
         desc: descriptor map.

@@ -34,6 +34,7 @@ from __future__ import annotations
 import enum
 import functools
 from dataclasses import dataclass, field, fields, replace
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -53,8 +54,7 @@ class Jacobian(enum.Enum):
     * ``ESM`` - the mean of that and the template's derivative at x (Malis' efficient second-order
       minimisation, Benhimane and Malis 2004): far from the answer the template's derivative still
       describes the pattern being sought, so a step points the right way more often; at the answer both
-      derivatives agree and the step is the same. Measured on the evaluation's capture-from-zero-flow
-      photo pairs (4 levels): NSFlow 80.3 -> 86.2 % within 1 px, intensity LM 92.7 -> 95.3 %.
+      derivatives agree and the step is the same (a wider basin: docs/benchmarks.md).
     """
 
     FORWARD = "forward"
@@ -63,80 +63,51 @@ class Jacobian(enum.Enum):
 
 @dataclass(frozen=True)
 class LMConfig:
-    """Settings of the LM solver.
+    """Settings of the LM solver. The defaults are the paper's Algorithm 1 (``PAPER_LM`` in
+    :mod:`nsflow_ros.core.methods`, where ``DEPLOYED_LM`` lists what the tracker changes and why);
+    docs/benchmarks.md ("Why the settings are what they are") has the measurements behind each default.
 
     Attributes:
         window: side of the square window in pixels (odd). The paper uses 11.
+        coarse_window: window side from level ``coarse_from`` up; None = ``window`` on every level. A
+            wider coarse window sees more of the image while the flow is still far off; the final level
+            keeps ``window``.
+        coarse_from: the first pyramid level (>= 1) that uses ``coarse_window``.
         jacobian: the derivative the step uses, :class:`Jacobian` (the paper's ``FORWARD`` by default).
-        coarse_window: window side from level ``coarse_from`` up; None = ``window`` on every level.
-            A wider coarse window sees more of the image around a point while the flow is still far
-            off (VINS's KLT uses 21 on every level); the final level keeps ``window``.
-        coarse_from: the first pyramid level (>= 1) that uses ``coarse_window``. From level 2 the
-            tracker's solves with a prior (which start on level 1) never pay for it: with ESM, 21 px
-            from level 2 cost +5 % of the stereo frame and from level 1 +36 %, for nearly the same
-            basin (capture from zero flow, stereo under a lighting change: 92.6 vs 92.7 %). The
-            tracker deploys 21 from level 2 for its solves from zero flow.
         levels: pyramid levels (1 = single scale, as in training).
-        max_iterations: K_max, the iteration limit per level.
-        lambda_init: initial damping lambda^(0) (a floor when ``lambda_scale`` > 0), reset at the start
-            of each level.
-        nu: factor by which lambda shrinks after an accepted step and grows after a rejected one.
+        max_iterations: K_max, the iteration limit per level (12: more leave the errors unchanged while
+            the batched loop runs until its slowest point stops).
         eps: tolerance of both stop tests, ||du|| < eps (1 + ||u||) and ||J^T f||_inf < eps.
         min_eigen: smallest eigenvalue of J^T J divided by the number of window elements (window^2 * C)
-            below which a point's window counts as degenerate (flat, saturated) and its status is False.
-            With descriptors in [0, 1] this is a mean squared gradient of 1e-5 per pixel. 1e-4, the
-            earlier default, rejected good points on low-contrast real textures in intensity mode: 30 %
-            of correctly tracked GFTT corners in the tracker, and on held-out photo pairs the classical
-            mode kept 93.5 % of points within 1 px against 98.9 % at 1e-5 (NSFlow: 99.4 % either way).
-            Flat and saturated windows (eigenvalue ~0) are caught at either value. OpenCV's LK default
-            (1e-4 on its scaled gradients) corresponds to about 1.6e-6 here.
+            below which a point's window counts as degenerate (flat, saturated) and its status is False;
+            with descriptors in [0, 1], a mean squared gradient of 1e-5 per pixel (OpenCV's LK default
+            corresponds to about 1.6e-6 here).
+        lambda_scale: tau of the per-point initial damping lambda^(0) = max(:attr:`lambda_init`,
+            tau * max(diag J^T J)) at the start of each level (Madsen, Nielsen and Tingleff); 0 =
+            ``lambda_init`` for every point. Scaling with J^T J lets a rejected step bite at once.
         margin: how far (px) a point must stay from the image edge, in both frames, for status True;
             None = half the window (the whole window inside the image). A smaller margin keeps points
-            whose window reaches past the edge, as OpenCV's LK does (sampling replicates the border, as
-            the encoder's padding does).
+            whose window reaches past the edge, as OpenCV's LK does (sampling replicates the border).
         tail_share: a level's batched loop ends early once at most this share of its points are still
             iterating after ``tail_passes`` passes; they keep their current flow (a start for the next
             level, or the result at level 0). 0 = every point iterates until its own stop test or
-            K_max, Algorithm 1 as written (the library default). See "Stragglers" below.
+            K_max, Algorithm 1 as written: the few stragglers that keep taking tiny accepted steps
+            would otherwise set the time of every level.
         tail_passes: the passes a level runs before ``tail_share`` may end it.
         zero_mean: compare windows up to a constant per channel: the residual and J lose their window
-            means (sum (a - mean a)(b - mean b) = sum ab - n mean a mean b, from the same sums), so an
-            offset between the two windows, as a lighting change leaves in descriptor maps, costs nothing.
-            Not the paper's cost; off by default (measurements in models/README.md).
-        lambda_scale: tau of the per-point initial damping lambda^(0) = max(lambda_init,
-            tau * max(diag J^T J)) at the start of each level (Madsen, Nielsen and Tingleff's
-            initialisation); 0 = lambda_init for every point.
+            means, so an offset between the two windows, as a lighting change leaves in descriptor maps,
+            costs nothing. Not the paper's cost.
 
-    The defaults were chosen by measurement on real-texture pairs with known sub-pixel shifts (150 GFTT
-    points, intensity descriptors, 3 levels): nu=10 / eps=1e-2 / lambda_init=1e-2 reach a median error of
-    0.026 px in 7 iterations per point, where nu=2 / eps=1e-3 reach 0.024 px in 34 (4x the time).
-    K_max = 12 per level (not 30) on the held-out photo pairs at 5 px initial error, 3 levels: the same
-    errors for both modes (NSFlow 0.059 / 0.132 px median clean / perturbed, within 1 px 99.5 / 96.4 %),
-    while the batched loop, which runs until its slowest point stops, made 35 instead of 69 passes. At one
-    level from 5 px, 30 iterations help a little (intensity 0.147 vs 0.172 px median): set it there.
-    lambda_scale = 0.1: a fixed lambda^(0) = 1e-2 is ~1e-3 of J^T J for the learned descriptors, so after
-    a few accepted steps (lambda /= 10 each) a rejected step needs 3-4 more rejections before lambda
-    bites, and near the optimum, where the Scharr J and the bilinear cost disagree by ~0.02-0.05 px,
-    most steps are rejected. Scaling lambda^(0) with J^T J cut NSFlow's iterations per point from 16.0
-    to 11.3 and its solve time by ~20 % (752x480 sequence, 150 points), at equal accuracy (held-out pairs
-    at 5 px: NSFlow 0.055 / 0.125 px median clean / perturbed, was 0.058 / 0.129; the classical test
-    homographies keep their error and outlier counts). tau = 0.3 or 1 saves more but costs accuracy
-    (classical homography median 0.046 -> 0.061 px at 1). Measured and rejected: a looser tolerance or
-    fewer iterations on the coarse levels (eps 0.02-0.1, K_max 4-6) saved up to 30 % more time but left
-    coarse flows outside the finer level's capture range (tracked points > 1 px off on one test photo:
-    3 -> 19).
+    Class attributes (fixed, Algorithm 1's): ``lambda_init`` = 1e-2, the initial damping (a floor when
+    ``lambda_scale`` > 0), reset at the start of each level; ``nu`` = 10, the factor by which lambda
+    shrinks after an accepted step and grows after a rejected one.
 
-    Stragglers: in the tracker (752x480 sequence, mono, 4 levels, priors) most points stop after 2-4
-    iterations, yet half the level solves run all 12 passes for a few points that keep taking small
-    accepted steps (their flow moves 0.02 px median, 0.12 px at the 90th percentile, after pass 6),
-    and a pass over 5 points costs about a third of a pass over 150 (NumPy's per-call price). Ending a
-    level once <= 20 % of its points are left after 3 passes cut the passes per stereo frame from 124
-    to 67 and the whole stereo frame from 41.4 to 38.1 ms, carried-over share, median errors and stereo
-    errors unchanged within 0.001 (interleaved, 200 frames); <= 40 % after 2 passes, what the tracker
-    uses (``TrackerSettings.lm``), saved another 4 % (stereo) and 7 % (mono) per frame at the same
-    track quality, with every figure of the evaluation suite within a point. The library default
-    keeps Algorithm 1's per-point stops.
+    Raises:
+        CoreError: a value out of range (named in the message).
     """
+
+    lambda_init: ClassVar[float] = 1e-2
+    nu: ClassVar[float] = 10.0
 
     window: int = 11
     coarse_window: int | None = None
@@ -144,8 +115,6 @@ class LMConfig:
     jacobian: Jacobian = Jacobian.FORWARD
     levels: int = 3
     max_iterations: int = 12
-    lambda_init: float = 1e-2
-    nu: float = 10.0
     eps: float = 1e-2
     min_eigen: float = 1e-5
     lambda_scale: float = 0.1
@@ -167,10 +136,6 @@ class LMConfig:
             raise CoreError(f"LMConfig.levels must be >= 1, got {self.levels}")
         if self.max_iterations < 1:
             raise CoreError(f"LMConfig.max_iterations must be >= 1, got {self.max_iterations}")
-        if not self.lambda_init > 0:
-            raise CoreError(f"LMConfig.lambda_init must be > 0, got {self.lambda_init}")
-        if not self.nu > 1:
-            raise CoreError(f"LMConfig.nu must be > 1, got {self.nu}")
         if not self.eps > 0:
             raise CoreError(f"LMConfig.eps must be > 0, got {self.eps}")
         if self.min_eigen < 0:

@@ -24,21 +24,21 @@ optical-flow calls replaced by the NSFlow descriptor LM solver (:func:`nsflow_ro
 Each frame's representation (descriptor pyramid, gray image) is computed once: frame t's is frame 2 of
 the pair (t-1, t) and frame 1 of (t, t+1); the right image's serves both stereo directions.
 
-The optical-flow calls are made by a tracking method chosen once from the registry
-:data:`nsflow_ros.core.methods.METHODS` (``nsflow``, ``classical``, ``klt``, ``nsflow_lk``): the method
-decides, for each kind of solve, its start, levels and points; everything else (detection, the 0.5 px
-check, border, mask, ids) is the same code for every method, so differences between methods come from
-the flow alone. Method ``"klt"`` is the baseline VINS itself runs: OpenCV's ``cv2.calcOpticalFlowPyrLK``
-with VINS-Fusion's exact arguments on the gray (or CLAHE'd) images.
+The optical-flow calls are made by a tracking method built once from the registry
+:data:`nsflow_ros.core.methods.METHODS` (``nsflow``, ``classical``, ``klt``, ``nsflow_lk``), which holds
+its whole configuration: the method decides, for each kind of solve, its start, levels and points;
+everything else (detection, the 0.5 px check, border, mask, ids) is the same code for every method, so
+differences between methods come from the flow alone.
 
 Nothing here imports rclpy or torch: the ROS node and the offline replayer/demo share this class.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -50,12 +50,13 @@ from nsflow_ros.core.detector import detect_corners
 from nsflow_ros.core.encoder import Encoder, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import body_to_camera_rotation, integrate_gyro, predict_pixels
-from nsflow_ros.core.methods import METHODS as _REGISTRY
-from nsflow_ros.core.methods import SolveKind, TrackingMethod, make_method
-from nsflow_ros.core.solver import Jacobian, LMConfig
+from nsflow_ros.core.methods import METHODS, SolveKind, TrackingMethod, make_method
 
 __all__ = [
-    "METHODS",
+    "BORDER_PX",
+    "FLOW_BACK_THRESHOLD_PX",
+    "GFTT_QUALITY",
+    "PREDICTION_MIN_TRACKED",
     "CameraFeatures",
     "FeatureTracker",
     "FrameFeatures",
@@ -63,68 +64,42 @@ __all__ = [
     "reject_with_fundamental",
 ]
 
-METHODS = tuple(_REGISTRY)
-"""Tracking methods (:data:`nsflow_ros.core.methods.METHODS`): the NSFlow encoder (ONNX) or image
-intensity through the paper's LM solver, OpenCV's pyramidal KLT called exactly as VINS-Fusion calls it
-(the baseline), or the NSFlow descriptors through OpenCV's LK."""
-
 # VINS-Mono's FOCAL_LENGTH: the virtual pinhole on which the F-matrix RANSAC threshold is measured.
 _VIRTUAL_FOCAL = 460.0
+GFTT_QUALITY = 0.01
+"""GFTT quality level relative to the best corner (VINS: 0.01)."""
+FLOW_BACK_THRESHOLD_PX = 0.5
+"""How far (px) a flow-back track may land from its start point (VINS: 0.5)."""
+BORDER_PX = 1
+"""Points whose rounded position is closer than this to the image edge are dropped (VINS: 1)."""
+PREDICTION_MIN_TRACKED = 10
+"""With an IMU prediction, the solve is repeated without it when fewer points survive (VINS: 10)."""
 
 
 @dataclass(frozen=True)
 class TrackerSettings:
     """Settings of :class:`FeatureTracker` (VINS names where VINS has the setting).
 
+    The method's own configuration (solver settings, solve policy, encoder) is its registry entry,
+    :data:`nsflow_ros.core.methods.METHODS`; these are the settings of the VINS pipeline around it.
+
     Attributes:
-        method: "nsflow" (learned encoder, the default), "classical" (intensity descriptors, same LM
-            solver), "klt" (OpenCV ``calcOpticalFlowPyrLK`` on the gray / CLAHE'd image with VINS-Fusion's
-            arguments: 21x21, maxLevel 3, criteria COUNT|EPS 30 / 0.01; ``lm`` is then unused, the rest of
-            the pipeline is the same) or "nsflow_lk" (the learned descriptors as uint8 through the same
-            OpenCV calls).
+        method: a key of :data:`~nsflow_ros.core.methods.METHODS`: "nsflow" (learned encoder, the
+            default), "classical" (intensity, same LM solver), "klt" (OpenCV ``calcOpticalFlowPyrLK``
+            with VINS-Fusion's arguments) or "nsflow_lk" (the learned descriptors through the same calls).
         model_path: ONNX encoder of the learned methods; None = the shipped ``models/nsflow_encoder.onnx``.
         num_threads: encoder threads; None = all usable cores.
         max_cnt: VINS ``max_cnt``, the number of features kept per frame.
         min_dist: VINS ``min_dist``, the minimum distance between features in pixels.
-        quality: GFTT quality level (VINS: 0.01).
         F_threshold: VINS ``F_threshold``, RANSAC threshold in pixels of the virtual 460 px pinhole.
         reject_with_f: run the fundamental-matrix RANSAC (VINS-Mono does, VINS-Fusion does not).
         flow_back: VINS ``flow_back``, the reverse-tracking check.
-        flow_back_threshold: how far (px) the reverse track may land from the start point (VINS: 0.5).
-        border: points whose rounded position is closer than this to the image edge are dropped (VINS: 1).
-        equalize: apply CLAHE (clip 3, 8x8 tiles, as VINS-Mono) before tracking and detection.
+        equalize: apply the method's CLAHE (VINS-Mono's clip 3, 8x8 tiles) before tracking and detection.
         stereo: track camera 0 into camera 1 (needs two cameras and an image pair per frame).
-        lm: the solver's settings. Four levels by default: VINS calls OpenCV LK with maxLevel 3, i.e.
-            four pyramid levels, and the capture range matters for stereo disparity and fast motion.
-            ``min_eigen`` is the solver's 1e-5: on real textures at 320x240, 1e-4 rejected about 30 %
-            of correctly tracked GFTT corners (survival per frame 0.59 -> 0.86 at 1e-5). ``margin`` 1:
-            a point may be tracked until its window reaches past the edge, as OpenCV's LK allows (the
-            VINS border check keeps 1 px); requiring the whole window inside lost 3 % of the tracks
-            per frame on the 752x480 sample sequence, nearly all within 40 px of the border.
-            ``jacobian`` ESM (the mean of frame 2's and the template's derivatives): on the evaluation
-            suite it widened every basin figure (capture from zero flow, stereo under lighting change
-            71.7 -> 83.6 %; trackable region one level fewer 48.4 -> 63.0 %; one-level convergence
-            3.66 -> 3.07 px) for ~2 % more time per frame (interleaved with ``klt``, 752x480). Checks keep the
-            forward Jacobian (``LMMethod.check_jacobian``). ``zero_mean``: windows are compared up to
-            a constant per channel, so the offset a lighting change leaves between the two frames'
-            descriptor windows costs nothing; on the evaluation suite NSFlow's illumination pairs within
-            1 px rose 96.9 -> 98.6 %, stereo capture from zero flow under a lighting change 80.5 ->
-            94.8 %, the trackable region under one 75.4 -> 84.8 %, while the basin without a lighting
-            change narrowed a little (trackable region one level fewer 73.7 -> 67.4 %, one-level
-            convergence 1.80 -> 2.18 px), which the model's coarser smoothing of the coarse levels, now
-            affordable, more than won back (83.2 %; models/README.md). ``eps`` 0.05 (the library's
-            0.01; checks keep 0.01, ``LMMethod.check_eps``): the looser stop test keeps every
-            evaluation figure within about a point of eps 0.01-0.03 and pays back part of the
-            zero-mean sums' cost: the two together cost ~4 % of the frame (zero mean alone +6 %;
-            docs/benchmarks.md). Intensity (``classical``) loses more basin with the loose stop test;
-            set ``eps=0.01`` there for its best accuracy. ``coarse_window`` 21 from level 2 (VINS's
-            KLT window) widens every basin figure from zero flow (capture of photo shifts 94.1 ->
-            98.2 %, the trackable region one level fewer 83.2 -> 95.6 %); the tracker's solves from a
-            prior keep the fine window (``LMMethod.fill_levels``), so only solves without any start
-            (the first frame) pay for it.
         use_imu_prediction: use gyro samples given to :meth:`FeatureTracker.process` to predict the flow.
-        prediction_min_tracked: with a prediction, retry on the full pyramid when fewer points survive
-            the single-level solve (VINS: 10).
+
+    Raises:
+        CoreError: an unknown method or an out-of-range value.
     """
 
     method: str = "nsflow"
@@ -132,59 +107,32 @@ class TrackerSettings:
     num_threads: int | None = None
     max_cnt: int = 150
     min_dist: float = 30.0
-    quality: float = 0.01
     F_threshold: float = 1.0
     reject_with_f: bool = False
     flow_back: bool = True
-    flow_back_threshold: float = 0.5
-    border: int = 1
     equalize: bool = False
     stereo: bool = False
-    lm: LMConfig = field(
-        default_factory=lambda: LMConfig(
-            levels=4, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05,
-            zero_mean=True, coarse_window=21, coarse_from=2,
-        )
-    )
     use_imu_prediction: bool = False
-    prediction_min_tracked: int = 10
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
-            raise CoreError(f"method must be one of {METHODS}, got {self.method!r}")
+            raise CoreError(f"method must be one of {tuple(METHODS)}, got {self.method!r}")
         if self.max_cnt < 1:
             raise CoreError(f"max_cnt must be >= 1, got {self.max_cnt}")
         if not (math.isfinite(self.min_dist) and self.min_dist >= 0):
             raise CoreError(f"min_dist must be finite and >= 0, got {self.min_dist}")
-        if not 0 < self.quality < 1:
-            raise CoreError(f"quality must be in (0, 1), got {self.quality}")
         if self.reject_with_f and not self.F_threshold > 0:
             raise CoreError(f"F_threshold must be > 0 when reject_with_f is on, got {self.F_threshold}")
-        if not self.flow_back_threshold > 0:
-            raise CoreError(f"flow_back_threshold must be > 0, got {self.flow_back_threshold}")
-        if self.border < 0:
-            raise CoreError(f"border must be >= 0, got {self.border}")
         if self.num_threads is not None and self.num_threads < 1:
             raise CoreError(f"num_threads must be >= 1 or None, got {self.num_threads}")
-        if not isinstance(self.lm, LMConfig):
-            raise CoreError(f"lm must be an LMConfig, got {type(self.lm).__name__}")
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> TrackerSettings:
-        """Return a copy with some fields replaced; unknown names raise a CoreError listing the valid ones.
-
-        ``window`` and ``levels`` are accepted as shortcuts for the corresponding ``lm`` fields.
-        """
+        """Return a copy with some fields replaced; unknown names raise a CoreError listing the valid ones."""
         names = {f.name for f in fields(self)}
-        values = dict(overrides)
-        lm_changes = {k: values.pop(k) for k in ("window", "levels") if k in values}
-        unknown = sorted(set(values) - names)
+        unknown = sorted(set(overrides) - names)
         if unknown:
-            valid = sorted(names | {"window", "levels"})
-            raise CoreError(f"unknown tracker setting(s) {unknown}; valid: {valid}")
-        out = replace(self, **values)
-        if lm_changes:
-            out = replace(out, lm=replace(out.lm, **lm_changes))
-        return out
+            raise CoreError(f"unknown tracker setting(s) {unknown}; valid: {sorted(names)}")
+        return replace(self, **dict(overrides))
 
 
 @dataclass(frozen=True)
@@ -343,6 +291,36 @@ def _lookup(ids: np.ndarray, table_ids: np.ndarray, values: np.ndarray) -> np.nd
     return out
 
 
+@dataclass(frozen=True)
+class _Tracks:
+    """One camera's features in the making: ids, track counts, pixels and previous pixels (NaN: new)."""
+
+    ids: np.ndarray
+    counts: np.ndarray
+    pixels: np.ndarray
+    previous: np.ndarray
+
+    @staticmethod
+    def empty() -> _Tracks:
+        return _Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)))
+
+    def __getitem__(self, sel: np.ndarray) -> _Tracks:
+        return _Tracks(self.ids[sel], self.counts[sel], self.pixels[sel], self.previous[sel])
+
+    def append(self, other: _Tracks) -> _Tracks:
+        return _Tracks(*(np.concatenate([a, b]) for a, b in
+                         zip((self.ids, self.counts, self.pixels, self.previous),
+                             (other.ids, other.counts, other.pixels, other.previous), strict=True)))
+
+
+@contextlib.contextmanager
+def _timed(timings: dict[str, float], stage: str) -> Iterator[None]:
+    """Record the wall time of the block in ``timings[stage]`` (ms)."""
+    t0 = time.perf_counter()
+    yield
+    timings[stage] = (time.perf_counter() - t0) * 1e3
+
+
 class FeatureTracker:
     """VINS-Fusion's feature tracker on NSFlow descriptors (see the module docstring for the steps).
 
@@ -351,6 +329,9 @@ class FeatureTracker:
         settings: tracker settings.
         encoder: descriptor encoder to use instead of the one ``settings.method`` selects (tests, benchmarks);
             not allowed with method "klt", which tracks the gray image.
+        method: the tracking method, already built (:func:`~nsflow_ros.core.methods.make_method`, e.g.
+            from a changed registry entry); its name must be ``settings.method``. None = built here from
+            ``settings`` (and ``encoder``).
         body_R_cam0: rotation camera 0 -> IMU body (VINS ``body_T_cam0[:3, :3]``) for the gyro prediction;
             None = identity.
         mask: camera 0's static mask, VINS-Mono's fisheye mask: uint8 (H, W) of the camera's size,
@@ -358,7 +339,8 @@ class FeatureTracker:
             detected there (VINS-Mono ``setMask``, on the frames that detect). None = the whole image.
 
     Raises:
-        CoreError: on inconsistent settings (stereo without a second camera, a mask of the wrong size, ...).
+        CoreError: on inconsistent settings (stereo without a second camera, a mask of the wrong size, a
+            method that is not ``settings.method`` or given with an encoder, ...).
         EncoderError: when the "nsflow" model cannot be loaded.
     """
 
@@ -370,6 +352,7 @@ class FeatureTracker:
         encoder: Encoder | None = None,
         body_R_cam0: np.ndarray | None = None,
         mask: np.ndarray | None = None,
+        method: TrackingMethod | None = None,
     ) -> None:
         self.settings = settings or TrackerSettings()
         self.cameras = tuple(cameras)
@@ -388,13 +371,18 @@ class FeatureTracker:
                 )
         s = self.settings
         # The method is chosen here, once; every solve below is method-blind.
-        self.method: TrackingMethod = make_method(
-            s.method, lm=s.lm, encoder=encoder, model_path=s.model_path, threads=s.num_threads
-        )
+        if method is None:
+            method = make_method(s.method, encoder=encoder, model_path=s.model_path, threads=s.num_threads)
+        elif encoder is not None or method.name != s.method:
+            raise CoreError(
+                f"a given method ({method.name!r}) must be settings.method ({s.method!r}) and comes with "
+                "its own encoder"
+            )
+        self.method: TrackingMethod = method
         self.body_R_cam0 = None if body_R_cam0 is None else np.asarray(body_R_cam0, dtype=np.float64)
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")
-        self._clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8)) if self.settings.equalize else None
+        self._clahe = method.spec.clahe.create() if s.equalize else None
         self.mask = None if mask is None else _check_mask(mask, self.cameras[0])
         self._next_id = 0
         self.reset()
@@ -451,19 +439,18 @@ class FeatureTracker:
         """A solve, the border check and its reverse check, the same for every method.
 
         Returns (positions in frame 2, status). A trusted ``start`` (the IMU prediction) that leaves fewer
-        than ``prediction_min_tracked`` points is dropped and the solve repeated without it (VINS).
+        than :data:`PREDICTION_MIN_TRACKED` points is dropped and the solve repeated without it (VINS).
         """
-        s = self.settings
         m = self.method
         new, status = m.solve(kind, frame1, frame2, pts, start, prior)
-        if start is not None and int(status.sum()) < s.prediction_min_tracked:
+        if start is not None and int(status.sum()) < PREDICTION_MIN_TRACKED:
             new, status = m.solve(kind, frame1, frame2, pts, None, prior)
-        status &= _in_border(new, size, s.border)
-        if s.flow_back and status.any():
+        status &= _in_border(new, size, BORDER_PX)
+        if self.settings.flow_back and status.any():
             # Only live points are checked: the others are dropped anyway.
             idx = np.flatnonzero(status)
             back, ok = m.solve(check, frame2, frame1, new[idx], pts[idx])
-            status[idx] = ok & (np.hypot(*(back - pts[idx]).T) <= s.flow_back_threshold)
+            status[idx] = ok & (np.hypot(*(back - pts[idx]).T) <= FLOW_BACK_THRESHOLD_PX)
         return new, status
 
     def _predict(self, gyro: np.ndarray | None, stamp: float) -> np.ndarray | None:
@@ -522,6 +509,88 @@ class FeatureTracker:
             raise CoreError("image1 given but the tracker is mono (settings.stereo is False)")
         return w, h
 
+    def _track_previous(
+        self, frame0: Any, size: tuple[int, int], predicted: np.ndarray | None
+    ) -> tuple[_Tracks, np.ndarray]:
+        """Step 1-3: the previous frame's points into this one; returns the survivors and their previous
+        undistorted points, counts already grown by 1."""
+        prev = self._left
+        if self._frame is None or not prev.ids.size:
+            return _Tracks.empty(), np.zeros((0, 2))
+        prior = prev.pixels + prev.flow  # constant velocity: each id moves as it did into the previous frame
+        pts, status = self._track(
+            SolveKind.FORWARD, SolveKind.FLOW_BACK, self._frame, frame0, prev.pixels, size, predicted, prior
+        )
+        tracks = _Tracks(prev.ids[status], self._counts[status] + 1, pts[status], prev.pixels[status])
+        return tracks, prev.undistorted[status]
+
+    def _reject_mask_detect(
+        self, gray0: np.ndarray, tracks: _Tracks, prev_un: np.ndarray, size: tuple[int, int]
+    ) -> _Tracks:
+        """Steps 4-5: the optional F-matrix RANSAC, the mask (longest tracks first), GFTT top-up."""
+        s = self.settings
+        if s.reject_with_f and tracks.ids.size >= 8:
+            tracks = tracks[reject_with_fundamental(prev_un, self.cameras[0].lift(tracks.pixels),
+                                                    s.F_threshold, size)]
+        keep, mask = self._set_mask(tracks.pixels, tracks.counts, size)
+        tracks = tracks[keep]
+        wanted = s.max_cnt - tracks.ids.size
+        if wanted <= 0:
+            return tracks
+        new = detect_corners(gray0, wanted, quality=GFTT_QUALITY, min_distance=s.min_dist, mask=mask)
+        k = new.shape[0]
+        ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
+        self._next_id += k
+        return tracks.append(_Tracks(ids, np.ones(k, np.int64), new, np.full((k, 2), np.nan)))
+
+    def _lift(
+        self, camera: int, tracks: _Tracks, before: _CameraState, dt: float
+    ) -> tuple[CameraFeatures, np.ndarray]:
+        """Step 6: undistorted points and velocities against ``before``; also the matched indices (-1)."""
+        pts = tracks.pixels
+        un = self.cameras[camera].lift(pts) if pts.size else np.zeros((0, 2))
+        vel, match = _velocities(tracks.ids, un, before.ids, before.undistorted, dt)
+        return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous), match
+
+    def _stereo(
+        self, image1: np.ndarray, frame0: Any, left: _Tracks, size: tuple[int, int], dt: float
+    ) -> CameraFeatures:
+        """Step 7: left -> right with its back-check, each id starting from its previous disparity."""
+        _, frame1 = self._prepare(image1, "image1")
+        right = _Tracks.empty()
+        if left.ids.size:
+            r, prev = self._right, self._left
+            disparity = r.pixels - _lookup(r.ids, prev.ids, prev.pixels)
+            prior = left.pixels + _lookup(left.ids, r.ids, disparity)
+            rpts, st = self._track(
+                SolveKind.STEREO, SolveKind.STEREO_BACK, frame0, frame1, left.pixels, size, None, prior
+            )
+            right = _Tracks(left.ids[st], left.counts[st], rpts[st], np.zeros((int(st.sum()), 2)))
+        cam, match = self._lift(1, right, self._right, dt)
+        previous = np.full_like(cam.pixels, np.nan)
+        previous[match >= 0] = self._right.pixels[match[match >= 0]]
+        return replace(cam, previous=previous)
+
+    def _commit(self, stamp: float, frame0: Any, left: CameraFeatures, right: CameraFeatures | None) -> None:
+        """Keep this frame as the next one's previous (only after every step succeeded)."""
+        self._stamp = float(stamp)
+        self._frame = frame0
+        self._left = _CameraState(left.ids, left.pixels, left.undistorted, left.pixels - left.previous)
+        self._counts = left.track_counts
+        self._right = (
+            _empty_state() if right is None
+            else _CameraState(right.ids, right.pixels, right.undistorted, right.pixels - right.previous)
+        )
+
+    def _check_stamp(self, stamp: float) -> None:
+        if not math.isfinite(stamp):
+            raise CoreError(f"stamp must be finite, got {stamp}")
+        if self._stamp is not None and stamp <= self._stamp:
+            raise CoreError(
+                f"timestamps must increase: got {stamp:.9f} after {self._stamp:.9f} "
+                "(call reset() to start over, e.g. when a bag loops)"
+            )
+
     # -- main entry ------------------------------------------------------------------------------------
 
     def process(
@@ -533,7 +602,7 @@ class FeatureTracker:
         *,
         detect: bool = True,
     ) -> FrameFeatures:
-        """Track one frame (VINS-Fusion ``trackImage``).
+        """Track one frame (VINS-Fusion ``trackImage``; the steps of the module docstring).
 
         Args:
             stamp: the frame's time in seconds; must increase from frame to frame.
@@ -554,91 +623,24 @@ class FeatureTracker:
             gyro: (M, 4).
         """
         t_start = time.perf_counter()
-        if not math.isfinite(stamp):
-            raise CoreError(f"stamp must be finite, got {stamp}")
-        if self._stamp is not None and stamp <= self._stamp:
-            raise CoreError(
-                f"timestamps must increase: got {stamp:.9f} after {self._stamp:.9f} "
-                "(call reset() to start over, e.g. when a bag loops)"
-            )
+        self._check_stamp(stamp)
         size = self._check_images(image0, image1)
-        s = self.settings
         timings: dict[str, float] = {}
-
         predicted = self._predict(gyro, stamp)  # before any state changes: may raise on bad samples
-        t0 = time.perf_counter()
-        gray0, frame0 = self._prepare(image0, "image0")
-        timings["encode"] = (time.perf_counter() - t0) * 1e3
-
-        t0 = time.perf_counter()
-        prev = self._left
-        if self._frame is not None and prev.ids.size:
-            # Constant-velocity prior: each id moves as it did into the previous frame.
-            prior = prev.pixels + prev.flow
-            pts, status = self._track(
-                SolveKind.FORWARD, SolveKind.FLOW_BACK, self._frame, frame0, prev.pixels, size,
-                predicted, prior,
-            )
-            ids, counts, prev_px = prev.ids[status], self._counts[status], prev.pixels[status]
-            pts = pts[status]
-            prev_un = prev.undistorted[status]
-        else:
-            ids, counts = np.zeros(0, np.int64), np.zeros(0, np.int64)
-            pts, prev_px, prev_un = np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
-        counts = counts + 1
-        timings["track"] = (time.perf_counter() - t0) * 1e3
-
-        t0 = time.perf_counter()
-        if detect:
-            if s.reject_with_f and ids.size >= 8:
-                inl = reject_with_fundamental(prev_un, self.cameras[0].lift(pts), s.F_threshold, size)
-                ids, counts, pts, prev_px = ids[inl], counts[inl], pts[inl], prev_px[inl]
-            keep, mask = self._set_mask(pts, counts, size)
-            ids, counts, pts, prev_px = ids[keep], counts[keep], pts[keep], prev_px[keep]
-            wanted = s.max_cnt - ids.size
-            if wanted > 0:
-                new = detect_corners(gray0, wanted, quality=s.quality, min_distance=s.min_dist, mask=mask)
-                k = new.shape[0]
-                ids = np.concatenate([ids, np.arange(self._next_id, self._next_id + k, dtype=np.int64)])
-                self._next_id += k
-                counts = np.concatenate([counts, np.ones(k, np.int64)])
-                pts = np.concatenate([pts, new])
-                prev_px = np.concatenate([prev_px, np.full((k, 2), np.nan)])
-        timings["detect"] = (time.perf_counter() - t0) * 1e3
-
+        with _timed(timings, "encode"):
+            gray0, frame0 = self._prepare(image0, "image0")
+        with _timed(timings, "track"):
+            tracks, prev_un = self._track_previous(frame0, size, predicted)
+        with _timed(timings, "detect"):
+            if detect:
+                tracks = self._reject_mask_detect(gray0, tracks, prev_un, size)
         dt = stamp - self._stamp if self._stamp is not None else 0.0
-        un0 = self.cameras[0].lift(pts) if pts.size else np.zeros((0, 2))
-        vel0, _ = _velocities(ids, un0, prev.ids, prev.undistorted, dt)
-        left = CameraFeatures(0, ids, pts, un0, vel0, counts, prev_px)
-        cams = [left]
-
-        right_state = _empty_state()
-        if s.stereo:
-            t0 = time.perf_counter()
-            _, frame1 = self._prepare(image1, "image1")  # type: ignore[arg-type]
-            r_ids, r_pts, r_cnt = np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64)
-            if ids.size:
-                # Prior: each id's disparity in the previous frame.
-                r = self._right
-                disparity = r.pixels - _lookup(r.ids, prev.ids, prev.pixels)
-                prior = pts + _lookup(ids, r.ids, disparity)
-                rpts, st = self._track(
-                    SolveKind.STEREO, SolveKind.STEREO_BACK, frame0, frame1, pts, size, None, prior
-                )
-                r_ids, r_pts, r_cnt = ids[st], rpts[st], counts[st]
-            r_un = self.cameras[1].lift(r_pts) if r_pts.size else np.zeros((0, 2))
-            r_vel, r_match = _velocities(r_ids, r_un, self._right.ids, self._right.undistorted, dt)
-            r_prev = np.full_like(r_pts, np.nan)
-            r_prev[r_match >= 0] = self._right.pixels[r_match[r_match >= 0]]
-            cams.append(CameraFeatures(1, r_ids, r_pts, r_un, r_vel, r_cnt, r_prev))
-            right_state = _CameraState(r_ids, r_pts, r_un, r_pts - r_prev)
-            timings["stereo"] = (time.perf_counter() - t0) * 1e3
-
-        # Commit the new state only now, so an exception above leaves the tracker as it was.
-        self._stamp = float(stamp)
-        self._frame = frame0
-        self._left = _CameraState(ids, pts, un0, pts - prev_px)
-        self._counts = counts
-        self._right = right_state
+        left, _ = self._lift(0, tracks, self._left, dt)
+        right = None
+        if self.settings.stereo:
+            with _timed(timings, "stereo"):
+                right = self._stereo(image1, frame0, tracks, size, dt)  # type: ignore[arg-type]
+        self._commit(stamp, frame0, left, right)
         timings["total"] = (time.perf_counter() - t_start) * 1e3
-        return FrameFeatures(float(stamp), tuple(cams), size, timings)
+        cams = (left,) if right is None else (left, right)
+        return FrameFeatures(float(stamp), cams, size, timings)

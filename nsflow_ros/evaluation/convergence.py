@@ -22,7 +22,7 @@ level, at each method's deployed depth (4 levels) and at one level fewer: the ba
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -39,8 +39,7 @@ from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import (
     CLASSICAL,
     KLT_CLAHE,
-    KLTMethod,
-    LMMethod,
+    EvalMethod,
     PairMethod,
     PairResult,
 )
@@ -130,8 +129,10 @@ def prepare_pair(methods: list[PairMethod], pair: HomographyPair) -> Frames:
     """
     out: Frames = {}
     for m in methods:
-        if not isinstance(m, (LMMethod, KLTMethod)):
-            raise EvaluationError(f"convergence needs an LM or KLT method, got {type(m).__name__} {m.name!r}")
+        if not isinstance(m, EvalMethod):
+            raise EvaluationError(
+                f"convergence needs an LM or KLT evaluation method, got {type(m).__name__} {m.name!r}"
+            )
         out[m.name] = (m.prepare(pair.image1), m.prepare(pair.image2))
     return out
 
@@ -177,23 +178,9 @@ def convergence_curves(
         frames = prepare_pair(methods, pair)
     curves, final = {}, {}
     for m in methods:
-        rows = [_clipped(f0, gt, ceiling)]
-        if isinstance(m, LMMethod):
-            # The curve is Algorithm 1's per-iteration error: no straggler cut-off.
-            cfg = replace(m.config, levels=levels, max_iterations=iterations, tail_share=0.0)
-            res = m.run(*frames[m.name], pts, f0, config=cfg, record=True)
-            flows = [rec.flow for rec in res.history]
-            flows += [res.flow] * (iterations - len(flows))  # every point had stopped: flows stay
-            rows += [_clipped(f, gt, ceiling) for f in flows[:iterations]]
-            flow, status = res.flow, res.status
-        elif isinstance(m, KLTMethod):
-            # OpenCV keeps no history: run again with max_iterations = k, on the same representations
-            for k in range(1, iterations + 1):
-                pr = m.with_iterations(k).track_frames(*frames[m.name], pts, f0, levels)
-                rows.append(_clipped(pr.flow, gt, ceiling))
-            flow, status = pr.flow, pr.status
-        else:
-            raise EvaluationError(f"convergence needs an LM or KLT method, got {type(m).__name__} {m.name!r}")
+        flows, result = m.iterate(*frames[m.name], pts, f0, levels, iterations)  # type: ignore[attr-defined]
+        rows = [_clipped(f, gt, ceiling) for f in (f0, *flows)]
+        flow, status = result.flow, result.status
         curves[m.name] = np.stack(rows)
         final[m.name] = endpoint_errors(PairResult(flow, status), gt)
     return curves, final

@@ -9,7 +9,8 @@
   onnxruntime run at the requested size with the counted nodes' outputs exposed, so any padding scheme
   (the shipped model pads with ``Pad(edge)`` nodes) is measured, not assumed.
 * Encoder milliseconds at 320x240 and 752x480 (onnxruntime on the CPU, median and p90 over N runs after
-  warm-up, :func:`nsflow_ros.bench.time_encoder`), with the intensity encoder timed in the same run.
+  warm-up, :func:`nsflow_ros.evaluation.timing.time_encoder`), with the intensity encoder timed in the
+  same run.
 * The whole :class:`~nsflow_ros.core.tracker.FeatureTracker` per frame (encode, track + flow-back,
   detection, total) for every evaluated method (``nsflow``, ``nsflow_lk``, ``classical``, ``klt`` and
   ``klt`` with CLAHE) on frames of the sample sequence.
@@ -25,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from nsflow_ros.bench import time_encoder, timing_stats
 from nsflow_ros.core.encoder import Encoder, IntensityEncoder
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
@@ -33,6 +33,7 @@ from nsflow_ros.evaluation.context import EvalContext, axis_label, new_figure, s
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW
 from nsflow_ros.evaluation.section import HeadlineRow, Section
+from nsflow_ros.evaluation.timing import time_encoder, timing_stats
 
 __all__ = [
     "PAPER_TABLE_II",
@@ -173,7 +174,7 @@ def time_tracker(
         camera: the tracker's camera model (its size must match the frames).
         method: tracker method (a key of :data:`nsflow_ros.core.methods.METHODS`).
         settings: tracker settings (``method`` is replaced); None = the defaults.
-        encoder: encoder for the methods that use one (None: the tracker loads its own).
+        encoder: encoder of a method that has one (None: the tracker loads its own).
         dt: seconds between frames.
 
     Returns:
@@ -187,8 +188,7 @@ def time_tracker(
         raise EvaluationError(f"timing the tracker needs at least 2 frames, got {len(frames)}")
     try:
         tracker = FeatureTracker(
-            [camera], replace(settings or TrackerSettings(), method=method),
-            encoder=None if method == "klt" else encoder,
+            [camera], replace(settings or TrackerSettings(), method=method), encoder=encoder
         )
         timings = [tracker.process(k * dt, img).timings for k, img in enumerate(frames)]
     except CoreError as err:
@@ -247,7 +247,7 @@ def run(ctx: EvalContext) -> Section:
     Raises:
         EvaluationError: no ONNX model, no onnx package, or a run that fails.
     """
-    from nsflow_ros.core.encoder import OnnxEncoder, load_encoder
+    from nsflow_ros.core.encoder import load_encoder
     from nsflow_ros.core.methods import method_encoder
     from nsflow_ros.evaluation import sequences
 
@@ -256,10 +256,10 @@ def run(ctx: EvalContext) -> Section:
     warmup = 1 if ctx.quick else 5
     n_frames = int(opts.get("frames", 0 if ctx.quick else 40))  # 0: the whole (quick) sequence
 
-    encoder: Encoder | None = None
-    for m in ctx.methods:
-        if m.name == NSFLOW and isinstance(getattr(m, "encoder", None), OnnxEncoder):
-            encoder = m.encoder  # type: ignore[attr-defined]
+    # NSFlow's encoder: the run's loaded model, or loaded here
+    encoder: Encoder | None = next(
+        (getattr(m, "encoder", None) for m in ctx.methods if m.name == NSFLOW), None
+    )
     if encoder is None:
         try:
             encoder = load_encoder(ctx.model, threads=ctx.threads)

@@ -1,43 +1,46 @@
-"""The methods every analysis compares: the tracker's own method objects behind one pair interface.
+"""The methods every analysis compares: a view over the tracker's method registry.
 
-Each evaluated method wraps a tracking method of the registry :data:`nsflow_ros.core.methods.METHODS`
-(the objects :class:`~nsflow_ros.core.tracker.FeatureTracker` deploys): the frame representation comes
-from its ``prepare`` and every solve from its ``track_pair`` (or, for the LM solver's recorded history,
-``run``), so what is evaluated is the code that is deployed and benchmarked.
+Each evaluated method is a :class:`Variant`: an entry of :data:`nsflow_ros.core.methods.METHODS` (the
+configuration :class:`~nsflow_ros.core.tracker.FeatureTracker` deploys), under its label, with or
+without the tracker's CLAHE. Its method object is built by :func:`~nsflow_ros.core.methods.make_method`
+and wrapped in one pair interface (:class:`EvalMethod`): the frame representation comes from its
+``prepare`` and every solve from its ``track_pair``, so what is evaluated is the code and the
+configuration that are deployed and benchmarked.
 
-* ``NSFlow``: core ``nsflow``, the ONNX encoder's descriptor pyramid through the paper's LM solver;
-* ``NSFlow + OpenCV LK``: core ``nsflow_lk``, the same descriptors quantised to uint8 and tracked by
-  OpenCV's pyramidal LK (21x21 window, 30 iterations, eps 0.01, as VINS calls it);
-* ``LM (intensity)``: core ``classical``, the LM solver on image intensity;
-* ``OpenCV KLT``: core ``klt``, ``cv2.calcOpticalFlowPyrLK`` on the gray image as VINS calls it;
-* ``OpenCV KLT + CLAHE``: the same on CLAHE-equalised images (VINS ``equalize: 1``: clip limit 3, 8x8
-  tiles), the baseline a VINS user picks against changing light.
+* ``NSFlow``: core ``nsflow``;
+* ``NSFlow + OpenCV LK``: core ``nsflow_lk``;
+* ``LM (intensity)``: core ``classical``;
+* ``OpenCV KLT``: core ``klt``;
+* ``OpenCV KLT + CLAHE``: core ``klt`` on CLAHE-equalised images (VINS ``equalize: 1``), the baseline a
+  VINS user picks against changing light.
 
 All of them get the same images, points and initial flow, and by default the tracker's deployed
-pyramid depth (:func:`deployed_levels`: the LM solver's 4 levels; OpenCV's maxLevel 3, VINS's).
+pyramid depth (:func:`deployed_levels`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from types import MappingProxyType
 from typing import Any, Protocol
 
-import cv2
 import numpy as np
 
-from nsflow_ros.core.encoder import Encoder, IntensityEncoder, load_encoder, to_gray
+from nsflow_ros.core.encoder import Encoder, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.methods import (
-    KLT_WINDOW,
-    DescriptorKLTMethod,
+    DEPLOYED_LM,
+    METHODS,
+    KLTMethod,
+    LMMethod,
+    MethodSpec,
     TrackingMethod,
     make_method,
+    method_encoder,
 )
-from nsflow_ros.core.methods import KLTMethod as CoreKLTMethod
-from nsflow_ros.core.methods import LMMethod as CoreLMMethod
-from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing
+from nsflow_ros.core.pyramid import DescriptorPyramid
 from nsflow_ros.core.solver import LMConfig, TrackResult
-from nsflow_ros.core.tracker import TrackerSettings
 from nsflow_ros.evaluation.errors import EvaluationError
 
 __all__ = [
@@ -48,39 +51,72 @@ __all__ = [
     "METHOD_ORDER",
     "NSFLOW",
     "NSFLOW_LK",
+    "VARIANTS",
     "EvalMethod",
-    "KLTMethod",
-    "LMMethod",
+    "KLTPairMethod",
+    "LMPairMethod",
     "PairMethod",
     "PairResult",
+    "Variant",
     "default_methods",
     "deployed_levels",
     "deployed_lm",
+    "eval_method",
 ]
 
-NSFLOW = "NSFlow"
-NSFLOW_LK = "NSFlow + OpenCV LK"
-CLASSICAL = "LM (intensity)"
-KLT = "OpenCV KLT"
-KLT_CLAHE = "OpenCV KLT + CLAHE"
-METHOD_ORDER = (NSFLOW, NSFLOW_LK, CLASSICAL, KLT, KLT_CLAHE)
-"""Every evaluated method's label, in table order (the learned descriptors first)."""
-BASELINES = (CLASSICAL, KLT, KLT_CLAHE)
-"""The classical baselines (NSFlow + OpenCV LK uses the learned descriptors: not a baseline)."""
+NSFLOW = METHODS["nsflow"].label
+NSFLOW_LK = METHODS["nsflow_lk"].label
+CLASSICAL = METHODS["classical"].label
+KLT = METHODS["klt"].label
+KLT_CLAHE = f"{KLT} + CLAHE"
 
-# VINS-Mono's equalisation (feature_tracker.cpp, equalize: 1), as the tracker applies it.
-CLAHE_CLIP = 3.0
-CLAHE_TILES = (8, 8)
+
+@dataclass(frozen=True)
+class Variant:
+    """An evaluated method: a registry entry, on equalised images or not.
+
+    Attributes:
+        label: name in tables and plots.
+        method: the key of :data:`~nsflow_ros.core.methods.METHODS`.
+        equalize: CLAHE the gray image first, as the tracker does with ``equalize`` on.
+    """
+
+    label: str
+    method: str
+    equalize: bool = False
+
+    @property
+    def spec(self) -> MethodSpec:
+        """The registry entry."""
+        return METHODS[self.method]
+
+    @property
+    def tracker_overrides(self) -> dict[str, Any]:
+        """The :class:`~nsflow_ros.core.tracker.TrackerSettings` fields that make the tracker run this."""
+        return {"method": self.method, "equalize": self.equalize}
+
+
+VARIANTS: Mapping[str, Variant] = MappingProxyType({
+    v.label: v for v in (
+        Variant(NSFLOW, "nsflow"), Variant(NSFLOW_LK, "nsflow_lk"), Variant(CLASSICAL, "classical"),
+        Variant(KLT, "klt"), Variant(KLT_CLAHE, "klt", equalize=True),
+    )
+})
+"""Every evaluated method by label, in table order (the learned descriptors first)."""
+METHOD_ORDER = tuple(VARIANTS)
+"""Every evaluated method's label, in table order."""
+BASELINES = tuple(label for label, v in VARIANTS.items() if not v.spec.learned)
+"""The classical baselines (the methods without the learned descriptors)."""
 
 
 def deployed_lm() -> LMConfig:
-    """The LM solver settings the tracker deploys (``TrackerSettings().lm``: 4 levels, margin 1)."""
-    return TrackerSettings().lm
+    """The LM solver settings the tracker deploys (:data:`~nsflow_ros.core.methods.DEPLOYED_LM`)."""
+    return DEPLOYED_LM
 
 
 def deployed_levels() -> int:
     """Pyramid levels the tracker deploys: the LM solver's, and OpenCV's maxLevel 3 + 1 (VINS)."""
-    return deployed_lm().levels
+    return DEPLOYED_LM.levels
 
 
 @dataclass(frozen=True)
@@ -123,9 +159,9 @@ class EvalMethod:
 
     Args:
         name: label in tables and plots.
-        core: the tracking method (:func:`nsflow_ros.core.methods.make_method` or one of its classes).
+        core: the tracking method (:func:`nsflow_ros.core.methods.make_method`).
         levels: pyramid levels of every solve (OpenCV ``maxLevel`` = levels - 1).
-        equalize: CLAHE the gray image first, as the tracker does with ``equalize`` on.
+        equalize: CLAHE the gray image first, with the method's CLAHE, as the tracker does.
     """
 
     def __init__(self, name: str, core: TrackingMethod, levels: int, *, equalize: bool = False) -> None:
@@ -135,7 +171,7 @@ class EvalMethod:
         self.core = core
         self.levels = int(levels)
         self.equalize = bool(equalize)
-        self._clahe = cv2.createCLAHE(clipLimit=CLAHE_CLIP, tileGridSize=CLAHE_TILES) if equalize else None
+        self._clahe = core.spec.clahe.create() if equalize else None
 
     @property
     def encoder(self) -> Encoder | None:
@@ -198,38 +234,41 @@ class EvalMethod:
         """Track ``points`` of image 1 into image 2 from ``flow0`` (None = zero) at :attr:`levels`."""
         return self.track_frames(self.prepare(image1), self.prepare(image2), points, flow0)
 
+    def iterate(
+        self, frame1: Any, frame2: Any, points: np.ndarray, flow0: np.ndarray, levels: int, iterations: int
+    ) -> tuple[list[np.ndarray], PairResult]:
+        """The flow after each iteration k = 1..``iterations`` on ``levels`` levels, and the final result.
 
-class LMMethod(EvalMethod):
-    """The paper's LM solver on an encoder's descriptor pyramid (core ``nsflow`` / ``classical``).
+        Raises:
+            EvaluationError: a method that cannot report its iterations.
+        """
+        raise EvaluationError(f"{self.name}: this method cannot report its iterations")
+
+
+class LMPairMethod(EvalMethod):
+    """An LM method of the registry (core ``nsflow`` / ``classical``) behind the pair interface.
 
     Args:
         name: label in tables and plots.
-        encoder: any :class:`~nsflow_ros.core.Encoder`; an :class:`IntensityEncoder` makes the core
-            ``classical`` method, anything else ``nsflow``.
-        config: solver settings (its ``levels`` is the pyramid depth); None = :func:`deployed_lm`.
+        core: the core LM method (:func:`~nsflow_ros.core.methods.make_method`); its ``lm.levels`` is
+            the pyramid depth.
     """
 
-    core: CoreLMMethod
+    core: LMMethod
 
-    def __init__(self, name: str, encoder: Encoder, config: LMConfig | None = None) -> None:
-        cfg = config or deployed_lm()
-        key = "classical" if isinstance(encoder, IntensityEncoder) else "nsflow"
-        try:
-            core = make_method(key, lm=cfg, encoder=encoder)
-        except CoreError as err:
-            raise EvaluationError(f"{name}: {err}") from err
-        super().__init__(name, core, cfg.levels)
+    def __init__(self, name: str, core: LMMethod) -> None:
+        super().__init__(name, core, core.lm.levels)
 
     @property
     def config(self) -> LMConfig:
         """The solver settings of the core method."""
         return self.core.lm
 
-    def run(
+    def track_pair_result(
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, points: np.ndarray,
         flow0: np.ndarray | None = None, *, config: LMConfig | None = None, record: bool = False,
     ) -> TrackResult:
-        """The solver's full result (core ``run``); ``record`` keeps the per-iteration history.
+        """The solver's full result (the core's ``track_pair_result``); ``record`` keeps the history.
 
         Args:
             frame1, frame2: pyramids from :meth:`prepare`.
@@ -240,50 +279,92 @@ class LMMethod(EvalMethod):
         """
         pts, flow0 = _check_points(points, flow0)
         try:
-            return self.core.run(frame1, frame2, pts, flow0, config, record=record)
+            return self.core.track_pair_result(frame1, frame2, pts, flow0, config, record=record)
         except CoreError as err:
             raise EvaluationError(f"{self.name}: {err}") from err
 
+    def iterate(
+        self, frame1: Any, frame2: Any, points: np.ndarray, flow0: np.ndarray, levels: int, iterations: int
+    ) -> tuple[list[np.ndarray], PairResult]:
+        # Algorithm 1's per-iteration flow, read from the solver's history: no straggler cut-off.
+        cfg = replace(self.config, levels=levels, max_iterations=iterations, tail_share=0.0)
+        res = self.track_pair_result(frame1, frame2, points, flow0, config=cfg, record=True)
+        flows = [rec.flow for rec in res.history]
+        flows += [res.flow] * (iterations - len(flows))  # every point had stopped: flows stay
+        return flows[:iterations], PairResult(res.flow, res.status)
 
-class KLTMethod(EvalMethod):
-    """OpenCV's pyramidal LK with VINS's settings (core ``klt``, or ``nsflow_lk`` with an encoder).
+
+class KLTPairMethod(EvalMethod):
+    """An OpenCV LK method of the registry (core ``klt``, ``nsflow_lk``) behind the pair interface.
 
     Args:
+        name: label in tables and plots.
+        core: the core method (:func:`~nsflow_ros.core.methods.make_method`).
         levels: pyramid levels (OpenCV ``maxLevel`` = levels - 1); None = :func:`deployed_levels`.
-        window: window side in pixels (VINS: 21).
-        max_iterations: iteration limit per level (VINS: 30).
-        eps: OpenCV's step-size stop test (VINS: 0.01).
-        encoder: track this encoder's descriptors quantised to uint8 (core ``nsflow_lk``) instead of the
-            gray image (core ``klt``).
         equalize: CLAHE the gray image first (VINS ``equalize: 1``).
-        name: label; None = ``OpenCV KLT`` / ``OpenCV KLT + CLAHE`` / ``NSFlow + OpenCV LK``.
     """
 
-    def __init__(
-        self, levels: int | None = None, window: int = KLT_WINDOW[0], max_iterations: int = 30,
-        eps: float = 0.01, *, encoder: Encoder | None = None, equalize: bool = False, name: str | None = None,
-    ) -> None:
-        if max_iterations < 1:
-            raise EvaluationError(f"max_iterations must be >= 1, got {max_iterations}")
-        core: CoreKLTMethod
-        if encoder is None:
-            core = CoreKLTMethod(window, max_iterations, eps)
-            label = KLT_CLAHE if equalize else KLT
-        else:
-            core = DescriptorKLTMethod(encoder, window, max_iterations, eps)
-            label = NSFLOW_LK if not equalize else f"{NSFLOW_LK} + CLAHE"
-        super().__init__(name or label, core, deployed_levels() if levels is None else levels,
-                         equalize=equalize)  # fmt: skip
-        self.window = window
-        self.max_iterations = max_iterations
-        self.eps = eps
+    core: KLTMethod
 
-    def with_iterations(self, max_iterations: int) -> KLTMethod:
-        """A copy limited to ``max_iterations`` per level (convergence curves); same representation."""
-        return KLTMethod(
-            self.levels, self.window, max_iterations, self.eps, encoder=self.encoder, equalize=self.equalize,
-            name=self.name,
-        )
+    def __init__(
+        self, name: str, core: KLTMethod, levels: int | None = None, *, equalize: bool = False
+    ) -> None:
+        super().__init__(name, core, deployed_levels() if levels is None else levels, equalize=equalize)
+
+    def with_iterations(self, max_iterations: int) -> KLTPairMethod:
+        """A copy limited to ``max_iterations`` per level (convergence curves); same representation.
+
+        Raises:
+            EvaluationError: max_iterations < 1.
+        """
+        spec = self.core.spec
+        try:
+            spec = replace(spec, klt=replace(spec.klt, max_iterations=max_iterations))
+        except CoreError as err:
+            raise EvaluationError(f"{self.name}: {err}") from err
+        core = make_method(spec, encoder=self.encoder)
+        return KLTPairMethod(self.name, core, self.levels, equalize=self.equalize)  # type: ignore[arg-type]
+
+    def iterate(
+        self, frame1: Any, frame2: Any, points: np.ndarray, flow0: np.ndarray, levels: int, iterations: int
+    ) -> tuple[list[np.ndarray], PairResult]:
+        # OpenCV keeps no history: run again with max_iterations = k, on the same representations.
+        results = [self.with_iterations(k).track_frames(frame1, frame2, points, flow0, levels)
+                   for k in range(1, iterations + 1)]
+        return [r.flow for r in results], results[-1]
+
+
+def eval_method(
+    label: str, *, encoder: Encoder | None = None, levels: int | None = None, model: str | None = None,
+    threads: int | None = None,
+) -> EvalMethod:
+    """Build the evaluated method ``label`` (a key of :data:`VARIANTS`) from its registry entry.
+
+    Args:
+        label: the method's label.
+        encoder: encoder to use instead of the one the registry loads (a method without one: ignored).
+        levels: pyramid levels; None = :func:`deployed_levels`.
+        model: ONNX encoder of the learned methods when ``encoder`` is None; None = the shipped one.
+        threads: encoder threads (None = all usable cores).
+
+    Raises:
+        EvaluationError: an unknown label, bad levels, or a model that cannot be loaded.
+    """
+    variant = VARIANTS.get(label)
+    if variant is None:
+        raise EvaluationError(f"unknown method {label!r}; expected one of {list(VARIANTS)}")
+    lev = deployed_levels() if levels is None else levels
+    if lev < 1:
+        raise EvaluationError(f"levels must be >= 1, got {lev}")
+    spec = variant.spec.with_levels(lev)
+    try:
+        enc = encoder if encoder is not None else method_encoder(spec, model, threads)
+        core = make_method(spec, encoder=enc)
+    except CoreError as err:
+        raise EvaluationError(f"{label}: {err}") from err
+    if spec.is_lm:
+        return LMPairMethod(label, core)  # type: ignore[arg-type]
+    return KLTPairMethod(label, core, lev, equalize=variant.equalize)  # type: ignore[arg-type]
 
 
 def default_methods(
@@ -292,8 +373,8 @@ def default_methods(
     """Every evaluated method (:data:`METHOD_ORDER`), all at ``levels`` (None = the deployed depth).
 
     Args:
-        model: NSFlow ONNX encoder (None = the shipped one); NSFlow + OpenCV LK uses the same, without
-            its declared smoothing (as the tracker's ``nsflow_lk``).
+        model: NSFlow ONNX encoder (None = the shipped one), loaded as the registry loads it for each
+            method (NSFlow + OpenCV LK without the model's declared smoothing).
         levels: pyramid levels of every method; None = :func:`deployed_levels`.
         threads: encoder threads (None = all usable cores).
 
@@ -303,19 +384,4 @@ def default_methods(
     Raises:
         EvaluationError: bad levels, or the model cannot be loaded.
     """
-    lev = deployed_levels() if levels is None else levels
-    if lev < 1:
-        raise EvaluationError(f"levels must be >= 1, got {lev}")
-    cfg = replace(deployed_lm(), levels=lev)
-    try:
-        encoder = load_encoder(model, threads=threads)
-        unsmoothed = load_encoder(model, threads=threads, smoothing=Smoothing())  # as nsflow_lk loads it
-    except CoreError as err:
-        raise EvaluationError(str(err)) from err
-    return [
-        LMMethod(NSFLOW, encoder, cfg),
-        KLTMethod(lev, encoder=unsmoothed),
-        LMMethod(CLASSICAL, IntensityEncoder(), cfg),
-        KLTMethod(lev),
-        KLTMethod(lev, equalize=True),
-    ]
+    return [eval_method(label, levels=levels, model=model, threads=threads) for label in METHOD_ORDER]

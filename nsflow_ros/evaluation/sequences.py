@@ -58,7 +58,7 @@ from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
 from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, KLT_CLAHE, NSFLOW, NSFLOW_LK
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW, VARIANTS
 from nsflow_ros.evaluation.section import HeadlineRow, Section
 from nsflow_ros.evaluation.targets import Clause, Target
 
@@ -86,16 +86,10 @@ __all__ = [
 
 KEY = "sequences"
 LEVELS = ("none", "small", "large")
-TRACKER_METHODS: dict[str, dict[str, Any]] = {
-    NSFLOW: {"method": "nsflow", "equalize": False},
-    NSFLOW_LK: {"method": "nsflow_lk", "equalize": False},
-    CLASSICAL: {"method": "classical", "equalize": False},
-    KLT: {"method": "klt", "equalize": False},
-    KLT_CLAHE: {"method": "klt", "equalize": True},
-}
-"""Report name of a method -> the :class:`TrackerSettings` fields that make the tracker run it (the
-evaluation methods' ``tracker_overrides``)."""
-LEARNED = (NSFLOW, NSFLOW_LK)
+TRACKER_METHODS: dict[str, dict[str, Any]] = {label: v.tracker_overrides for label, v in VARIANTS.items()}
+"""Report name of a method -> the :class:`TrackerSettings` fields that make the tracker run it (a view
+over :data:`~nsflow_ros.evaluation.methods.VARIANTS`)."""
+LEARNED = tuple(label for label, v in VARIANTS.items() if v.spec.learned)
 """Methods that use the run's ONNX encoder."""
 
 F_THRESHOLD_PX = 1.0
@@ -409,7 +403,7 @@ def track_sequence(
         level: ``none``, ``small`` or ``large``.
         settings: tracker settings; ``method`` and ``equalize`` are replaced by the method's
             (:data:`TRACKER_METHODS`).
-        encoder: encoder for the LM methods (None: the tracker loads its own).
+        encoder: encoder of a method that has one (None: the tracker loads its own).
         seed: perturbation and RANSAC seed.
         tick: called after every frame (progress bar).
 
@@ -432,8 +426,7 @@ def track_sequence(
     overrides = TRACKER_METHODS[method]
     try:
         tracker = FeatureTracker(
-            [source.camera], settings.with_overrides(overrides),
-            encoder=None if overrides["method"] == "klt" else encoder,
+            [source.camera], settings.with_overrides(overrides), encoder=encoder
         )
     except CoreError as err:
         raise EvaluationError(f"{method}: {err}") from err

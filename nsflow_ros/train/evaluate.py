@@ -13,14 +13,13 @@ status True) and ``median_epe_tracked`` (median over tracked points only).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from nsflow_ros.core.encoder import Encoder, IntensityEncoder
-from nsflow_ros.core.methods import pyramid_smoothing
-from nsflow_ros.core.pyramid import build_pyramid
-from nsflow_ros.core.solver import LMConfig, track
+from nsflow_ros.core.encoder import Encoder
+from nsflow_ros.core.methods import METHODS, LMMethod, make_method
+from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.data import HELDOUT_IMAGES, Pair, PairConfig, load_image, make_pair
 
 __all__ = ["Comparison", "ModeMetrics", "compare", "format_table", "heldout_pairs", "mode_metrics"]
@@ -89,15 +88,14 @@ def mode_metrics(errors: np.ndarray, status: np.ndarray) -> ModeMetrics:
     )
 
 
-def _run_mode(encoder: Encoder, pairs: list[Pair], config: LMConfig) -> tuple[ModeMetrics, np.ndarray]:
+def _run_mode(method: LMMethod, pairs: list[Pair]) -> tuple[ModeMetrics, np.ndarray]:
     errs, stats = [], []
-    smoothing = pyramid_smoothing(encoder)
     for p in pairs:
         if len(p.points) == 0:
             continue
-        # the maps as the LM methods prepare them (the encoder applies its own fine smoothing)
-        f1, f2 = (build_pyramid(encoder(im), config.levels, smoothing) for im in (p.image1, p.image2))
-        res = track(f1, f2, p.points, p.flow0, config)
+        # the maps as the method prepares them (the encoder applies its own fine smoothing)
+        f1, f2 = (method.pyramid(method.encoder(im)) for im in (p.image1, p.image2))
+        res = method.track_pair_result(f1, f2, p.points, p.flow0)
         errs.append(np.linalg.norm(res.flow - p.flow_gt, axis=1))
         stats.append(res.status)
     if not errs:
@@ -114,15 +112,19 @@ def compare(
     Args:
         encoder: the learned encoder, e.g. ``nsflow_ros.load_encoder(path)``.
         pairs: evaluation pairs, e.g. :func:`heldout_pairs`.
-        config: solver settings; ``LMConfig()`` (3 levels, as deployed) when None.
+        config: solver settings of both methods; None = what the tracker deploys (the registry's
+            ``nsflow`` and ``classical``), ``PAPER_LM`` = Algorithm 1 as written.
         label: name of the pair set for tables.
 
     Returns:
         the :class:`Comparison`.
     """
-    cfg = config or LMConfig()
-    learned, learned_err = _run_mode(encoder, pairs, cfg)
-    classical, classical_err = _run_mode(IntensityEncoder(), pairs, cfg)
+    specs = {name: METHODS[name] if config is None else replace(METHODS[name], lm=config)
+             for name in ("nsflow", "classical")}
+    nsflow, intensity = make_method(specs["nsflow"], encoder=encoder), make_method(specs["classical"])
+    cfg = nsflow.lm  # type: ignore[attr-defined]
+    learned, learned_err = _run_mode(nsflow, pairs)  # type: ignore[arg-type]
+    classical, classical_err = _run_mode(intensity, pairs)  # type: ignore[arg-type]
     return Comparison(label, learned, classical, cfg, learned_err, classical_err)
 
 

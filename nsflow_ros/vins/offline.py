@@ -91,7 +91,7 @@ def run_offline(
         opts: what to read (path, topics, window, perturbation); the tracker uses camera 0 (mono).
         out_dir: output folder (created).
         config: VINS config file (default: the shipped EuRoC mono config).
-        method: ``nsflow``, ``classical`` or ``klt`` (see :data:`nsflow_ros.core.tracker.METHODS`).
+        method: ``nsflow``, ``classical`` or ``klt`` (see :data:`nsflow_ros.core.methods.METHODS`).
         overrides: further tracker settings.
         sheet_frames: debug images in the contact sheet, spread over the sequence.
         progress: show a progress bar.

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ from nsflow_ros.core.imu import (
     predict_pixels,
     so3_exp,
 )
+from nsflow_ros.core.methods import METHODS, make_method
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
 
 
@@ -78,10 +81,11 @@ def test_gyro_buffer_windows_and_prunes():
 
 
 def _run(seq: syn.Sequence, prediction: bool, prior: bool = False) -> tuple[float, float]:
-    tracker = FeatureTracker([syn.camera()], TrackerSettings(method="classical", min_dist=20,
-                                                           use_imu_prediction=prediction))
+    spec = METHODS["classical"]
     if not prior:  # no constant-velocity start either: the blind tracker
-        tracker.method.prior_levels = 0
+        spec = replace(spec, policy=replace(spec.policy, prior_levels=0))
+    settings = TrackerSettings(method="classical", min_dist=20, use_imu_prediction=prediction)
+    tracker = FeatureTracker([syn.camera()], settings, method=make_method(spec))
     prev = None
     survival, wrong = [], []
     for k in range(len(seq.frames)):

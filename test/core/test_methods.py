@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import ast
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 import pytest
 import synthetic_sequences as syn
@@ -10,11 +14,18 @@ from onnx_models import conv_encoder
 from nsflow_ros.core.encoder import IntensityEncoder, load_encoder, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.methods import (
+    CLAHE,
+    DEPLOYED_LM,
     METHODS,
+    PAPER_LM,
     DescriptorKLTMethod,
+    EncoderSource,
+    KLTConfig,
     KLTMethod,
     LMMethod,
+    MethodSpec,
     SolveKind,
+    SolvePolicy,
     klt_track,
     make_method,
     quantise_descriptors,
@@ -70,13 +81,69 @@ def test_lm_methods_smooth_coarse_levels_as_the_encoder_declares(pair, tmp_path)
     np.testing.assert_allclose(classical.prepare(img, gray).level(0)[..., 0], gray / 255.0, atol=1e-6)
 
 
-def test_lm_method_rejects_bad_policies():
+def test_solve_policy_and_specs_reject_bad_values():
     with pytest.raises(CoreError, match="prior_levels"):
-        LMMethod("x", IntensityEncoder(), LMConfig(), prior_levels=-1)
+        SolvePolicy(prior_levels=-1)
     with pytest.raises(CoreError, match="fill_levels"):
-        LMMethod("x", IntensityEncoder(), LMConfig(), fill_levels=-1)
+        SolvePolicy(fill_levels=-1)
     with pytest.raises(CoreError, match="max_residual"):
-        LMMethod("x", IntensityEncoder(), LMConfig(), max_residual=0)
+        SolvePolicy(max_residual=0)
+    with pytest.raises(CoreError, match="check_jacobian must be a Jacobian"):
+        SolvePolicy(check_jacobian="forward")
+    with pytest.raises(CoreError, match="check_eps must be > 0"):
+        SolvePolicy(check_eps=0.0)
+    with pytest.raises(CoreError, match=r"KLTConfig\.window"):
+        KLTConfig(window=20)
+    with pytest.raises(CoreError, match="not both"):
+        MethodSpec("x", "X", "x", EncoderSource.INTENSITY, lm=DEPLOYED_LM, policy=SolvePolicy(),
+                   klt=KLTConfig())
+    with pytest.raises(CoreError, match="not both"):
+        MethodSpec("x", "X", "x", EncoderSource.INTENSITY, lm=DEPLOYED_LM)
+    with pytest.raises(CoreError, match="solver must be one of"):
+        make_method("classical", solver="fast")
+
+
+def test_make_method_is_the_registry_entry_it_names():
+    for name, spec in METHODS.items():
+        method = make_method(name)
+        assert method.spec == spec and method.name == name
+        if spec.is_lm:
+            assert method.lm == spec.lm == DEPLOYED_LM and method.policy == spec.policy == SolvePolicy()
+        else:
+            assert method.window == (spec.klt.window,) * 2 and method.criteria == spec.klt.criteria
+        assert spec.clahe == CLAHE
+    # a changed entry is used as given
+    one = make_method(METHODS["classical"].with_levels(1))
+    assert one.lm == replace(DEPLOYED_LM, levels=1)
+
+
+def test_paper_preset_differs_from_the_deployed_one_in_the_documented_fields():
+    documented = {"levels", "margin", "tail_share", "tail_passes", "jacobian", "zero_mean", "eps",
+                  "coarse_window", "coarse_from"}
+    differ = {k for k, v in DEPLOYED_LM.as_dict().items() if PAPER_LM.as_dict()[k] != v}
+    assert differ == documented
+    from nsflow_ros.core import methods
+
+    for name in documented:  # each difference is named in the deployed settings' documentation
+        assert f"``{name}``" in methods.__doc__ + _attr_doc(methods, "DEPLOYED_LM"), name
+    paper = make_method("classical", solver="paper")
+    assert paper.lm == PAPER_LM == LMConfig()
+    policy = SolvePolicy.paper()
+    assert paper.policy == policy and policy.prior_levels == 0 and policy.max_residual == float("inf")
+    changed = {f for f in ("prior_levels", "fill_levels", "max_residual", "check_jacobian", "check_eps")
+               if getattr(policy, f) != getattr(SolvePolicy(), f)}
+    assert changed == {"prior_levels", "fill_levels", "max_residual"}
+    assert make_method("klt", solver="paper").spec == METHODS["klt"]  # no LM settings to change
+
+
+def _attr_doc(module, name: str) -> str:
+    """The docstring written under a module-level constant (read from the source)."""
+    import inspect
+
+    src = inspect.getsource(module)
+    start = src.index(f"\n{name} = ")
+    doc = src.index('"""', start)
+    return src[doc:src.index('"""', doc + 3)]
 
 
 def test_first_level_solves_points_from_their_own_level(pair):
@@ -138,17 +205,18 @@ def test_residual_test_drops_a_point_tracked_onto_something_else(pair):
     pts = _corners(a, 40)
     truth = seq.truth(0, 1, pts)
     # The true match leaves only noise; an unrelated window keeps a residual of its own contrast.
-    good = method.run(fa, fb, pts, truth - pts, LMConfig(levels=1, max_iterations=1))
+    good = method.track_pair_result(fa, fb, pts, truth - pts, LMConfig(levels=1, max_iterations=1))
     ratio_good = method.residual_ratio(good)
     other = np.roll(truth, 7, axis=0)
-    bad = method.run(fa, fb, pts, other - pts, LMConfig(levels=1, max_iterations=1))
+    bad = method.track_pair_result(fa, fb, pts, other - pts, LMConfig(levels=1, max_iterations=1))
     ratio_bad = method.residual_ratio(bad)
     assert np.median(ratio_good) < 0.1 and np.median(ratio_bad) > 0.5
     # started next to other corners on the finest levels, most points stay there and must be dropped
     new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts, prior=other)
     wrong = np.hypot(*(new - truth).T) > 1
-    method.max_residual = float("inf")
-    _, ok_untested = method.solve(SolveKind.FORWARD, fa, fb, pts, prior=other)
+    spec = method.spec
+    untested = make_method(replace(spec, policy=replace(spec.policy, max_residual=float("inf"))))
+    _, ok_untested = untested.solve(SolveKind.FORWARD, fa, fb, pts, prior=other)
     assert (ok_untested & wrong).sum() > 5 * max(1, (ok & wrong).sum())
 
 
@@ -159,13 +227,13 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     pts = _corners(a)
     truth = seq.truth(0, 1, pts)
     calls = []
-    real = LMMethod.run
+    real = LMMethod.track_pair_result
 
     def spy(self, *args, **kw):
         calls.append((kw.get("first_level"), args[4].levels if len(args) > 4 else None))
         return real(self, *args, **kw)
 
-    monkeypatch.setattr(LMMethod, "run", spy)
+    monkeypatch.setattr(LMMethod, "track_pair_result", spy)
     prior = truth.copy()
     prior[::3] = np.nan  # ids new to the previous frame have no prior
     new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts, prior=prior)
@@ -176,8 +244,10 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     # with no prior at all, the whole pyramid from zero flow; fill_levels 0 = the whole pyramid too
     method.solve(SolveKind.FORWARD, fa, fb, pts, prior=np.full_like(prior, np.nan))
     assert calls[-1] == (None, 4)
-    method.fill_levels = 0
-    method.solve(SolveKind.FORWARD, fa, fb, pts, prior=prior)
+    spec = method.spec
+    make_method(replace(spec, policy=replace(spec.policy, fill_levels=0))).solve(
+        SolveKind.FORWARD, fa, fb, pts, prior=prior
+    )
     assert (calls[-1][0][::3] == 3).all() and (calls[-1][0][1::3] == 1).all()
     back, back_ok = method.solve(SolveKind.FLOW_BACK, fb, fa, new[ok], pts[ok])
     assert calls[-1][1] == 2  # the check starts at its answer on two levels
@@ -185,21 +255,21 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
 
 
 def _record_configs(monkeypatch, attr: str) -> list:
-    """Record ``attr`` of the solver config of every ``LMMethod.run`` call from now on."""
+    """Record ``attr`` of the solver config of every ``LMMethod.track_pair_result`` call from now on."""
     used = []
-    real = LMMethod.run
+    real = LMMethod.track_pair_result
 
     def spy(self, *args, **kw):
         used.append(getattr(args[4], attr))
         return real(self, *args, **kw)
 
-    monkeypatch.setattr(LMMethod, "run", spy)
+    monkeypatch.setattr(LMMethod, "track_pair_result", spy)
     return used
 
 
 def test_only_solves_from_zero_flow_use_the_coarse_window(pair, monkeypatch):
     _, a, b = pair
-    method = make_method("classical", lm=LMConfig(levels=4, coarse_window=21, coarse_from=2))
+    method = make_method("classical")  # deployed: 21 px from level 2
     fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
     pts = _corners(a, 20)
     used = _record_configs(monkeypatch, "coarse_window")
@@ -213,8 +283,8 @@ def test_only_solves_from_zero_flow_use_the_coarse_window(pair, monkeypatch):
 
 def test_checks_use_the_forward_jacobian_whatever_the_solves_use(pair, monkeypatch):
     _, a, b = pair
-    method = make_method("classical", lm=LMConfig(levels=4, jacobian=Jacobian.ESM))
-    assert method.check_jacobian is Jacobian.FORWARD
+    method = make_method("classical")  # deployed: ESM solves
+    assert method.lm.jacobian is Jacobian.ESM and method.policy.check_jacobian is Jacobian.FORWARD
     fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
     pts = _corners(a)
     used = _record_configs(monkeypatch, "jacobian")
@@ -222,22 +292,19 @@ def test_checks_use_the_forward_jacobian_whatever_the_solves_use(pair, monkeypat
     back, back_ok = method.solve(SolveKind.STEREO_BACK, fb, fa, new[ok], pts[ok])
     assert used == [Jacobian.ESM, Jacobian.FORWARD]
     assert back_ok.mean() > 0.9 and np.median(np.hypot(*(back - pts[ok]).T)[back_ok]) < 0.1
-    with pytest.raises(CoreError, match="check_jacobian must be a Jacobian"):
-        LMMethod("x", IntensityEncoder(), LMConfig(), check_jacobian="forward")
 
 
 def test_checks_keep_their_own_stop_tolerance(pair, monkeypatch):
     _, a, b = pair
-    method = make_method("classical", lm=LMConfig(levels=4, eps=0.03))
-    assert method.check_eps == 0.01
+    spec = METHODS["classical"]
+    method = make_method(replace(spec, lm=replace(spec.lm, eps=0.03)))
+    assert method.policy.check_eps == 0.01
     fa, fb = method.prepare(a, to_gray(a)), method.prepare(b, to_gray(b))
     pts = _corners(a)
     used = _record_configs(monkeypatch, "eps")
     new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts)
     method.solve(SolveKind.FLOW_BACK, fb, fa, new[ok], pts[ok])
     assert used == [0.03, 0.01]
-    with pytest.raises(CoreError, match="check_eps must be > 0"):
-        LMMethod("x", IntensityEncoder(), LMConfig(), check_eps=0.0)
 
 
 def test_klt_method_makes_vins_calls(pair):
@@ -268,3 +335,41 @@ def test_nsflow_lk_tracks_quantised_descriptors(pair, tmp_path):
     np.testing.assert_array_equal(q, [[[0, 128, 255, 255]]])
     with pytest.raises(CoreError, match="1-4 descriptor channels"):
         quantise_descriptors(np.zeros((4, 4, 5), np.float32))
+
+
+PACKAGE = Path(__file__).resolve().parents[2] / "nsflow_ros"
+ENCODER_TYPES = {"IntensityEncoder", "OnnxEncoder"}
+
+
+def _names_a_method(source: str, filename: str = "<snippet>") -> list[str]:
+    """Where ``source`` branches on a method's name (a comparison with a registry key as a string
+    literal, ``x == "klt"``, ``x in ("klt", ...)``) or on an encoder's type (``isinstance(e,
+    IntensityEncoder)``): the choices only the registry may make."""
+    found = []
+    for node in ast.walk(ast.parse(source, filename)):
+        if isinstance(node, ast.Compare):
+            for operand in (node.left, *node.comparators):
+                items = operand.elts if isinstance(operand, (ast.Tuple, ast.List, ast.Set)) else [operand]
+                if any(isinstance(i, ast.Constant) and i.value in METHODS for i in items):
+                    found.append(f"{filename}:{node.lineno} compares with a method name")
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "isinstance":
+            kinds = node.args[1].elts if isinstance(node.args[1], ast.Tuple) else [node.args[1]]
+            if any(isinstance(k, ast.Name) and k.id in ENCODER_TYPES for k in kinds):
+                found.append(f"{filename}:{node.lineno} branches on an encoder's type")
+    return found
+
+
+def test_the_detector_catches_a_branch_on_a_method():
+    assert len(_names_a_method('if settings.method == "klt":\n    pass\n')) == 1
+    assert len(_names_a_method('ok = name in ("nsflow", "nsflow_lk")\n')) == 1
+    assert len(_names_a_method('ok = isinstance(enc, (OnnxEncoder, str))\n')) == 1
+    assert _names_a_method('spec = METHODS["klt"]\nok = spec.encoder is EncoderSource.NONE\n') == []
+
+
+def test_no_module_but_the_registry_names_a_method():
+    registry = PACKAGE / "core" / "methods.py"
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path != registry:
+            found += _names_a_method(path.read_text(), str(path.relative_to(PACKAGE)))
+    assert found == []

@@ -13,6 +13,8 @@ from onnx_models import conv_encoder
 
 from nsflow_ros.core.encoder import IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.methods import METHODS, EncoderSource, make_method
+from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.tracker import (
     FeatureTracker,
     FrameFeatures,
@@ -268,10 +270,12 @@ def test_detect_false_only_tracks(pan):
 def test_settings_validation_and_overrides():
     with pytest.raises(CoreError, match="method"):
         TrackerSettings(method="orb")
-    s = TrackerSettings().with_overrides({"max_cnt": 80, "window": 15, "levels": 2})
-    assert (s.max_cnt, s.lm.window, s.lm.levels) == (80, 15, 2)
+    s = TrackerSettings().with_overrides({"max_cnt": 80, "equalize": True})
+    assert (s.max_cnt, s.equalize) == (80, True)
     with pytest.raises(CoreError, match="unknown tracker setting"):
         TrackerSettings().with_overrides({"maxcnt": 3})
+    with pytest.raises(CoreError, match="unknown tracker setting"):  # the method's spec owns the solver
+        TrackerSettings().with_overrides({"levels": 2})
 
 
 def test_klt_method_tracks_a_known_shift_through_the_same_pipeline(pan):
@@ -364,14 +368,53 @@ def test_deployed_settings_keep_tracks_through_a_brightness_step():
     seq = syn.translating(6)
     for k in range(3, 6):
         seq.frames[k] = cv2.add(seq.frames[k], 20)
-    assert TrackerSettings().lm.zero_mean
+    spec = METHODS["classical"]
+    assert spec.lm.zero_mean
     kept = {}
     for zero_mean in (True, False):
-        lm = replace(TrackerSettings().lm, zero_mean=zero_mean)
-        res = _run(FeatureTracker([syn.camera()], _classical(lm=lm)), seq)
+        method = make_method(replace(spec, lm=replace(spec.lm, zero_mean=zero_mean)))
+        res = _run(FeatureTracker([syn.camera()], _classical(), method=method), seq)
         prev, cur = res[2].cameras[0], res[3].cameras[0]
         pi, ci = _matches(prev, cur)
         kept[zero_mean] = len(ci) / len(prev)
         if zero_mean:
             assert np.hypot(*(cur.pixels[ci] - seq.truth(2, 3, prev.pixels[pi])).T).max() < 1.0
     assert kept[True] > 0.85 and kept[False] < 0.5 * kept[True], kept
+
+
+def test_make_method_is_exactly_what_the_tracker_runs(tmp_path):
+    model = conv_encoder(tmp_path / "m.onnx", c_in=1, d=3)
+    smoothed, plain = load_encoder(model, smoothing=Smoothing(1.0, 0.5)), load_encoder(model)
+    for name, spec in METHODS.items():
+        given = None if spec.encoder is EncoderSource.NONE else smoothed if spec.smoothed else plain
+        tracker = FeatureTracker([syn.camera()], TrackerSettings(method=name, equalize=True), encoder=given)
+        built = make_method(name, encoder=given)
+        # every setting: the spec (LM settings, solve policy, OpenCV LK arguments, encoder source and
+        # smoothing, CLAHE) and what the objects hold
+        assert tracker.method.spec == built.spec == METHODS[name]
+        assert type(tracker.method) is type(built)
+        assert vars(tracker.method).keys() == vars(built).keys()
+        for key, value in vars(built).items():
+            if key != "encoder":
+                assert vars(tracker.method)[key] == value, (name, key)
+        if built.spec.is_lm:
+            assert tracker.method.pyramid_smoothing == built.pyramid_smoothing == Smoothing(coarse=0.5)
+        assert tracker._clahe.getClipLimit() == METHODS[name].clahe.clip == 3.0
+        assert tuple(tracker._clahe.getTilesGridSize()) == METHODS[name].clahe.tiles == (8, 8)
+    shipped = FeatureTracker([syn.camera()], TrackerSettings())
+    assert shipped.method.spec == make_method("nsflow").spec
+    assert shipped.encoder.smoothing == make_method("nsflow").encoder.smoothing
+
+
+def test_a_tracker_given_a_built_method_tracks_as_one_built_from_its_settings():
+    seq = syn.translating(4)
+    own = _run(FeatureTracker([syn.camera()], _classical()), seq)
+    given = _run(FeatureTracker([syn.camera()], _classical(), method=make_method("classical")), seq)
+    for a, b in zip(own, given, strict=True):
+        np.testing.assert_array_equal(a.cameras[0].ids, b.cameras[0].ids)
+        np.testing.assert_array_equal(a.cameras[0].pixels, b.cameras[0].pixels)
+    with pytest.raises(CoreError, match=r"must be settings\.method"):
+        FeatureTracker([syn.camera()], _classical(), method=make_method("klt"))
+    with pytest.raises(CoreError, match="own encoder"):
+        FeatureTracker([syn.camera()], _classical(), method=make_method("classical"),
+                       encoder=IntensityEncoder())

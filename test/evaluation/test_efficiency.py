@@ -9,11 +9,11 @@ from onnx import TensorProto, helper, numpy_helper
 from onnx_models import conv_encoder
 
 from nsflow_ros.bench import paper_encoder_onnx
-from nsflow_ros.core.encoder import IntensityEncoder, load_encoder
+from nsflow_ros.core.encoder import load_encoder
 from nsflow_ros.evaluation import efficiency as ef
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, METHOD_ORDER, NSFLOW, NSFLOW_LK, KLTMethod, LMMethod
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT, METHOD_ORDER, NSFLOW, NSFLOW_LK, eval_method
 from nsflow_ros.resources import share_file
 
 
@@ -78,8 +78,7 @@ def test_bad_models_are_clear_errors(tmp_path):
 
 def test_quick_run(tmp_path):
     (tmp_path / "report").mkdir()
-    nsflow = LMMethod(NSFLOW, load_encoder(threads=1))
-    methods = [nsflow, LMMethod(CLASSICAL, IntensityEncoder()), KLTMethod()]
+    methods = [eval_method(name, threads=1) for name in (NSFLOW, CLASSICAL, KLT)]
     ctx = EvalContext(methods=methods, quick=True, out_dir=tmp_path / "report", progress=False, threads=1)
     sec = ef.run(ctx)
     assert sec.key == "efficiency" and sec.figures[0].is_file()

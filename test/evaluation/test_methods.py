@@ -11,7 +11,6 @@ import pytest
 from image_pairs import texture, warp_pair
 
 from nsflow_ros.core import methods as core
-from nsflow_ros.core.tracker import TrackerSettings
 from nsflow_ros.evaluation import methods as ev
 from nsflow_ros.evaluation import sequences
 from nsflow_ros.evaluation.errors import EvaluationError
@@ -47,17 +46,20 @@ def test_no_solver_is_called_outside_the_core_methods():
 
 
 def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
-    deployed = TrackerSettings().lm
-    assert [m.name for m in methods] == list(ev.METHOD_ORDER)
+    deployed = core.METHODS["nsflow"].lm
+    assert [m.name for m in methods] == list(ev.METHOD_ORDER) == list(ev.VARIANTS)
     assert {m.levels for m in methods} == {deployed.levels} == {4}
     for m in methods:
-        key = m.tracker_overrides["method"]
-        assert key in core.METHODS
-        assert isinstance(m.core, type(core.make_method(key, encoder=m.encoder)))
+        variant = ev.VARIANTS[m.name]
+        # the evaluated method is the registry entry the tracker deploys, equalised as the label says
+        assert m.core.spec == core.METHODS[variant.method] and m.equalize == variant.equalize
+        assert m.tracker_overrides == variant.tracker_overrides
         # the sequences analysis runs the tracker with the same method and equalisation
         assert sequences.TRACKER_METHODS[m.name] == m.tracker_overrides
-    lm = {m.name: m for m in methods if isinstance(m, ev.LMMethod)}
+    lm = {m.name: m for m in methods if isinstance(m, ev.LMPairMethod)}
+    assert set(lm) == {ev.NSFLOW, ev.CLASSICAL}
     assert lm[ev.NSFLOW].config == deployed and lm[ev.CLASSICAL].config == deployed
+    assert ev.BASELINES == (ev.CLASSICAL, ev.KLT, ev.KLT_CLAHE)
     # NSFlow + OpenCV LK tracks the same model's descriptors, without the smoothing the LM solver gets
     assert methods[0].encoder.path == methods[1].encoder.path
     assert methods[0].encoder.smoothing.fine > 0 and methods[1].encoder.smoothing.fine == 0
@@ -96,7 +98,7 @@ def test_klt_is_vins_call_with_the_evaluations_criteria(methods, pair):
 def test_clahe_and_descriptor_lk_prepare_what_the_tracker_tracks(methods, pair):
     f1 = pair[0]
     by = {m.name: m for m in methods}
-    eq = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8)).apply(f1)
+    eq = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8)).apply(f1)  # VINS-Mono's, the tracker's
     np.testing.assert_array_equal(by[ev.KLT_CLAHE].prepare(f1), eq)
     np.testing.assert_array_equal(by[ev.KLT].prepare(f1), f1)
     lk = by[ev.NSFLOW_LK]
@@ -113,5 +115,8 @@ def test_guards(methods, pair):
         methods[3].track(f1, f2, pts[:, 0])
     with pytest.raises(EvaluationError, match="levels"):
         ev.default_methods(levels=0)
+    klt = next(m for m in methods if m.name == ev.KLT)
     with pytest.raises(EvaluationError, match="max_iterations"):
-        ev.KLTMethod(max_iterations=0)
+        klt.with_iterations(0)
+    with pytest.raises(EvaluationError, match="unknown method"):
+        ev.eval_method("SIFT")

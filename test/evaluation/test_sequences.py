@@ -5,14 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nsflow_ros.core.encoder import IntensityEncoder, load_encoder
 from nsflow_ros.core.imu import so3_exp
-from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.tracker import TrackerSettings
 from nsflow_ros.evaluation import sequences as sq
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, METHOD_ORDER, NSFLOW, KLTMethod, LMMethod
+from nsflow_ros.evaluation.methods import KLT, METHOD_ORDER, NSFLOW, default_methods
 
 
 def _two_views(n: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,11 +66,7 @@ def test_fundamental_inliers_count_lost_tracks_against_the_rate():
 def quick_ctx(tmp_path_factory) -> EvalContext:
     root = tmp_path_factory.mktemp("seq")
     (root / "report").mkdir()
-    enc, raw = load_encoder(threads=1), load_encoder(threads=1, smoothing=Smoothing())
-    methods = [
-        LMMethod(NSFLOW, enc), KLTMethod(encoder=raw), LMMethod(CLASSICAL, IntensityEncoder()), KLTMethod(),
-        KLTMethod(equalize=True),
-    ]
+    methods = default_methods(threads=1)
     return EvalContext(methods=methods, quick=True, out_dir=root / "report", progress=False, threads=1,
                        extra={"sequences": {"cache_dir": str(root / "cache")}})
 

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from image_pairs import texture, warp_pair
 
+from nsflow_ros.core.methods import make_method
 from nsflow_ros.evaluation import trackable as tr
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import KLT, LMMethod, default_methods
+from nsflow_ros.evaluation.methods import KLT, LMPairMethod, default_methods
 from nsflow_ros.evaluation.pairs import HomographyPair
 
 SHIFT = np.array([[1.0, 0.0, 1.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
@@ -46,8 +47,9 @@ def test_textured_pair_without_offset_is_recovered_and_maps_to_the_grid(methods)
 def test_map_does_not_depend_on_chunks_under_algorithm_1(methods):
     # Algorithm 1's per-point stops make a point's result independent of its batch; the tracker's
     # straggler cut-off (LMConfig.tail_share) does not, so this runs without it.
-    exact = [LMMethod(m.name, m.core.encoder, replace(m.config, tail_share=0.0)) if isinstance(m, LMMethod)
-             else m for m in methods]
+    exact = [LMPairMethod(m.name, make_method(replace(m.core.spec, lm=replace(m.config, tail_share=0.0)),
+                                              encoder=m.encoder))
+             if isinstance(m, LMPairMethod) else m for m in methods]
     f1, f2 = warp_pair(texture("astronaut", (120, 90)), SHIFT)
     pair = HomographyPair("astronaut", "trackable", 1, f1, f2, SHIFT)
     runs = [tr.trackable_map(exact, pair, np.random.default_rng(0), stride=5, perturbation=0.0, chunk=c)

@@ -30,7 +30,7 @@ POINTS = torch.tensor([[30.0, 30.0], [20.5, 40.2], [40.1, 22.7]], dtype=torch.fl
 def test_first_step_is_the_solvers_first_iteration(lambda_scale, jacobian):
     d1, d2 = _maps(np.zeros(2)), _maps(SHIFT)
     start = torch.from_numpy(SHIFT + np.array([[1.0, 0.5], [-0.8, 0.3], [0.2, -1.1]]))
-    cfg = LMConfig(levels=1, max_iterations=1, lambda_init=1e-2, lambda_scale=lambda_scale, jacobian=jacobian)
+    cfg = LMConfig(levels=1, max_iterations=1, lambda_scale=lambda_scale, jacobian=jacobian)
     du = first_step(d1, d2, POINTS, start, cfg)
     out = lk_track(d1, d2, POINTS, start, cfg)
     assert out.iterations.tolist() == [1, 1, 1]
