@@ -57,6 +57,7 @@ __all__ = [
     "FLOW_BACK_THRESHOLD_PX",
     "GFTT_QUALITY",
     "PREDICTION_MIN_TRACKED",
+    "REBUILD_FIELDS",
     "CameraFeatures",
     "FeatureTracker",
     "FrameFeatures",
@@ -74,6 +75,9 @@ BORDER_PX = 1
 """Points whose rounded position is closer than this to the image edge are dropped (VINS: 1)."""
 PREDICTION_MIN_TRACKED = 10
 """With an IMU prediction, the solve is repeated without it when fewer points survive (VINS: 10)."""
+
+REBUILD_FIELDS = frozenset({"method", "model_path", "num_threads", "equalize", "stereo"})
+"""Settings the tracker's method or image preparation is built from: changing one needs a new tracker."""
 
 
 @dataclass(frozen=True)
@@ -393,6 +397,21 @@ class FeatureTracker:
     def encoder(self) -> Encoder | None:
         """The method's descriptor encoder (None for ``klt``, which tracks the gray image)."""
         return self.method.encoder
+
+    def update_settings(self, changes: Mapping[str, Any]) -> None:
+        """Change settings of the running tracker; its tracks go on.
+
+        Only settings that the method and the image preparation do not depend on can change here; a new
+        method, model, thread count, CLAHE or camera count needs a new tracker.
+
+        Raises:
+            CoreError: an unknown or invalid setting, or one of :data:`REBUILD_FIELDS`; nothing changes.
+        """
+        new = self.settings.with_overrides(changes)
+        fixed = sorted(f for f in REBUILD_FIELDS if getattr(new, f) != getattr(self.settings, f))
+        if fixed:
+            raise CoreError(f"{', '.join(fixed)} cannot change on a running tracker; build a new one")
+        self.settings = new
 
     def reset(self) -> None:
         """Forget all tracks (ids keep counting up, so an id is never reused)."""

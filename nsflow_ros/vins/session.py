@@ -266,10 +266,9 @@ class FrontEndSession:
         """Give the running tracker new values of live settings (the one place its settings change)."""
         target = {**config_tracker_fields(config), **fields}
         try:
-            new = self.tracker.settings.with_overrides({**{n: target[n] for n in names}, **self._fixed})
+            self.tracker.update_settings({**{n: target[n] for n in names}, **self._fixed})
         except CoreError as err:
             raise ConfigError(str(err)) from err
-        self.tracker.settings = new
         self.config, self._fields = config, fields
 
     # -- frames ----------------------------------------------------------------------------------------

@@ -418,3 +418,31 @@ def test_a_tracker_given_a_built_method_tracks_as_one_built_from_its_settings():
     with pytest.raises(CoreError, match="own encoder"):
         FeatureTracker([syn.camera()], _classical(), method=make_method("classical"),
                        encoder=IntensityEncoder())
+
+
+def test_update_settings_changes_a_running_tracker_and_keeps_its_tracks(pan):
+    tracker = FeatureTracker([syn.camera()], _classical(max_cnt=80))
+    first = tracker.process(0.0, pan.frames[0])
+    tracker.update_settings({"max_cnt": 40, "min_dist": 20.0})
+    assert tracker.settings.max_cnt == 40 and tracker.settings.min_dist == 20.0
+    second = tracker.process(0.05, pan.frames[1])
+    carried = np.isin(second.cameras[0].ids, first.cameras[0].ids)
+    assert carried.sum() > 20  # the tracks went on
+    assert len(second.cameras[0]) <= 80  # carried tracks are kept; only the top-up obeys the new max_cnt
+
+
+@pytest.mark.parametrize("field, value", [("method", "klt"), ("equalize", True), ("num_threads", 1)])
+def test_update_settings_refuses_what_needs_a_new_tracker(pan, field, value):
+    tracker = FeatureTracker([syn.camera()], _classical())
+    before = tracker.settings
+    with pytest.raises(CoreError, match=f"{field} cannot change on a running tracker"):
+        tracker.update_settings({field: value})
+    assert tracker.settings is before
+
+
+def test_update_settings_refuses_unknown_and_invalid_values(pan):
+    tracker = FeatureTracker([syn.camera()], _classical())
+    with pytest.raises(CoreError, match="unknown tracker setting"):
+        tracker.update_settings({"max_count": 10})
+    with pytest.raises(CoreError, match="max_cnt"):
+        tracker.update_settings({"max_cnt": 0})
