@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from nsflow_ros.ate.cli import build_parser as ate_parser
-from nsflow_ros.feature_bag import FEATURE_TOPIC
 from nsflow_ros.resources import share_file
 from nsflow_ros.ros.replay_node import _parser as replay_parser
 from nsflow_ros.ros.tracker_params import PARAMETERS
+from nsflow_ros.vins.feature_bag import FEATURE_TOPIC
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "vins_fusion.md"
 

@@ -7,17 +7,24 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from nsflow_ros.data.errors import DataError
-from nsflow_ros.data.replay import ReplayOptions
+from nsflow_ros.data.replay import ReplayOptions, replay_records
 from nsflow_ros.data.sample import make_sample_sequence
 from nsflow_ros.data.sources import SensorSource
-from nsflow_ros.feature_bag import FEATURE_TOPIC, bag_format, write_feature_bag
-from nsflow_ros.resources import DEFAULT_CONFIG, share_file
+from nsflow_ros.resources import DEFAULT_CONFIG, STEREO_CONFIG, share_file
 from nsflow_ros.ros.replay_node import main as replay_main
 from nsflow_ros.vins.config import load_vins_config
+from nsflow_ros.vins.feature_bag import FEATURE_TOPIC, bag_format, feature_bag_topics
+from nsflow_ros.vins.feature_bag import write_feature_bag as write_records
 from nsflow_ros.vins.messages import decode_fusion
 from nsflow_ros.vins.tracker import tracker_from_config
 
-STEREO_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
+
+def write_feature_bag(opts: ReplayOptions, out, *, config=None, **kw):
+    """The feature bag of a bag or ASL folder, read as ``nsflow-replay --features-bag`` reads it."""
+    from dataclasses import replace
+
+    cfg = load_vins_config(config or share_file(DEFAULT_CONFIG))
+    return write_records(replay_records(replace(opts, topics=feature_bag_topics(cfg))), out, cfg, **kw)
 
 
 @pytest.fixture(scope="module")
