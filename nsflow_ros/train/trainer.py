@@ -14,7 +14,7 @@ import dataclasses
 import json
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -473,7 +473,12 @@ def _check(cfg: TrainConfig) -> None:
     resolve_dtype(cfg.dtype)
 
 
-def train(cfg: TrainConfig, progress: bool = True, data: TrainData | None = None) -> TrainResult:
+def train(
+    cfg: TrainConfig,
+    progress: bool = True,
+    data: TrainData | None = None,
+    on_step: Callable[[int, float, Encoder], None] | None = None,
+) -> TrainResult:
     """Train an encoder (from scratch, from ``cfg.init``, or on from the checkpoint with ``cfg.resume``).
 
     In a distributed run (``torchrun``, or a process group the caller joined) every rank calls this; rank 0
@@ -483,6 +488,7 @@ def train(cfg: TrainConfig, progress: bool = True, data: TrainData | None = None
         cfg: run settings.
         progress: show a progress bar (only on a terminal).
         data: the data to train on; None = :func:`make_data` of ``cfg``.
+        on_step: called on every rank after every step with (step, loss averaged over ranks, model).
 
     Returns:
         the trained model (final weights, no selection on validation data) and the run's records.
@@ -534,7 +540,7 @@ def train(cfg: TrainConfig, progress: bool = True, data: TrainData | None = None
     val_sets: dict[str, list[Pair]] = {}
     baseline: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     log = steplog = None
-    if world.main:
+    if world.main and cfg.val_every > 0:
         val_sets = {
             "perturbed": heldout_pairs(cfg.val_per_image, strength=1.0, seed=7),
             "clean": heldout_pairs(cfg.val_per_image, strength=0.0, seed=7),
@@ -542,6 +548,7 @@ def train(cfg: TrainConfig, progress: bool = True, data: TrainData | None = None
         for name, src in data.validation.items():
             val_sets[name] = _validation_pairs(src, cfg.pair, 3 * cfg.val_per_image)
         baseline = {k: validate(None, v, val_lm) for k, v in val_sets.items()}
+    if world.main:
         log = (out / "log.jsonl").open("a" if cfg.resume else "w")
         steplog = StepLog(out, resume=cfg.resume, tensorboard=cfg.tensorboard)
         record = run_record(
@@ -621,6 +628,8 @@ def train(cfg: TrainConfig, progress: bool = True, data: TrainData | None = None
         value = all_mean(float(loss.detach()), world)
         step += 1
         losses.append(value)
+        if on_step is not None:
+            on_step(step, value, model)
         if world.main:
             assert steplog is not None
             steplog.step(step, time.monotonic() - start, value, len(pairs) * world.size, used)
