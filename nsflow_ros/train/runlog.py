@@ -39,17 +39,22 @@ class StepLog:
 
     Args:
         folder: the run folder.
-        resume: append to an existing ``train.csv`` instead of starting a new one.
+        resume: continue an existing ``train.csv`` from step ``first`` (rows after it, written by the
+            killed run after its last checkpoint, are dropped) instead of starting a new one.
+        first: the step the run starts at.
         tensorboard: try TensorBoard (None when not installed; :attr:`tensorboard` says which).
     """
 
-    def __init__(self, folder: Path, resume: bool = False, tensorboard: bool = True) -> None:
+    def __init__(self, folder: Path, resume: bool = False, first: int = 0, tensorboard: bool = True) -> None:
         path = Path(folder) / "train.csv"
-        fresh = not (resume and path.is_file())
-        self._file = path.open("w" if fresh else "a", newline="")
+        rows: list[list[str]] = []
+        if resume and path.is_file():
+            with path.open(newline="") as f:
+                rows = [r for r in list(csv.reader(f))[1:] if r and r[0].isdigit() and int(r[0]) <= first]
+        self._file = path.open("w", newline="")
         self._csv = csv.writer(self._file)
-        if fresh:
-            self._csv.writerow(CSV_FIELDS)
+        self._csv.writerow(CSV_FIELDS)
+        self._csv.writerows(rows)
         self.tensorboard = tensorboard_writer(Path(folder) / "tensorboard") if tensorboard else None
 
     def step(self, step: int, seconds: float, loss: float, pairs: int, points: int) -> None:

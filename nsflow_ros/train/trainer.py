@@ -550,7 +550,7 @@ def train(
         baseline = {k: validate(None, v, val_lm) for k, v in val_sets.items()}
     if world.main:
         log = (out / "log.jsonl").open("a" if cfg.resume else "w")
-        steplog = StepLog(out, resume=cfg.resume, tensorboard=cfg.tensorboard)
+        steplog = StepLog(out, resume=cfg.resume, first=step, tensorboard=cfg.tensorboard)
         record = run_record(
             command=cfg.command,
             data=data.describe(),
