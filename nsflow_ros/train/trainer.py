@@ -169,21 +169,46 @@ class TrainConfig:
     tensorboard: bool = True
 
 
+def _onnx_checkpoint(path: Path) -> dict[str, object]:
+    """An exported encoder's weights and spec (its ONNX initializers and ``spec`` metadata)."""
+    import onnx
+    from onnx import numpy_helper
+
+    try:
+        proto = onnx.load(str(path))
+    except (OSError, ValueError, onnx.onnx_cpp2py_export.checker.ValidationError) as err:
+        raise TrainError(f"cannot read ONNX encoder {path}: {err}") from err
+    meta = {p.key: p.value for p in proto.metadata_props}
+    if "spec" not in meta:
+        raise TrainError(f"{path} has no 'spec' metadata: not an encoder exported by nsflow-train")
+    state = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
+    return {"spec": json.loads(meta["spec"]), "state": state}
+
+
 def load_checkpoint(model: Encoder, path: str | Path) -> dict[str, object]:
-    """Load an ``encoder.pt`` into ``model``; a missing file or another encoder shape is a TrainError.
+    """Load an ``encoder.pt`` (or an exported ``.onnx`` encoder, e.g. the shipped one) into ``model``.
 
     Returns:
         the whole checkpoint (a run's also holds ``step``, ``optimizer``, ``losses``, ...).
+
+    Raises:
+        TrainError: a missing or unreadable file, or another encoder shape.
     """
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError) as err:
-        raise TrainError(f"cannot read checkpoint {path}: {err}") from err
+    if Path(path).suffix == ".onnx":
+        ckpt: object = _onnx_checkpoint(Path(path))
+    else:
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except (OSError, RuntimeError) as err:
+            raise TrainError(f"cannot read checkpoint {path}: {err}") from err
     spec = model.spec.as_dict()
     if not isinstance(ckpt, dict) or ckpt.get("spec") != spec:
         got = ckpt.get("spec") if isinstance(ckpt, dict) else type(ckpt).__name__
         raise TrainError(f"checkpoint {path} holds an encoder of spec {got}, this run trains {spec}")
-    model.load_state_dict(ckpt["state"])
+    try:
+        model.load_state_dict(ckpt["state"])
+    except RuntimeError as err:
+        raise TrainError(f"checkpoint {path} does not fit the encoder: {err}") from err
     return ckpt
 
 
