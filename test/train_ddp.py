@@ -39,11 +39,18 @@ def run(out, batch: int):
 
 
 def worker(rank: int, port: int, out: str, result: str) -> None:
+    """One process of a two-process run, joined through the environment ``torchrun`` sets."""
+    import os
+
     import torch.distributed as dist
 
-    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2"
+    )
     try:
         losses, params = run(out, batch=1)
+        assert dist.is_initialized() and dist.get_backend() == "gloo"
         torch.save({"losses": losses, "params": params}, f"{result}{rank}.pt")
     finally:
-        dist.destroy_process_group()
+        if dist.is_initialized():
+            dist.destroy_process_group()
