@@ -377,8 +377,9 @@ def make_data(cfg: TrainConfig) -> TrainData:
 
     Raises:
         TrainError: a source cannot be read (the message names the file), or a TartanAir validation
-            environment would also be trained on.
+            environment would also be trained on; bad settings (checked before any data is read).
     """
+    _check(cfg)
     cache = cfg.scene_cache or Path(cfg.out).parent / "cache"
     if not cfg.data:
         parts: list[tuple[PairSource, float]] = []
