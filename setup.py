@@ -89,6 +89,8 @@ setup(
     ],
     extras_require={
         "train": ["torch==2.13.0"],
+        # optional TensorBoard event files of nsflow-train (the CSV log needs nothing)
+        "tensorboard": ["tensorboard>=2.14"],
         "test": [
             "pytest>=7",
             "ruff",

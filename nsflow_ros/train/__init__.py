@@ -10,6 +10,13 @@ and the ROS nodes never do. Modules, one concept each:
 * :mod:`~nsflow_ros.train.model` - the encoder CNN;
 * :mod:`~nsflow_ros.train.data` - homography pairs of real photos with exact flow and illumination changes;
 * :mod:`~nsflow_ros.train.scenes` - stereo and temporal pairs rendered from the sample scenes, exact flow;
+* :mod:`~nsflow_ros.train.sources` - every data source (photos, scenes, TartanAir, the user's footage)
+  behind one interface, mixed by weight, as an indexed pair stream;
+* :mod:`~nsflow_ros.train.device` - the device and the LK layer's map dtype;
+* :mod:`~nsflow_ros.train.distributed` - data-parallel training under ``torchrun``;
+* :mod:`~nsflow_ros.train.runlog` - step log (CSV, TensorBoard), progress and the run record;
+* :mod:`~nsflow_ros.train.recipes` - presets (``--recipe paper``);
+* :mod:`~nsflow_ros.train.footage_eval` - models side by side on held-out frames of the user's footage;
 * :mod:`~nsflow_ros.train.loss` - the robust endpoint-error loss;
 * :mod:`~nsflow_ros.train.distill` - distillation of a narrower encoder from a trained one's maps;
 * :mod:`~nsflow_ros.train.trainer` - the training loop; :mod:`~nsflow_ros.train.cli` - ``nsflow-train``;

@@ -107,8 +107,8 @@ def basin_loss(
         r = lcfg.window // 2
         s = 2.0**lev
         p_l, gt_l = pts / s, gt / s
-        ang = torch.rand(n, generator=generator, dtype=torch.float64) * (2 * torch.pi)
-        length = torch.rand(n, generator=generator, dtype=torch.float64) * radius
+        ang = torch.rand(n, generator=generator, dtype=torch.float64, device=pts.device) * (2 * torch.pi)
+        length = torch.rand(n, generator=generator, dtype=torch.float64, device=pts.device) * radius
         start = gt_l + length[:, None] * torch.stack([torch.cos(ang), torch.sin(ang)], 1)
         h, w = m1.shape[1:]
         target = p_l + gt_l

@@ -31,6 +31,8 @@ def write_model_card(
     basin_radius: float = 4.0,
     lr: float = 1e-3,
     teacher: str | None = None,
+    data: list[dict[str, object]] | None = None,
+    recipe: tuple[str, tuple[tuple[str, str], ...]] | None = None,
 ) -> Path:
     """Write the Markdown model card.
 
@@ -55,6 +57,9 @@ def write_model_card(
         lr: Adam learning rate (``--lr``).
         teacher: the encoder this one was distilled from (``--teacher``), as a path relative to the
             card; None = trained end to end through the LK layer.
+        data: the training data sources with their shares (``--data``; each a
+            ``PairSource.describe()`` with ``share``); None = the bundled photos (and scene share).
+        recipe: (name, what the source leaves open and the choice made) of a ``--recipe`` preset.
     """
     head = {"sigmoid": "sigmoid (descriptors in (0, 1))", "relu": "ReLU", "none": "none (linear)"}[spec.head]
     w = spec.width
@@ -93,6 +98,18 @@ this project's differentiable LM Lucas-Kanade layer (`nsflow_ros.train`)"""
   pair are encoded by the teacher (onnxruntime, as deployed) and by this encoder; loss = mean squared
   difference of the descriptor maps plus that of their x and y forward differences (what the solver
   reads: residuals and Jacobians). No solver in the loop. Adam, lr {lr:g}, one pair per step."""
+    data_md = ""
+    if data:
+        lines = "\n".join(f"  * {_source_text(s)}" for s in data)
+        data_md = (
+            "* Data sources and their shares of the training pairs (every pair with exact ground-truth\n"
+            f"  flow and the same random illumination changes; GFTT corners on frame 1):\n{lines}\n"
+        )
+    if recipe is not None:
+        name, open_items = recipe
+        items = "\n".join(f"  * {q}: {a}" for q, a in open_items)
+        data_md += f"* Recipe `{name}`; what its source leaves open, and the choice made:\n{items}\n"
+    photo_note = " (the photo pairs)" if data else ""
     figs = "\n\n".join(f"![{cap}]({p})\n\n*{cap}*" for cap, p in figures.items())
     text = f"""# NSFlow encoder: `nsflow_encoder.onnx`
 
@@ -116,9 +133,10 @@ the tracker runs its descriptors through the same NumPy LM solver as the classic
 
 ## Training
 
-* Data: pairs of views of real photos bundled with scikit-image / matplotlib, related by random
-  homographies (exact ground-truth flow), with random illumination changes on each frame (gain, offset,
-  local shading, gamma, noise; strength uniform in [0, 1]); GFTT corners on frame 1 (up to 200);
+{data_md}* Data{photo_note}: pairs of views of real photos bundled with scikit-image /
+  matplotlib, related by random homographies (exact ground-truth flow), with random illumination changes
+  on each frame (gain, offset, local shading, gamma, noise; strength uniform in [0, 1]); GFTT corners on
+  frame 1 (up to 200);
   initial flow = {init}. Held out (never trained on): coffee, chelsea,
   grace_hopper. See `nsflow_ros/train/data.py`.{scenes}
 {method}
@@ -141,3 +159,21 @@ ALL points: a point the solver reports lost counts as a failure (infinite error)
     out = Path(path)
     out.write_text(text)
     return out
+
+
+def _source_text(source: dict[str, object]) -> str:
+    """One training data source in words, with its share."""
+    kind = source.get("kind")
+    share = f"{float(source.get('share', 1.0)):.0%}"  # type: ignore[arg-type]
+    if kind == "tartanair":
+        envs = ", ".join(str(e) for e in source.get("environments", []))  # type: ignore[attr-defined]
+        return f"{share}: TartanAir `{source.get('path')}`, environments {envs} ({source.get('pairs')} pairs)"
+    if kind == "footage":
+        return (
+            f"{share}: footage `{source.get('path')}`, {source.get('frames')} frames as random homography "
+            f"pairs ({source.get('heldout_frames')} later frames held out)"
+        )
+    if kind == "scenes":
+        seeds = source.get("sequence_seeds")
+        return f"{share}: crops of rendered sample-scene pairs (sequence seeds {seeds})"
+    return f"{share}: homography pairs of the bundled photos"

@@ -171,13 +171,95 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--card-notes", type=Path, default=None, help="Markdown file added to the model card")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g = p.add_argument_group("data, devices and long runs")
+    g.add_argument(
+        "--data", action="append", default=None, metavar="KIND[:PATH][:WEIGHT]",
+        help="a training data source, repeatable, mixed by weight: photos (the bundled photos), scenes "
+        "(the sample scenes; PATH = their cache), tartanair:DIR (TartanAir folders), footage:PATH (a ROS 1 / "
+        "ROS 2 bag, ASL folder or image folder, made into homography pairs). Default: photos, plus "
+        "--scene-share of scenes",
+    )
+    g.add_argument(
+        "--tartanair-val", default=None, metavar="ENV[,ENV]",
+        help="TartanAir environments kept for validation, never trained on (default: the last by name "
+        "when there are two or more; 'none' for none)",
+    )
+    g.add_argument(
+        "--footage-topic", action="append", default=None, metavar="TOPIC",
+        help="camera topic of footage bags / ASL folders, repeatable (default /cam0/image_raw, "
+        "/cam1/image_raw)",
+    )
+    g.add_argument(
+        "--footage-holdout", type=float, default=0.2, metavar="P",
+        help="share of each footage's frames, at its end, kept for validation and the footage "
+        "evaluation (default 0.2)",
+    )
+    g.add_argument("--size", type=_size, default=(320, 240), metavar="WxH", help="pair size, default 320x240")
+    g.add_argument("--points", type=positive_int, default=200, help="keypoints per pair (default 200)")
+    g.add_argument("--iterations", type=positive_int, default=30, help="LM iterations, training (default 30)")
+    g.add_argument("--window", type=positive_int, default=11, help="solver window side, odd (default 11)")
+    g.add_argument("--batch", type=positive_int, default=1, help="pairs per step and process (default 1)")
+    g.add_argument(
+        "--device", default="cpu", help="auto, cpu, cuda or cuda:K (default cpu; under torchrun, auto and "
+        "cuda take the process's LOCAL_RANK GPU)",
+    )
+    g.add_argument(
+        "--dtype", choices=("float32", "float64"), default="float32",
+        help="dtype of the descriptor maps in the LK layer (default float32; float64 is the CPU reference)",
+    )
+    g.add_argument(
+        "--dataloader-workers", type=int, default=0, metavar="N",
+        help="processes making pairs beside training (default 0: in the training process)",
+    )
+    g.add_argument(
+        "--checkpoint-every", type=int, default=0, metavar="N",
+        help="steps between checkpoints with the optimiser state (default: at every validation; always "
+        "one at the end)",
+    )
+    g.add_argument(
+        "--resume", action="store_true",
+        help="continue the run in --out from its checkpoint (same step, optimiser state and pair order)",
+    )
+    g.add_argument(
+        "--recipe", choices=("paper",), default=None,
+        help="preset: paper = the paper's stated settings (640x480 RGB TartanAir pairs, 200 keypoints, 50 "
+        "iterations, 11x11 window, Adam 1e-3, batch 1, d 3, ReLU head); needs --data tartanair:DIR; "
+        "options given explicitly win",
+    )
+    g.add_argument(
+        "--footage-eval-per-frame", type=positive_int, default=4, metavar="N",
+        help="pairs per held-out footage frame and lighting condition in the footage evaluation (default 4)",
+    )
     return p
+
+
+def _size(text: str) -> tuple[int, int]:
+    """``WxH`` -> (width, height), both >= 16."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if w < 16 or h < 16:
+        raise argparse.ArgumentTypeError(f"expected WxH (two integers >= 16), got {text!r}")
+    return w, h
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    """Parse the command line; a ``--recipe`` sets its values for every option not given explicitly."""
+    from nsflow_ros.train.recipes import recipe_defaults
+
+    parser = build_parser()
+    opts = parser.parse_args(argv)
+    if opts.recipe is not None:
+        parser.set_defaults(**recipe_defaults(opts.recipe))
+        opts = parser.parse_args(argv)
+    return opts
 
 
 def main(args: list[str] | None = None) -> int:
     """Entry point; returns the exit code (1 on a known error)."""
     argv = sys.argv[1:] if args is None else args
-    opts = build_parser().parse_args(argv)
+    opts = parse(argv)
     from nsflow_ros.errors import NSFlowError
 
     try:
@@ -185,6 +267,11 @@ def main(args: list[str] | None = None) -> int:
     except NSFlowError as err:
         print(f"nsflow-train: error: {err}", file=sys.stderr)
         return 1
+    finally:
+        import torch.distributed as dist
+
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
 
 
 def _run(opts: argparse.Namespace, argv: list[str]) -> int:
@@ -194,14 +281,27 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     from nsflow_ros import Jacobian, LMConfig, Smoothing, load_encoder
     from nsflow_ros.train.card import write_model_card
     from nsflow_ros.train.data import PairConfig
+    from nsflow_ros.train.errors import TrainError
     from nsflow_ros.train.evaluate import compare, format_table, heldout_pairs
     from nsflow_ros.train.export import export_onnx
     from nsflow_ros.train.figures import plot_validation
+    from nsflow_ros.train.footage_eval import evaluate_footage, format_footage_table, plot_footage
     from nsflow_ros.train.lk_layer import BackwardMode
     from nsflow_ros.train.model import EncoderSpec, count_flops, count_parameters
-    from nsflow_ros.train.trainer import TrainConfig, train
+    from nsflow_ros.train.recipes import PAPER_OPEN
+    from nsflow_ros.train.sources import FootageSource, parse_data_spec
+    from nsflow_ros.train.trainer import TrainConfig, make_data, train
 
+    data = tuple(parse_data_spec(s) for s in opts.data or ())
+    if opts.recipe == "paper" and not any(d.kind == "tartanair" for d in data):
+        raise TrainError("--recipe paper trains on TartanAir: give --data tartanair:DIR")
+    if opts.window < 3 or opts.window % 2 == 0:
+        raise TrainError(f"--window must be odd and >= 3, got {opts.window}")
+    val_envs = None
+    if opts.tartanair_val is not None:
+        val_envs = () if opts.tartanair_val == "none" else tuple(opts.tartanair_val.split(","))
     spec = EncoderSpec(d=opts.d, in_channels=3 if opts.rgb else 1, head=opts.head, width=opts.width)
+    command = "nsflow-train " + shlex.join(argv)
     cfg = TrainConfig(
         spec=spec,
         out=opts.out,
@@ -213,14 +313,25 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         rho=opts.rho,
         huber_delta=opts.delta,
         lm=replace(
-            TrainConfig().lm, levels=opts.levels, jacobian=Jacobian(opts.jacobian), zero_mean=opts.zero_mean
+            TrainConfig().lm,
+            levels=opts.levels,
+            jacobian=Jacobian(opts.jacobian),
+            zero_mean=opts.zero_mean,
+            max_iterations=opts.iterations,
+            window=opts.window,
         ),
         coarse_weight=opts.coarse_loss,
         scene_share=opts.scene_share,
         basin_weight=opts.basin_loss,
         basin_radius=opts.basin_radius,
         pair=PairConfig(
-            init_mode=opts.init_error[0], init_sigma=opts.init_error[1], translation=opts.translation
+            width=opts.size[0],
+            height=opts.size[1],
+            max_points=opts.points,
+            window=opts.window,
+            init_mode=opts.init_error[0],
+            init_sigma=opts.init_error[1],
+            translation=opts.translation,
         ),
         val_every=opts.val_every,
         threads=opts.threads,
@@ -228,9 +339,24 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         teacher=opts.teacher,
         init=opts.init,
         smoothing=None if opts.smoothing is None else Smoothing(*opts.smoothing),
+        data=data,
+        tartanair_val=val_envs,
+        footage_topics=tuple(opts.footage_topic) if opts.footage_topic else None,
+        footage_holdout=opts.footage_holdout,
+        batch=opts.batch,
+        device=opts.device,
+        dtype=opts.dtype,
+        workers=opts.dataloader_workers,
+        checkpoint_every=opts.checkpoint_every,
+        resume=opts.resume,
+        command=command,
     )
-    command = "nsflow-train " + shlex.join(argv)
-    result = train(cfg, progress=not opts.no_progress)
+    train_data = make_data(cfg)
+    result = train(cfg, progress=not opts.no_progress, data=train_data)
+    dist = torch.distributed
+    if dist.is_available() and dist.is_initialized() and dist.get_rank() != 0:
+        return 0  # rank 0 alone exports, evaluates and writes the card
+    result.model.cpu()
     out = Path(opts.out)
     meta = {"training_command": command}
     if opts.smoothing is not None:
@@ -262,6 +388,16 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     eval_png = plot_validation(
         curves, "held-out pairs, NumPy solver (3 levels), 5 px start", out / "eval_heldout.png"
     )
+    for name, src in train_data.validation.items():
+        if isinstance(src, FootageSource):
+            # the held-out end of the user's footage: this run beside the shipped model
+            rows = evaluate_footage(
+                {"this run": encoder, "shipped": load_encoder()}, src.frames, opts.footage_eval_per_frame
+            )
+            footage_table = format_footage_table(rows)
+            (out / f"eval_{name}.md").write_text(footage_table + "\n")
+            plot_footage(rows, out / f"eval_{name}.png")
+            print(f"held-out frames of {src.path}:\n{footage_table}")
     files = {"loss": result.files["loss_png"], "val": result.files["val_png"], "eval": eval_png}
     if opts.install:
         models = Path(opts.models_dir)
@@ -295,6 +431,8 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             basin_radius=opts.basin_radius,
             lr=opts.lr,
             teacher=_teacher_text(opts.teacher, models),
+            data=train_data.source.describe()["sources"] if cfg.data else None,  # type: ignore[arg-type]
+            recipe=("paper", PAPER_OPEN) if opts.recipe == "paper" else None,
         )
         print(f"installed {models / 'nsflow_encoder.onnx'} and {models / 'README.md'}")
     return 0

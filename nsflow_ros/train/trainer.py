@@ -1,11 +1,20 @@
-"""The training loop (paper, Algorithm 2): pair -> encoder -> LK layer -> robust EPE loss -> Adam."""
+"""The training loop (paper, Algorithm 2): pairs -> encoder -> LK layer -> robust EPE loss -> Adam.
+
+One loop serves every setting: any mix of data sources (:mod:`~nsflow_ros.train.sources`), ``batch``
+pairs per step, the CPU or a GPU (:mod:`~nsflow_ros.train.device`), one process or several under
+``torchrun`` (:mod:`~nsflow_ros.train.distributed`), data-loader workers, checkpoints and ``resume``.
+Pair ``i`` of the run is pair ``i`` of an indexed stream (:class:`~nsflow_ros.train.sources.PairStream`),
+so the pairs a step trains on depend only on the seed, the step and the global batch: a resumed run and a
+run over more processes see the pairs an uninterrupted single-process run sees.
+"""
 
 from __future__ import annotations
 
-import functools
+import dataclasses
 import json
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -15,8 +24,10 @@ import torch
 from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.basin import basin_loss
-from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, load_image, make_pair
-from nsflow_ros.train.distill import Teacher, distill_step
+from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, initial_flow
+from nsflow_ros.train.device import resolve_device, resolve_dtype
+from nsflow_ros.train.distill import Teacher, distill_loss
+from nsflow_ros.train.distributed import World, all_mean, broadcast_flag, init_distributed, shard
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.evaluate import heldout_pairs
 from nsflow_ros.train.figures import plot_loss, plot_validation
@@ -24,9 +35,32 @@ from nsflow_ros.train.lk_layer import BackwardMode, lk_track, lk_track_pyramid
 from nsflow_ros.train.loss import flow_loss
 from nsflow_ros.train.model import Encoder, EncoderSpec
 from nsflow_ros.train.ops import pyramid
-from nsflow_ros.train.scenes import ScenePool, make_scene_pair
+from nsflow_ros.train.runlog import TENSORBOARD_HINT, Progress, StepLog, run_record
+from nsflow_ros.train.sources import (
+    DataSpec,
+    FootageSource,
+    MixedSource,
+    PairSource,
+    PairStream,
+    PhotoSource,
+    SceneSource,
+    TartanAirSource,
+    build_source,
+    tartanair_environments,
+)
 
-__all__ = ["TrainConfig", "TrainResult", "encode_pair", "load_checkpoint", "train", "train_step", "validate"]
+__all__ = [
+    "TrainConfig",
+    "TrainData",
+    "TrainResult",
+    "batch_loss",
+    "encode_pair",
+    "load_checkpoint",
+    "make_data",
+    "train",
+    "train_step",
+    "validate",
+]
 
 
 @dataclass(frozen=True)
@@ -74,6 +108,23 @@ class TrainConfig:
         smoothing: Gaussian smoothing of the descriptor pyramid in the training solver, validation
             and the basin loss, as the tracker applies a model's declared smoothing
             (``nsflow_ros.core.pyramid.Smoothing``); the export then declares it. None = none.
+        data: the training data (``--data KIND[:PATH][:WEIGHT]``, :mod:`~nsflow_ros.train.sources`);
+            empty = the bundled photos plus ``scene_share`` of sample-scene pairs.
+        tartanair_val: TartanAir environments kept for validation (never trained on); None = the last
+            environment in name order when there are two or more, else none.
+        footage_topics: camera topics of footage bags / ASL folders (None = the default ones).
+        footage_holdout: share of each footage's frames (at its end) kept for validation.
+        batch: pairs per step and process (the loss is the mean of the pairs' losses).
+        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:K`` (:func:`~nsflow_ros.train.device.resolve_device`).
+        dtype: dtype of the descriptor maps in the LK layer, ``float32`` or ``float64``
+            (:mod:`~nsflow_ros.train.device`).
+        workers: data-loader worker processes making pairs (0 = in the training process).
+        checkpoint_every: steps between checkpoints (``encoder.pt`` with the optimiser state); 0 = at
+            each validation only. One is always written at the end.
+        resume: continue the run whose checkpoint is in ``out``, at its step, with its optimiser state
+            and the same pair order.
+        command: the command line, recorded in ``run.json``.
+        tensorboard: write TensorBoard events when the package is installed.
     """
 
     spec: EncoderSpec = field(default_factory=EncoderSpec)
@@ -104,24 +155,66 @@ class TrainConfig:
     teacher: Path | None = None
     init: Path | None = None
     smoothing: Smoothing | None = None
+    data: tuple[DataSpec, ...] = ()
+    tartanair_val: tuple[str, ...] | None = None
+    footage_topics: tuple[str, ...] | None = None
+    footage_holdout: float = 0.2
+    batch: int = 1
+    device: str = "cpu"
+    dtype: str = "float32"
+    workers: int = 0
+    checkpoint_every: int = 0
+    resume: bool = False
+    command: str = ""
+    tensorboard: bool = True
 
 
-def load_checkpoint(model: Encoder, path: str | Path) -> None:
-    """Load an ``encoder.pt`` into ``model``; a missing file or another encoder shape is a TrainError."""
+def _onnx_checkpoint(path: Path) -> dict[str, object]:
+    """An exported encoder's weights and spec (its ONNX initializers and ``spec`` metadata)."""
+    import onnx
+    from onnx import numpy_helper
+
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError) as err:
-        raise TrainError(f"cannot read checkpoint {path}: {err}") from err
+        proto = onnx.load(str(path))
+    except (OSError, ValueError, onnx.onnx_cpp2py_export.checker.ValidationError) as err:
+        raise TrainError(f"cannot read ONNX encoder {path}: {err}") from err
+    meta = {p.key: p.value for p in proto.metadata_props}
+    if "spec" not in meta:
+        raise TrainError(f"{path} has no 'spec' metadata: not an encoder exported by nsflow-train")
+    state = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
+    return {"spec": json.loads(meta["spec"]), "state": state}
+
+
+def load_checkpoint(model: Encoder, path: str | Path) -> dict[str, object]:
+    """Load an ``encoder.pt`` (or an exported ``.onnx`` encoder, e.g. the shipped one) into ``model``.
+
+    Returns:
+        the whole checkpoint (a run's also holds ``step``, ``optimizer``, ``losses``, ...).
+
+    Raises:
+        TrainError: a missing or unreadable file, or another encoder shape.
+    """
+    if Path(path).suffix == ".onnx":
+        ckpt: object = _onnx_checkpoint(Path(path))
+    else:
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except (OSError, RuntimeError) as err:
+            raise TrainError(f"cannot read checkpoint {path}: {err}") from err
     spec = model.spec.as_dict()
     if not isinstance(ckpt, dict) or ckpt.get("spec") != spec:
         got = ckpt.get("spec") if isinstance(ckpt, dict) else type(ckpt).__name__
         raise TrainError(f"checkpoint {path} holds an encoder of spec {got}, this run trains {spec}")
-    model.load_state_dict(ckpt["state"])
+    try:
+        model.load_state_dict(ckpt["state"])
+    except RuntimeError as err:
+        raise TrainError(f"checkpoint {path} does not fit the encoder: {err}") from err
+    return ckpt
 
 
 @dataclass
 class TrainResult:
-    """What a run produced."""
+    """What a run produced (``losses`` over the whole run, resumed parts included)."""
 
     model: Encoder
     losses: list[float]
@@ -132,24 +225,39 @@ class TrainResult:
     files: dict[str, Path]
 
 
+def _device_of(model: torch.nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
 def _to_tensor(image: np.ndarray, in_channels: int) -> torch.Tensor:
+    """(1, c_in, H, W) float32 in [0, 1] of a gray (H, W) or RGB (H, W, 3) uint8 frame."""
+    if image.ndim == 3:
+        x = torch.from_numpy(image.astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+        if in_channels == 1:
+            raise TrainError(f"a colour frame {image.shape} reached a gray encoder (use --rgb)")
+        return x.contiguous()
     x = torch.from_numpy(image.astype(np.float32) / 255.0)[None, None]
     return x.expand(1, in_channels, *image.shape).contiguous() if in_channels == 3 else x
 
 
+def _frames(pairs: list[Pair], in_channels: int, device: torch.device) -> torch.Tensor:
+    """Both frames of every pair as one (2B, c_in, H, W) batch: pair b's frames at 2b and 2b + 1."""
+    x = torch.cat([_to_tensor(im, in_channels) for p in pairs for im in (p.image1, p.image2)])
+    return x.to(device)
+
+
 def encode_pair(model: Encoder, pair: Pair) -> tuple[torch.Tensor, torch.Tensor]:
     """Encoder outputs (d, H, W) of both frames of a pair (one batched forward)."""
-    x = torch.cat(
-        [_to_tensor(pair.image1, model.spec.in_channels), _to_tensor(pair.image2, model.spec.in_channels)]
-    )
-    d = model(x)
+    d = model(_frames([pair], model.spec.in_channels, _device_of(model)))
     return d[0], d[1]
 
 
-def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: TrainConfig) -> float | None:
-    """One optimisation step on one pair; returns the loss, or None when no point was usable."""
-    d1, d2 = encode_pair(model, pair)
-    pts, flow0, gt = (torch.from_numpy(a) for a in (pair.points, pair.flow0, pair.flow_gt))
+def _pair_loss(
+    d1: torch.Tensor, d2: torch.Tensor, pair: Pair, cfg: TrainConfig
+) -> tuple[torch.Tensor, int]:
+    """The LK-layer loss of one pair from its two maps (in the maps' dtype and device)."""
+    dev = d1.device
+    pts, flow0, gt = (torch.from_numpy(a).to(dev) for a in (pair.points, pair.flow0, pair.flow_gt))
     if cfg.lm.levels == 1:
         s1, s2 = (pyramid(d, 1, cfg.smoothing)[0] for d in (d1, d2))
         res = lk_track(s1, s2, pts, flow0, cfg.lm, mode=cfg.mode)
@@ -162,13 +270,57 @@ def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: Trai
                 s = 2.0**lev
                 term = flow_loss(res.flow / s, gt / s, res.status, cfg.huber_delta, cfg.rho)[0]
                 loss = loss + cfg.coarse_weight * term
-    if used == 0:
-        return None
-    if cfg.basin_weight > 0:
+    if used and cfg.basin_weight > 0:
         basin = basin_loss(
             d1, d2, pts, gt, cfg.lm, cfg.basin_radius, cfg.huber_delta, cfg.rho, smoothing=cfg.smoothing
         )
         loss = loss + cfg.basin_weight * basin
+    return loss, used
+
+
+def batch_loss(
+    model: torch.nn.Module,
+    pairs: list[Pair],
+    cfg: TrainConfig,
+    teacher: Teacher | None = None,
+) -> tuple[torch.Tensor, int]:
+    """The loss of one step: the mean over ``pairs`` of each pair's loss, and the points used.
+
+    A pair without a usable point adds 0 (the mean is still over all pairs, so a rank's loss does not
+    depend on what the other ranks drew); the maps of every pair always enter the graph, so every
+    parameter gets a gradient (DistributedDataParallel needs one from every rank).
+
+    Args:
+        model: the encoder (or its DistributedDataParallel wrapper).
+        pairs: the step's pairs (same frame size).
+        cfg: loss and solver settings; ``cfg.dtype`` is the maps' dtype in the LK layer.
+        teacher: distil from this teacher's maps instead of training through the LK layer.
+    """
+    spec: EncoderSpec = getattr(model, "module", model).spec
+    device = _device_of(model)
+    d = model(_frames(pairs, spec.in_channels, device))
+    anchor = 0.0 * d.sum()
+    if teacher is not None:
+        frames = [im for p in pairs for im in (p.image1, p.image2)]
+        target = torch.stack([teacher(f) for f in frames]).to(device)
+        return distill_loss(d, target) + anchor, sum(len(p.points) for p in pairs)
+    dtype = resolve_dtype(cfg.dtype)
+    maps = d.to(dtype)
+    total: torch.Tensor = anchor.to(torch.float64)
+    points = 0
+    for b, pair in enumerate(pairs):
+        loss, used = _pair_loss(maps[2 * b], maps[2 * b + 1], pair, cfg)
+        if used:
+            total = total + loss.to(torch.float64)
+            points += used
+    return total / len(pairs), points
+
+
+def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: TrainConfig) -> float | None:
+    """One optimisation step on one pair; returns the loss, or None (no step) when no point was usable."""
+    loss, used = batch_loss(model, [pair], cfg)
+    if used == 0:
+        return None
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
@@ -180,13 +332,16 @@ def _pair_errors(
 ) -> tuple[np.ndarray, np.ndarray]:
     with torch.no_grad():
         if model is None:
-            d1 = torch.from_numpy(pair.image1.astype(np.float32) / 255.0)[None]
-            d2 = torch.from_numpy(pair.image2.astype(np.float32) / 255.0)[None]
+            gray = [im if im.ndim == 2 else im.mean(2) for im in (pair.image1, pair.image2)]
+            d1, d2 = (torch.from_numpy(g.astype(np.float32) / 255.0)[None] for g in gray)
         else:
             d1, d2 = (pyramid(d, 1, smoothing)[0] for d in encode_pair(model, pair))
-        out = lk_track(d1, d2, torch.from_numpy(pair.points), torch.from_numpy(pair.flow0), lm)
-    err = np.linalg.norm(out.flow.numpy() - pair.flow_gt, axis=1)
-    return np.where(out.status.numpy(), err, np.inf), out.status.numpy()
+        dev = d1.device
+        pts, flow0 = (torch.from_numpy(a).to(dev) for a in (pair.points, pair.flow0))
+        out = lk_track(d1, d2, pts, flow0, lm)
+    flow, status = out.flow.cpu().numpy(), out.status.cpu().numpy()
+    err = np.linalg.norm(flow - pair.flow_gt, axis=1)
+    return np.where(status, err, np.inf), status
 
 
 def validate(
@@ -198,63 +353,266 @@ def validate(
     return np.concatenate(errs), np.concatenate(stats)
 
 
-def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
-    """Train an encoder from scratch.
+@dataclass
+class TrainData:
+    """A run's data: the training mix and the validation sets beside the held-out photos.
 
-    Args:
-        cfg: run settings.
-        progress: show a tqdm progress bar.
-
-    Returns:
-        the trained model (final weights, no selection on validation data) and the run's records.
+    Attributes:
+        source: the training mix.
+        validation: name -> held-out source (TartanAir environments kept apart, footage's last frames).
     """
+
+    source: MixedSource
+    validation: dict[str, PairSource] = field(default_factory=dict)
+
+    def describe(self) -> dict[str, object]:
+        return {
+            "train": self.source.describe(),
+            "validation": {k: v.describe() for k, v in self.validation.items()},
+        }
+
+
+def make_data(cfg: TrainConfig) -> TrainData:
+    """Build the training mix and its held-out validation sources from ``cfg.data``.
+
+    Raises:
+        TrainError: a source cannot be read (the message names the file), or a TartanAir validation
+            environment would also be trained on; bad settings (checked before any data is read).
+    """
+    _check(cfg)
+    cache = cfg.scene_cache or Path(cfg.out).parent / "cache"
+    if not cfg.data:
+        parts: list[tuple[PairSource, float]] = []
+        if cfg.scene_share > 0:
+            parts.append((SceneSource(cache, seed=cfg.seed), cfg.scene_share))
+        if cfg.scene_share < 1:
+            parts.append((PhotoSource(cfg.images), 1.0 - cfg.scene_share))
+        return TrainData(MixedSource(parts))
+    parts = []
+    validation: dict[str, PairSource] = {}
+    color = cfg.spec.in_channels == 3
+    topics = list(cfg.footage_topics) if cfg.footage_topics else None
+    for k, spec in enumerate(cfg.data):
+        tag = f"{spec.kind}{k}" if sum(s.kind == spec.kind for s in cfg.data) > 1 else spec.kind
+        if spec.kind == "tartanair":
+            assert spec.path is not None
+            envs = tartanair_environments(spec.path)
+            if cfg.tartanair_val is not None:
+                held = list(cfg.tartanair_val)
+            else:  # the last environment, when another one is left to train on
+                held = envs[-1:] if len(envs) > 1 else []
+            unknown = [e for e in held if e not in envs]
+            if unknown:
+                raise TrainError(f"validation environments {unknown} not in {spec.path} (present: {envs})")
+            train_envs = [e for e in envs if e not in held]
+            if not train_envs:
+                raise TrainError(f"every environment of {spec.path} is held out for validation: {held}")
+            parts.append((TartanAirSource(spec.path, train_envs, color=color), spec.weight))
+            if held:
+                validation[tag] = TartanAirSource(spec.path, held, color=color)
+        elif spec.kind == "footage":
+            src = build_source(spec, topics=topics, holdout=cfg.footage_holdout)
+            assert isinstance(src, FootageSource)
+            parts.append((src, spec.weight))
+            held_src = src.heldout()
+            if held_src is not None:
+                validation[tag] = held_src
+        else:
+            parts.append((build_source(spec, seed=cfg.seed, cache=cache), spec.weight))
+    return TrainData(MixedSource(parts), validation)
+
+
+def _validation_pairs(source: PairSource, cfg: PairConfig, count: int, seed: int = 7) -> list[Pair]:
+    """Fixed validation pairs of a held-out source, initial error 5 px in a random direction."""
+    stream = PairStream(source, cfg, seed=seed)
+    pairs = []
+    for i in range(count):
+        p = stream[i]
+        flow0 = initial_flow(p.flow_gt, np.random.default_rng([seed, i, 99]), cfg, init_error=5.0)
+        pairs.append(dataclasses.replace(p, flow0=flow0))
+    return pairs
+
+
+class _StreamDataset(torch.utils.data.Dataset):
+    """The pair stream as a map-style dataset, for data-loader workers."""
+
+    def __init__(self, stream: PairStream) -> None:
+        self.stream = stream
+
+    def __len__(self) -> int:  # the stream has no end; the batch sampler bounds it
+        return 2**62
+
+    def __getitem__(self, index: int) -> Pair:
+        return self.stream[index]
+
+
+class _StepSampler(torch.utils.data.Sampler):
+    """Yields each step's shard of stream indices, from ``first`` on (``last`` = None: no end)."""
+
+    def __init__(self, first: int, last: int | None, batch: int, world: World) -> None:
+        self.first, self.last, self.batch, self.world = first, last, batch, world
+
+    def __iter__(self) -> Iterator[list[int]]:
+        step = self.first
+        while self.last is None or step < self.last:
+            yield shard(step, self.batch, self.world)
+            step += 1
+
+
+def _batches(stream: PairStream, first: int, cfg: TrainConfig, world: World) -> Iterator[list[Pair]]:
+    sampler = _StepSampler(first, cfg.steps, cfg.batch, world)
+    if cfg.workers <= 0:
+        return ([stream[i] for i in idx] for idx in sampler)
+    loader = torch.utils.data.DataLoader(
+        _StreamDataset(stream),
+        batch_sampler=sampler,
+        num_workers=cfg.workers,
+        collate_fn=list,
+        persistent_workers=False,
+        prefetch_factor=2,
+    )
+    return iter(loader)
+
+
+def _save(path: Path, payload: dict[str, object]) -> None:
+    """Write a checkpoint atomically (a run killed while writing keeps the previous one)."""
+    tmp = path.with_suffix(".pt.tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def _check(cfg: TrainConfig) -> None:
     if cfg.coarse_weight < 0:
         raise TrainError(f"coarse_weight must be >= 0, got {cfg.coarse_weight}")
     if cfg.basin_weight < 0 or cfg.basin_radius < 0:
         raise TrainError(f"basin weight and radius must be >= 0, got {cfg.basin_weight}, {cfg.basin_radius}")
     if not 0.0 <= cfg.scene_share <= 1.0:
         raise TrainError(f"scene_share must be in [0, 1], got {cfg.scene_share}")
+    if cfg.batch < 1:
+        raise TrainError(f"batch must be >= 1, got {cfg.batch}")
+    if cfg.workers < 0 or cfg.checkpoint_every < 0:
+        raise TrainError(
+            f"workers and checkpoint_every must be >= 0, got {cfg.workers}, {cfg.checkpoint_every}"
+        )
+    if cfg.steps is not None and cfg.steps < 0:
+        raise TrainError(f"steps must be >= 0, got {cfg.steps}")
+    resolve_dtype(cfg.dtype)
+
+
+def train(
+    cfg: TrainConfig,
+    progress: bool = True,
+    data: TrainData | None = None,
+    on_step: Callable[[int, float, Encoder], None] | None = None,
+) -> TrainResult:
+    """Train an encoder (from scratch, from ``cfg.init``, or on from the checkpoint with ``cfg.resume``).
+
+    In a distributed run (``torchrun``, or a process group the caller joined) every rank calls this; rank 0
+    alone writes the run folder, and every rank returns the same model.
+
+    Args:
+        cfg: run settings.
+        progress: show a progress bar (only on a terminal).
+        data: the data to train on; None = :func:`make_data` of ``cfg``.
+        on_step: called on every rank after every step with (step, loss averaged over ranks, model).
+
+    Returns:
+        the trained model (final weights, no selection on validation data) and the run's records.
+
+    Raises:
+        TrainError: bad settings, unreadable data, or a checkpoint that does not fit the run.
+    """
+    _check(cfg)
+    device = resolve_device(cfg.device)
+    world = init_distributed(device)
     torch.manual_seed(cfg.seed)
-    torch.set_num_threads(cfg.threads)
-    rng = np.random.default_rng(cfg.seed)
+    if device.type == "cpu":
+        torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    sources = [load_image(n) for n in cfg.images]
-    pool = None
-    if cfg.scene_share > 0:
-        pool = ScenePool(cfg.scene_cache or out.parent / "cache", seed=cfg.seed)
-    model = Encoder(cfg.spec)
-    if cfg.init is not None:
+    if world.main:
+        out.mkdir(parents=True, exist_ok=True)
+    data = data or make_data(cfg)
+    stream = PairStream(data.source, cfg.pair, cfg.seed)
+    model = Encoder(cfg.spec).to(device)
+    if cfg.init is not None and not cfg.resume:
         load_checkpoint(model, cfg.init)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    # The kind of step is chosen once: through the LK layer, or regression on a teacher's maps.
-    step_fn: Callable[[Pair], float | None]
-    if cfg.teacher is None:
-        step_fn = functools.partial(train_step, model, opt, cfg=cfg)
-    else:
-        teacher = Teacher(cfg.teacher, cfg.spec.d, cfg.spec.in_channels)
-        step_fn = functools.partial(distill_step, model, opt, teacher=teacher)
-    # One level from 5 px needs the longer limit; the residual is the training solver's.
-    val_lm = LMConfig(levels=1, max_iterations=30, zero_mean=cfg.lm.zero_mean)
-    val_sets = {
-        "perturbed": heldout_pairs(cfg.val_per_image, strength=1.0, seed=7),
-        "clean": heldout_pairs(cfg.val_per_image, strength=0.0, seed=7),
-    }
-    baseline = {k: validate(None, v, val_lm) for k, v in val_sets.items()}
     losses: list[float] = []
     val_steps: list[int] = []
     val_within: list[float] = []
-    log = (out / "log.jsonl").open("w")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.steps, unit="step", dynamic_ncols=True)
+    step = 0
+    if cfg.resume:
+        ckpt = load_checkpoint(model, out / "encoder.pt")
+        if "optimizer" not in ckpt:
+            raise TrainError(f"{out / 'encoder.pt'} holds weights only (no optimiser state): use --init")
+        run = (ckpt.get("seed"), ckpt.get("global_batch"))
+        if run != (cfg.seed, cfg.batch * world.size):
+            raise TrainError(
+                f"{out / 'encoder.pt'} was trained with seed, global batch {run}; this run has "
+                f"{(cfg.seed, cfg.batch * world.size)}: the pair order would differ"
+            )
+        opt.load_state_dict(ckpt["optimizer"])
+        step = int(ckpt["step"])
+        losses = list(ckpt["losses"])
+        val_steps, val_within = list(ckpt["val_steps"]), list(ckpt["val_within"])
+        torch.set_rng_state(ckpt["torch_rng"])
+    net: torch.nn.Module = model
+    if world.size > 1:
+        ids = [device] if device.type == "cuda" else None
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=ids)
+    teacher = None if cfg.teacher is None else Teacher(cfg.teacher, cfg.spec.d, cfg.spec.in_channels)
+    # One level from 5 px needs the longer limit; the residual is the training solver's.
+    val_lm = LMConfig(levels=1, max_iterations=30, zero_mean=cfg.lm.zero_mean)
+    val_sets: dict[str, list[Pair]] = {}
+    baseline: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    log = steplog = None
+    if world.main and cfg.val_every > 0:
+        val_sets = {
+            "perturbed": heldout_pairs(cfg.val_per_image, strength=1.0, seed=7),
+            "clean": heldout_pairs(cfg.val_per_image, strength=0.0, seed=7),
+        }
+        for name, src in data.validation.items():
+            val_sets[name] = _validation_pairs(src, cfg.pair, 3 * cfg.val_per_image)
+        baseline = {k: validate(None, v, val_lm) for k, v in val_sets.items()}
+    if world.main:
+        log = (out / "log.jsonl").open("a" if cfg.resume else "w")
+        steplog = StepLog(out, resume=cfg.resume, first=step, tensorboard=cfg.tensorboard)
+        record = run_record(
+            command=cfg.command,
+            data=data.describe(),
+            device=str(device),
+            world_size=world.size,
+            config={k: str(v) for k, v in asdict(cfg).items()},
+        )
+        if cfg.tensorboard and steplog.tensorboard is None:
+            record["tensorboard"] = TENSORBOARD_HINT
+        if cfg.resume and (out / "run.json").is_file():
+            record["resumed_from"] = json.loads((out / "run.json").read_text())
+        (out / "run.json").write_text(json.dumps(record, indent=1))
+    first = step
     start = time.monotonic()
     deadline = start + 60.0 * cfg.minutes
-    step = 0
+    bar = Progress(progress and world.main, step, cfg.steps, deadline)
+
+    def checkpoint() -> None:
+        _save(
+            out / "encoder.pt",
+            {
+                "spec": cfg.spec.as_dict(),
+                "state": model.state_dict(),
+                "step": step,
+                "optimizer": opt.state_dict(),
+                "losses": losses,
+                "val_steps": val_steps,
+                "val_within": val_within,
+                "torch_rng": torch.get_rng_state(),
+                "seed": cfg.seed,
+                "global_batch": cfg.batch * world.size,
+            },
+        )
 
     def run_validation() -> None:
+        assert log is not None and steplog is not None
         model.eval()
         results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         record: dict[str, float | int] = {"step": step, "seconds": round(time.monotonic() - start, 1)}
@@ -276,51 +634,54 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
         )
         log.write(json.dumps(record) + "\n")
         log.flush()
-        if bar is not None:
-            bar.set_postfix(
-                val1px=f"{record['perturbed_within1']:.3f}",
-                cls=f"{record['perturbed_classical_within1']:.3f}",
-            )
+        steplog.scalars(step, {k: float(v) for k, v in record.items() if k not in ("step", "seconds")})
+        bar.note(
+            val1px=f"{record['perturbed_within1']:.3f}", cls=f"{record['perturbed_classical_within1']:.3f}"
+        )
 
-    run_validation()
+    if world.main and cfg.val_every > 0 and not cfg.resume:
+        run_validation()
     model.train()
-    while (cfg.steps is None or step < cfg.steps) and time.monotonic() < deadline:
-        if pool is not None and rng.uniform() < cfg.scene_share:
-            pair = make_scene_pair(pool, rng, cfg.pair, strength=float(rng.uniform(0.0, 1.0)))
-        else:
-            src = sources[int(rng.integers(len(sources)))]
-            pair = make_pair(src, rng, cfg.pair, strength=float(rng.uniform(0.0, 1.0)))
-        if len(pair.points) < 4:
-            continue
-        value = step_fn(pair)
-        if value is None:
-            continue
+    batches = _batches(stream, step, cfg, world)
+    while cfg.steps is None or step < cfg.steps:
+        if broadcast_flag(time.monotonic() >= deadline, world):
+            break
+        pairs = next(batches)
+        loss, used = batch_loss(net, pairs, cfg, teacher)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        value = all_mean(float(loss.detach()), world)
         step += 1
         losses.append(value)
-        if bar is not None:
-            bar.update(1)
-            if step % 20 == 0:
-                bar.set_description(f"loss {np.mean(losses[-100:]):.4f}")
-        if step % cfg.val_every == 0:
-            run_validation()
-            torch.save(
-                {"spec": cfg.spec.as_dict(), "state": model.state_dict(), "step": step}, out / "encoder.pt"
-            )
-    if not val_steps or val_steps[-1] != step:
-        run_validation()
+        if on_step is not None:
+            on_step(step, value, model)
+        if world.main:
+            assert steplog is not None
+            steplog.step(step, time.monotonic() - start, value, len(pairs) * world.size, used)
+            bar.update(float(np.mean(losses[-100:])))
+            if cfg.val_every > 0 and step % cfg.val_every == 0:
+                run_validation()
+            if (cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or (
+                cfg.val_every > 0 and step % cfg.val_every == 0
+            ):
+                checkpoint()
+                steplog.flush()
     seconds = time.monotonic() - start
-    if bar is not None:
-        bar.close()
-    log.close()
-    torch.save({"spec": cfg.spec.as_dict(), "state": model.state_dict(), "step": step}, out / "encoder.pt")
-    np.save(out / "losses.npy", np.asarray(losses))
-    loss_png = plot_loss(losses, val_steps, val_within, out / "loss.png")
-    files = {
-        "checkpoint": out / "encoder.pt",
-        "loss_png": loss_png,
-        "val_png": out / f"val_epoch{len(val_steps) - 1:02d}.png",
-        "log": out / "log.jsonl",
-    }
-    meta = {"config": {k: str(v) for k, v in asdict(cfg).items()}, "steps": step, "seconds": seconds}
-    (out / "run.json").write_text(json.dumps(meta, indent=1))
+    bar.close()
+    files = {"checkpoint": out / "encoder.pt", "log": out / "log.jsonl", "csv": out / "train.csv"}
+    if world.main:
+        assert log is not None and steplog is not None
+        if cfg.val_every > 0 and (not val_steps or val_steps[-1] != step):
+            run_validation()
+        log.close()
+        steplog.close()
+        checkpoint()
+        np.save(out / "losses.npy", np.asarray(losses))
+        files["loss_png"] = plot_loss(losses, val_steps, val_within, out / "loss.png")
+        if val_steps:
+            files["val_png"] = out / f"val_epoch{len(val_steps) - 1:02d}.png"
+        meta = json.loads((out / "run.json").read_text())
+        meta.update(steps=step, seconds=seconds, steps_per_second=(step - first) / max(seconds, 1e-9))
+        (out / "run.json").write_text(json.dumps(meta, indent=1))
     return TrainResult(model.eval(), losses, val_steps, val_within, step, seconds, files)

@@ -19,3 +19,11 @@ def textures32():
     rng = np.random.default_rng(0)
     flow0 = shift + rng.normal(0.0, 1.5, (len(pts), 2))
     return img.astype(np.float32) / 255.0, img2 / 255.0, pts, flow0
+
+
+@pytest.fixture(scope="session")
+def tartanair(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tartanair")
+    from train_sources_data import write_tartanair
+
+    return root, write_tartanair(root)

@@ -183,3 +183,74 @@ def test_smoothing_changes_the_training_step(tmp_path):
         opt = torch.optim.SGD(model.parameters(), lr=0.0)
         losses.append(train_step(model, opt, pair, TrainConfig(smoothing=smoothing)))
     assert None not in losses and abs(losses[0] - losses[1]) > 1e-4
+
+
+def test_cli_trains_on_tartanair_and_footage_and_compares_on_held_out_footage(tmp_path, tartanair):
+    from train_sources_data import write_footage_bag
+
+    root, _ = tartanair
+    bag = write_footage_bag(tmp_path / "bag", frames=5)
+    out, models = tmp_path / "run", tmp_path / "models"
+    args = "--steps 2 --d 2 --size 96x72 --points 30 --batch 2 --val-every 2 --eval-per-image 1"
+    args += " --val-per-image 1 --footage-eval-per-frame 1 --no-progress --install"
+    data = ["--data", f"tartanair:{root}:0.6", "--data", f"footage:{bag}:0.4"]
+    assert main([*args.split(), *data, "--out", str(out), "--models-dir", str(models)]) == 0
+    table = (out / "eval_footage.md").read_text()
+    for row in ("lighting change | this run", "lighting change | shipped", "same lighting | classical"):
+        assert f"| {row} |" in table
+    assert (out / "eval_footage.png").is_file()
+    card = (models / "README.md").read_text()
+    assert "60%: TartanAir" in card and "environments abandonedfactory" in card
+    assert "40%: footage" in card and "1 later frames held out" in card
+    record = json.loads((out / "run.json").read_text())
+    assert record["data"]["validation"]["tartanair"]["environments"] == ["hospital"]
+
+
+def test_recipe_paper_sets_the_papers_values_and_explicit_options_win(tmp_path, capsys):
+    from nsflow_ros.train.cli import parse
+
+    opts = parse(["--recipe", "paper", "--data", "tartanair:/x"])
+    assert (opts.size, opts.points, opts.iterations, opts.window, opts.lr, opts.batch) == (
+        (640, 480), 200, 50, 11, 1e-3, 1
+    )
+    assert (opts.rgb, opts.d, opts.width, opts.head) == (True, 3, 8, "relu")
+    mine = parse(["--recipe", "paper", "--size", "128x96", "--iterations", "20"])
+    assert mine.size == (128, 96) and mine.iterations == 20 and mine.points == 200
+    assert parse([]).size == (320, 240) and parse([]).iterations == 30
+    assert main(["--recipe", "paper", "--steps", "1", "--out", str(tmp_path / "x")]) == 1
+    assert "--recipe paper trains on TartanAir: give --data tartanair:DIR" in capsys.readouterr().err
+    missing = tmp_path / "none"
+    assert main(["--steps", "1", "--data", f"footage:{missing}", "--out", str(tmp_path / "x")]) == 1
+    assert f"nsflow-train: error: footage {missing}: data set not found" in capsys.readouterr().err
+
+
+def test_the_card_states_what_the_paper_leaves_open(tmp_path):
+    from nsflow_ros.train.card import write_model_card
+    from nsflow_ros.train.recipes import PAPER_OPEN
+
+    sources = [{"kind": "tartanair", "path": "/d/ta", "environments": ["a", "b"], "pairs": 10, "share": 1.0}]
+    card = write_model_card(
+        tmp_path / "README.md", spec=EncoderSpec(d=3, in_channels=3, head="relu"), parameters=1003,
+        flops=1, command="nsflow-train --recipe paper", steps=1, seconds=1.0, tables="", figures={},
+        data=sources, recipe=("paper", PAPER_OPEN),
+    ).read_text()
+    assert "100%: TartanAir `/d/ta`, environments a, b (10 pairs)" in card
+    assert "Recipe `paper`" in card and "perturbation std sigma of the initial flow" in card
+
+
+def test_init_from_the_shipped_onnx_encoder(tmp_path):
+    from nsflow_ros.core.encoder import DEFAULT_MODEL
+    from nsflow_ros.resources import share_file
+    from nsflow_ros.train.errors import TrainError
+    from nsflow_ros.train.trainer import load_checkpoint
+
+    shipped = share_file(DEFAULT_MODEL)
+    spec = json.loads(load_encoder(shipped).metadata["spec"])
+    model = Encoder(EncoderSpec(**spec)).eval()
+    load_checkpoint(model, shipped)
+    img = np.random.default_rng(0).integers(0, 256, (40, 52), dtype=np.uint8)
+    with torch.no_grad():
+        ours = model(torch.from_numpy(img.astype(np.float32) / 255.0)[None, None])[0].permute(1, 2, 0).numpy()
+    assert np.abs(ours - load_encoder(shipped, smoothing=Smoothing())(img)).max() < 1e-5
+    with pytest.raises(TrainError, match="holds an encoder of spec"):
+        load_checkpoint(Encoder(EncoderSpec(d=2)), shipped)

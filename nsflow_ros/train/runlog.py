@@ -1,0 +1,168 @@
+"""What a run leaves in its folder besides the model: the step log, TensorBoard events, progress, and
+the record of how it was made (command, data sources, git state, environment).
+
+* ``train.csv`` - one row per step: step, seconds, loss, pairs, points (appended to on ``--resume``);
+* TensorBoard event files under ``tensorboard/`` when the ``tensorboard`` package is installed
+  (``pip install tensorboard``; optional, so a CPU install needs only ``[train]``);
+* a progress bar with the time to the end, only on a terminal;
+* ``run.json`` - see :func:`run_record`.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["CSV_FIELDS", "Progress", "StepLog", "git_state", "run_record", "tensorboard_writer"]
+
+CSV_FIELDS = ("step", "seconds", "loss", "pairs", "points")
+TENSORBOARD_HINT = "TensorBoard event files are not written: pip install tensorboard"
+
+
+def tensorboard_writer(folder: Path) -> Any | None:
+    """A ``SummaryWriter`` logging into ``folder``, or None when TensorBoard is not installed."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(log_dir=str(folder))
+
+
+class StepLog:
+    """The per-step CSV log and, when available, TensorBoard scalars.
+
+    Args:
+        folder: the run folder.
+        resume: continue an existing ``train.csv`` from step ``first`` (rows after it, written by the
+            killed run after its last checkpoint, are dropped) instead of starting a new one.
+        first: the step the run starts at.
+        tensorboard: try TensorBoard (None when not installed; :attr:`tensorboard` says which).
+    """
+
+    def __init__(self, folder: Path, resume: bool = False, first: int = 0, tensorboard: bool = True) -> None:
+        path = Path(folder) / "train.csv"
+        rows: list[list[str]] = []
+        if resume and path.is_file():
+            with path.open(newline="") as f:
+                rows = [r for r in list(csv.reader(f))[1:] if r and r[0].isdigit() and int(r[0]) <= first]
+        self._file = path.open("w", newline="")
+        self._csv = csv.writer(self._file)
+        self._csv.writerow(CSV_FIELDS)
+        self._csv.writerows(rows)
+        self.tensorboard = tensorboard_writer(Path(folder) / "tensorboard") if tensorboard else None
+
+    def step(self, step: int, seconds: float, loss: float, pairs: int, points: int) -> None:
+        self._csv.writerow([step, f"{seconds:.3f}", f"{loss:.6g}", pairs, points])
+        if self.tensorboard is not None:
+            self.tensorboard.add_scalar("train/loss", loss, step)
+
+    def scalars(self, step: int, values: dict[str, float]) -> None:
+        """Validation figures (TensorBoard only; the JSON log holds them too)."""
+        if self.tensorboard is not None:
+            for key, value in values.items():
+                self.tensorboard.add_scalar(f"val/{key}", value, step)
+
+    def flush(self) -> None:
+        self._file.flush()
+        if self.tensorboard is not None:
+            self.tensorboard.flush()
+
+    def close(self) -> None:
+        self._file.close()
+        if self.tensorboard is not None:
+            self.tensorboard.close()
+
+
+class Progress:
+    """A tqdm bar with the time to the end, shown only when ``enabled`` and stderr is a terminal.
+
+    Args:
+        enabled: the caller wants progress (``--no-progress`` turns it off).
+        first: the step the run starts at (after ``--resume``).
+        steps: the step limit (None = only the time limit).
+        deadline: ``time.monotonic()`` at which the time limit ends.
+    """
+
+    def __init__(self, enabled: bool, first: int, steps: int | None, deadline: float) -> None:
+        self.bar = None
+        self.deadline = deadline
+        if enabled and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=steps, initial=first, unit="step", dynamic_ncols=True)
+
+    def update(self, loss: float) -> None:
+        if self.bar is None:
+            return
+        self.bar.update(1)
+        if self.bar.n % 20 == 0:
+            left = max(0.0, self.deadline - time.monotonic())
+            self.bar.set_description(f"loss {loss:.4f}, time limit in {left / 60:.1f} min")
+
+    def note(self, **values: str) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix(**values)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def git_state(path: Path | None = None) -> dict[str, object]:
+    """Commit and dirty flag of the git checkout holding ``path`` (the package), or why there is none."""
+    where = str(path or Path(__file__).resolve().parent)
+    try:
+        commit = subprocess.run(
+            ["git", "-C", where, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        status = subprocess.run(
+            ["git", "-C", where, "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout
+    except (OSError, subprocess.SubprocessError) as err:
+        return {"commit": None, "note": f"not a git checkout ({type(err).__name__})"}
+    return {"commit": commit, "dirty": bool(status.strip())}
+
+
+def _version(module: str) -> str | None:
+    try:
+        return str(__import__(module).__version__)
+    except (ImportError, AttributeError):
+        return None
+
+
+def run_record(
+    *, command: str, data: dict[str, object], device: str, world_size: int, config: dict[str, str]
+) -> dict[str, object]:
+    """What ``run.json`` records about how a run was made (the caller adds its results).
+
+    Args:
+        command: the command line.
+        data: the data sources with their shares (``PairSource.describe``).
+        device: the torch device.
+        world_size: processes in the run.
+        config: the run's settings as strings.
+    """
+    import torch
+
+    env: dict[str, object] = {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "numpy": _version("numpy"),
+        "opencv": _version("cv2"),
+        "onnxruntime": _version("onnxruntime"),
+        "tensorboard": _version("tensorboard"),
+        "device": device,
+        "gpu": torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else None,
+        "cpu_count": os.cpu_count(),
+        "world_size": world_size,
+    }
+    return {"command": command, "data": data, "git": git_state(), "environment": env, "config": config}

@@ -1,0 +1,56 @@
+"""The training run the distributed test starts in each process (importable by spawned children)."""
+
+from __future__ import annotations
+
+import torch
+
+from nsflow_ros.train.data import PairConfig
+from nsflow_ros.train.model import EncoderSpec
+from nsflow_ros.train.sources import MixedSource, PhotoSource
+from nsflow_ros.train.trainer import TrainConfig, TrainData, train
+
+STEPS = 3
+
+
+def config(out, batch: int) -> TrainConfig:
+    return TrainConfig(
+        spec=EncoderSpec(d=2, width=4),
+        out=out,
+        steps=STEPS,
+        batch=batch,
+        seed=3,
+        val_every=0,
+        threads=1,
+        pair=PairConfig(96, 72, max_points=30, min_distance=5.0),
+        tensorboard=False,
+    )
+
+
+def run(out, batch: int):
+    """Train; return the loss curve and the flattened parameters after every step."""
+    record: list[tuple[float, torch.Tensor]] = []
+
+    def on_step(step, loss, model):
+        record.append((loss, torch.cat([p.detach().flatten().clone() for p in model.parameters()])))
+
+    data = TrainData(MixedSource([(PhotoSource(("astronaut", "camera")), 1.0)]))
+    train(config(out, batch), progress=False, data=data, on_step=on_step)
+    return [r[0] for r in record], torch.stack([r[1] for r in record])
+
+
+def worker(rank: int, port: int, out: str, result: str) -> None:
+    """One process of a two-process run, joined through the environment ``torchrun`` sets."""
+    import os
+
+    import torch.distributed as dist
+
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2"
+    )
+    try:
+        losses, params = run(out, batch=1)
+        assert dist.is_initialized() and dist.get_backend() == "gloo"
+        torch.save({"losses": losses, "params": params}, f"{result}{rank}.pt")
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
