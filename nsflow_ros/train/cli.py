@@ -278,7 +278,8 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     import numpy as np
     import torch
 
-    from nsflow_ros import Jacobian, LMConfig, Smoothing, load_encoder
+    from nsflow_ros import Jacobian, Smoothing, load_encoder
+    from nsflow_ros.core.methods import PAPER_LM
     from nsflow_ros.train.card import write_model_card
     from nsflow_ros.train.data import PairConfig
     from nsflow_ros.train.errors import TrainError
@@ -374,7 +375,9 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     comparisons = []
     for label, strength in (("perturbed", 1.0), ("clean", 0.0)):
         pairs = heldout_pairs(opts.eval_per_image, strength=strength)
-        for config in (LMConfig(), LMConfig(levels=1, max_iterations=30)):
+        # Algorithm 1 as written on the paper's pyramid and on one level (the basin the training shapes);
+        # the tracker's own configuration is scored by nsflow-evaluate.
+        for config in (PAPER_LM, replace(PAPER_LM, levels=1, max_iterations=30)):
             comparisons.append(compare(encoder, pairs, config, label))
     table = format_table(comparisons)
     (out / "eval.md").write_text(table + "\n")
