@@ -98,7 +98,7 @@ def run_tracker_benchmark(
         seed: the sample sequence's seed.
         cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
             folder removed afterwards.
-        progress: a tqdm bar on stderr.
+        progress: a progress bar on stderr (:func:`~nsflow_ros.progress.progress_bar`).
 
     Returns:
         ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}}}``.
@@ -132,9 +132,9 @@ def run_tracker_benchmark(
             runs[mode] = {m: _Run(tracker_from_config(cfg, {**over, "method": m})) for m in names}
         frames = range(len(seq))
         if progress:
-            from tqdm import tqdm
+            from nsflow_ros.progress import progress_bar
 
-            frames = tqdm(frames, desc="tracker benchmark", unit="frame", leave=False)
+            frames = progress_bar(frames, desc="tracker benchmark", unit="frame", leave=False)
         stereo = "stereo" in modes
         for i in frames:
             left = seq.image(i, 0)

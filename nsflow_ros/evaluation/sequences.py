@@ -492,12 +492,12 @@ def evaluate_sequences(
         settings: tracker settings shared by all methods.
         encoders: report name -> encoder for the LM methods (missing: loaded by the tracker).
         seed: perturbation and RANSAC seed.
-        progress: show a tqdm bar over all frames.
+        progress: show progress over all frames.
 
     Returns:
         the runs.
     """
-    from tqdm import tqdm
+    from nsflow_ros.progress import progress_bar
 
     if not methods:
         raise EvaluationError("no methods to evaluate")
@@ -506,7 +506,7 @@ def evaluate_sequences(
         raise EvaluationError(f"unknown method(s) {bad}; expected some of {list(TRACKER_METHODS)}")
     out: dict[str, dict[str, MethodRun]] = {}
     total = len(levels) * len(methods) * len(source)
-    with tqdm(total=total, desc="sequences", unit="frame", disable=not progress, leave=False) as bar:
+    with progress_bar(total=total, desc="sequences", unit="frame", enabled=progress, leave=False) as bar:
         for level in levels:
             out[level] = {}
             for m in methods:

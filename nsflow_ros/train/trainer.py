@@ -203,7 +203,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
 
     Args:
         cfg: run settings.
-        progress: show a tqdm progress bar.
+        progress: show progress.
 
     Returns:
         the trained model (final weights, no selection on validation data) and the run's records.
@@ -247,9 +247,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> TrainResult:
     log = (out / "log.jsonl").open("w")
     bar = None
     if progress:
-        from tqdm import tqdm
+        from nsflow_ros.progress import progress_bar
 
-        bar = tqdm(total=cfg.steps, unit="step", dynamic_ncols=True)
+        bar = progress_bar(total=cfg.steps, unit="step", dynamic_ncols=True)
     start = time.monotonic()
     deadline = start + 60.0 * cfg.minutes
     step = 0
