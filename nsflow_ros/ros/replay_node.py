@@ -273,6 +273,11 @@ def _parser() -> argparse.ArgumentParser:
         + "; ".join(f"{name} = {entry.summary}" for name, entry in METHODS.items())
         + " (default nsflow)",
     )
+    p.add_argument(
+        "--providers", default="cpu",
+        help="onnxruntime execution providers of the encoder for --offline / --features-bag, best first, "
+        "e.g. cuda,cpu (default cpu; as the node's providers parameter)",
+    )
     return p
 
 
@@ -360,6 +365,7 @@ def main(args: list[str] | None = None) -> int:
                 cfg,
                 method=opts.method,
                 fmt=opts.features_bag_format,
+                overrides={"providers": opts.providers},
                 progress=not opts.no_progress,
             )
             print(bag.text())
@@ -369,7 +375,8 @@ def main(args: list[str] | None = None) -> int:
 
             _make_dir(opts.offline)
             summary = run_offline(
-                ropts, opts.offline, config=opts.config, method=opts.method, progress=not opts.no_progress
+                ropts, opts.offline, config=opts.config, method=opts.method,
+                overrides={"providers": opts.providers}, progress=not opts.no_progress,
             )
             print(summary.text())
             return 0
