@@ -46,6 +46,7 @@ class EvalContext:
         seed: base seed; analyses derive their generators from it (``np.random.default_rng([seed, k])``)
             so a run is reproducible.
         threads: onnxruntime / OpenCV threads the methods were built with (for timing sections).
+        providers: onnxruntime execution providers of the learned encoders, best first.
         extra: free-form settings for an analysis, keyed by the analysis key (unused by default).
     """
 
@@ -56,6 +57,7 @@ class EvalContext:
     progress: bool = True
     seed: int = 0
     threads: int | None = None
+    providers: str = "cpu"
     extra: dict[str, Any] = field(default_factory=dict)
 
     def method(self, name: str) -> PairMethod:

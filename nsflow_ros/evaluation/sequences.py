@@ -698,10 +698,12 @@ def run(ctx: EvalContext) -> Section:
         from nsflow_ros.core.methods import method_encoder
 
         try:
-            encoders[name] = method_encoder(TRACKER_METHODS[name]["method"], ctx.model, ctx.threads)
+            kind = TRACKER_METHODS[name]["method"]
+            encoders[name] = method_encoder(kind, ctx.model, ctx.threads, ctx.providers)
         except CoreError as err:
             raise EvaluationError(str(err)) from err
-    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads)
+    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
+                               providers=ctx.providers)
     source = load_source(ctx, setup)
     runs = evaluate_sequences(
         source, methods, levels, settings=settings, encoders=encoders, seed=ctx.seed, progress=ctx.progress
