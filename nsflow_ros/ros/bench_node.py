@@ -106,7 +106,7 @@ def run_node_benchmark(
         model_path: ONNX encoder for "nsflow".
         threads: the node's ``num_threads`` (0 = all usable cores).
         providers: the node's ``providers`` (onnxruntime execution providers of the encoder).
-        checkpoints: frame counts after which the RSS is recorded.
+        checkpoints: frame counts after which the RSS is recorded (and after the last frame).
         timeout_s: how long to wait for one frame's features before counting it lost.
         progress: print a line every 1,000 frames to stderr.
 
@@ -202,7 +202,7 @@ def run_node_benchmark(
                     node_lat[k] = tracker.latencies_ms[-1]
                     trip[k] = (received[-1][0] - sent) * 1e3
                     counts[k] = received[-1][1]
-                if k + 1 in checkpoints:
+                if k + 1 in checkpoints or k + 1 == frames:
                     rss[k + 1] = rss_mb()
                 if progress and (k + 1) % 1000 == 0:
                     print(f"  {k + 1} frames, RSS {rss_mb():.1f} MB", file=sys.stderr)
