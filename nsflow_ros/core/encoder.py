@@ -254,6 +254,7 @@ class IntensityEncoder:
     channels = 1
     input_channels = 1
     smoothing = Smoothing()  # intensity is tracked as it is
+    provider = "none"  # NumPy, no onnxruntime session
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """Encode an image.
@@ -521,8 +522,8 @@ def _usable_cores() -> int:
 
 
 def encoder_provider(encoder: Encoder | None) -> str:
-    """The onnxruntime execution provider an encoder runs on; "none" for intensity and no encoder."""
-    return encoder.provider if isinstance(encoder, OnnxEncoder) else "none"
+    """The onnxruntime execution provider an encoder runs on ("none": no onnxruntime session, no encoder)."""
+    return "none" if encoder is None else str(getattr(encoder, "provider", "none"))
 
 
 def load_encoder(
