@@ -46,7 +46,7 @@ def _data_files() -> list[tuple[str, list[str]]]:
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
     ]
-    for folder in ("config", "models"):
+    for folder in ("config", "models", "launch", "rviz"):
         for path in sorted(glob(f"{folder}/**/*", recursive=True)):
             if Path(path).is_file():
                 files.append((f"share/{PACKAGE}/{Path(path).parent}", [path]))

@@ -235,6 +235,7 @@ def run_benchmark(
     model: str | None = None,
     threads: int = 2,
     progress: bool = False,
+    providers: str = "cpu",
 ) -> dict[str, Any]:
     """Run the whole benchmark and return its figures.
 
@@ -245,6 +246,7 @@ def run_benchmark(
             when no model is shipped yet (the result says which).
         threads: encoder threads and OpenCV threads.
         progress: print a line per stage to stderr.
+        providers: onnxruntime execution providers of the encoder, best first.
 
     Returns:
         a JSON-serialisable dict of figures.
@@ -255,14 +257,14 @@ def run_benchmark(
     try:
         trained = True
         try:
-            encoder = load_encoder(model, threads=threads)
+            encoder = load_encoder(model, threads=threads, providers=providers)
             model_desc = str(encoder.path)
         except NSFlowError:
             if model is not None:
                 raise
             tmp = tempfile.TemporaryDirectory()
             path = paper_encoder_onnx(Path(tmp.name) / "paper_random.onnx")
-            encoder = load_encoder(path, threads=threads)
+            encoder = load_encoder(path, threads=threads, providers=providers)
             model_desc = "paper architecture, random weights (no shipped model found)"
             trained = False
         # the deployed methods, exactly as the tracker builds them (the encoder as given)
@@ -282,6 +284,7 @@ def run_benchmark(
                 "size": [WIDTH, HEIGHT],
                 "model": model_desc,
                 "descriptor_channels": encoder.channels,
+                "encoder_provider": encoder.provider,
                 "solver": classical.spec.lm.as_dict(),  # type: ignore[union-attr]
                 "interleaved": True,
             },
@@ -331,7 +334,7 @@ def format_table(res: dict[str, Any]) -> str:
         f"{s['points']} GFTT points, "
         f"{res['machine']['cpu_count']} cores, {res['machine']['threads']} threads, methods interleaved"
         + (", large buffers kept on the heap" if res["machine"].get("keep_large_buffers") else ""),
-        f"encoder: {s['model']} (d={s['descriptor_channels']})",
+        f"encoder: {s['model']} (d={s['descriptor_channels']}) on {s.get('encoder_provider', 'the CPU')}",
         "",
         f"{'stage':34s} {'median ms':>10s} {'p90 ms':>10s}",
     ]
@@ -376,6 +379,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument("--model", default=None, help="ONNX encoder (default: the shipped model)")
     parser.add_argument("--threads", type=positive_int, default=2,
                         help="onnxruntime / OpenCV threads (default 2)")
+    parser.add_argument("--providers", default="cpu", help="onnxruntime execution providers of the encoder, "
+                        "best first, e.g. tensorrt,cuda,cpu (default cpu; as the node's providers parameter)")
     parser.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     parser.add_argument(
         "--tracker-seconds", type=non_negative_float, default=10.0,
@@ -414,7 +419,8 @@ def main(args: list[str] | None = None) -> int:
         if opts.tracker_seconds > 0:
             methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
             res["tracker"] = run_tracker_benchmark(
-                opts.tracker_seconds, methods, model=opts.model, threads=opts.threads, progress=not opts.json
+                opts.tracker_seconds, methods, model=opts.model, threads=opts.threads, progress=not opts.json,
+                providers=opts.providers,
             )
         if opts.node_seconds > 0:
             from nsflow_ros.ros.bench_live import run_live_benchmark
@@ -424,7 +430,8 @@ def main(args: list[str] | None = None) -> int:
             )
         if not opts.no_stages:
             res.update(
-                run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json)
+                run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json,
+                              providers=opts.providers)
             )
         res.setdefault("machine", {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                                    "threads": opts.threads})
@@ -432,7 +439,8 @@ def main(args: list[str] | None = None) -> int:
             from nsflow_ros.ros.bench_node import run_node_benchmark
 
             res["node"] = {
-                mode: run_node_benchmark(opts.node_frames, mode == "stereo", progress=not opts.json)
+                mode: run_node_benchmark(opts.node_frames, mode == "stereo", progress=not opts.json,
+                                         providers=opts.providers)
                 for mode in ("mono", "stereo")
             }
     except NSFlowError as err:

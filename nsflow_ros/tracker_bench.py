@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.methods import BASELINE, METHODS
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.scoring import FrameQuality
@@ -83,6 +84,7 @@ def run_tracker_benchmark(
     *,
     model: str | None = None,
     threads: int | None = None,
+    providers: str = "cpu",
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
@@ -95,10 +97,11 @@ def run_tracker_benchmark(
         modes: "mono" and / or "stereo" (the shipped EuRoC mono / stereo configs).
         model: ONNX encoder of the learned methods; None = the shipped one.
         threads: encoder threads; None = all usable cores.
+        providers: onnxruntime execution providers of the learned encoders, best first.
         seed: the sample sequence's seed.
         cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
             folder removed afterwards.
-        progress: a tqdm bar on stderr.
+        progress: a progress bar on stderr (:func:`~nsflow_ros.progress.progress_bar`).
 
     Returns:
         ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}}}``.
@@ -126,15 +129,16 @@ def run_tracker_benchmark(
         runs: dict[str, dict[str, _Run]] = {}
         for mode in modes:
             cfg = load_vins_config(share_file(CONFIGS[mode]))
-            over: dict[str, Any] = {"stereo": mode == "stereo", "num_threads": threads}
+            over: dict[str, Any] = {"stereo": mode == "stereo", "num_threads": threads,
+                                    "providers": providers}
             if model is not None:
                 over["model_path"] = model
             runs[mode] = {m: _Run(tracker_from_config(cfg, {**over, "method": m})) for m in names}
         frames = range(len(seq))
         if progress:
-            from tqdm import tqdm
+            from nsflow_ros.progress import progress_bar
 
-            frames = tqdm(frames, desc="tracker benchmark", unit="frame", leave=False)
+            frames = progress_bar(frames, desc="tracker benchmark", unit="frame", leave=False)
         stereo = "stereo" in modes
         for i in frames:
             left = seq.image(i, 0)
@@ -148,7 +152,8 @@ def run_tracker_benchmark(
             tmp.cleanup()
     out: dict[str, Any] = {"setup": {"frames": len(seq), "size": [752, 480], "duration_s": duration,
                                      "methods": names, "modes": list(modes), "interleaved": True,
-                                     "configs": {m: CONFIGS[m] for m in modes}}}
+                                     "configs": {m: CONFIGS[m] for m in modes},
+                                     "encoder_provider": _provider(runs)}}
     out["ratios"] = {}
     for mode, by_method in runs.items():
         out[mode] = {m: run.figures() for m, run in by_method.items()}
@@ -157,12 +162,19 @@ def run_tracker_benchmark(
     return out
 
 
+def _provider(runs: dict[str, dict[str, _Run]]) -> str:
+    """The execution provider of the learned encoders ("none" when no method has one)."""
+    found = {encoder_provider(r.tracker.encoder) for by in runs.values() for r in by.values()} - {"none"}
+    return ", ".join(sorted(found)) or "none"
+
+
 def format_tracker_table(res: dict[str, Any]) -> str:
     """The whole-tracker figures as a text table, one row per mode and method."""
     s = res["setup"]
     lines = [
         f"whole tracker (VINS-style, shipped EuRoC configs, flow-back on), {s['frames']} frames "
-        f"{s['size'][0]}x{s['size'][1]} of the sample sequence, methods interleaved",
+        f"{s['size'][0]}x{s['size'][1]} of the sample sequence, methods interleaved; encoder on "
+        f"{s.get('encoder_provider', 'none')}",
         "",
         f"{'mode':7s}{'method':11s}{'median ms':>10s}{'p90 ms':>8s}{'x klt':>7s}{'carried':>9s}"
         f"{'err px':>8s}{'>1px':>7s}{'stereo':>8s}{'s.err px':>9s}{'s.>1px':>7s}  stages (median ms)",

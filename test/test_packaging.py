@@ -12,7 +12,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 SHORT_NAMES = ("tracker", "replay", "demo", "ate", "bench", "make_sample", "train", "evaluate", "config")
-PACKAGE_FILES = ("package.xml", "setup.py", "setup.cfg", "resource", "nsflow_ros", "config", "models")
+PACKAGE_FILES = (
+    "package.xml", "setup.py", "setup.cfg", "resource", "nsflow_ros", "config", "models", "launch", "rviz"
+)
 
 CHECK_ENTRY_POINTS = """
 import importlib, importlib.metadata as md, json
@@ -111,6 +113,9 @@ def test_colcon_build_gives_ros2_run_layout(tmp_path):
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "nsflow_ros").is_file()
     assert (prefix / "share" / "nsflow_ros" / "package.xml").is_file()
     assert (prefix / "share" / "nsflow_ros" / "config").is_dir()
+    # where `ros2 launch nsflow_ros tracker.launch.py` and its rviz:=true look
+    for name in ("launch/tracker.launch.py", "launch/replay.launch.py", "rviz/nsflow.rviz"):
+        assert (prefix / "share" / "nsflow_ros" / name).is_file(), name
     # what `ros2 run nsflow_ros bench` executes, in the environment `source install/setup.bash` makes
     env = dict(os.environ)
     env["AMENT_PREFIX_PATH"] = str(prefix)

@@ -23,6 +23,14 @@ Speed (docs/benchmarks.md, "Why the settings are what they are", has the figures
 * The (1, d, H, W) output becomes (H, W, d) with ``cv2.merge`` inside each strip's worker, written
   straight into the frame's map (cheaper than a NumPy transpose copy).
 
+Accelerators. The session runs on the first usable of an ordered list of onnxruntime execution
+providers (:class:`ExecutionProviders`, e.g. ``tensorrt,cuda,cpu``; the default is the CPU alone). A
+requested provider this onnxruntime build lacks is skipped with one warning naming the installed ones
+and the one used instead; a list of which none is installed is an :class:`EncoderError`. On the CPU
+the frame is encoded in strips as above; on any other provider one session encodes the whole frame in
+one call, since per-call launch overhead, not cache locality, dominates a small net on an accelerator
+(the default until a GPU measurement says otherwise; ``tile_rows`` still overrides it).
+
 Smoothing. A model may declare, in its metadata key ``smoothing`` ("fine,coarse", Gaussian sigmas in
 pixels; :class:`~nsflow_ros.core.pyramid.Smoothing`), how its maps are smoothed before the solver
 reads them: the encoder applies the ``fine`` part to its own output (in each strip's worker, with the
@@ -34,9 +42,12 @@ apply the ``coarse`` part to the pyramid's coarser levels. The shipped model dec
 
 from __future__ import annotations
 
+import logging
 import math
 import os
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -47,10 +58,14 @@ from nsflow_ros.core.errors import CoreError, EncoderError
 from nsflow_ros.core.pyramid import Smoothing, gaussian_kernel
 
 __all__ = [
+    "CPU_PROVIDER",
     "DEFAULT_MODEL",
+    "PROVIDER_NAMES",
     "Encoder",
+    "ExecutionProviders",
     "IntensityEncoder",
     "OnnxEncoder",
+    "encoder_provider",
     "load_encoder",
     "to_gray",
 ]
@@ -62,6 +77,143 @@ DEFAULT_MODEL = "models/nsflow_encoder.onnx"
 TILE_PIXELS = 60_000
 # Receptive-field radii from this many rows on count as "not local" (the shipped model's is 2).
 _MAX_HALO = 32
+
+_log = logging.getLogger(__name__)
+
+CPU_PROVIDER = "CPUExecutionProvider"
+"""onnxruntime's CPU execution provider, in every build."""
+
+PROVIDER_NAMES: Mapping[str, str] = {
+    "cpu": CPU_PROVIDER,
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+    "rocm": "ROCMExecutionProvider",
+    "migraphx": "MIGraphXExecutionProvider",
+    "directml": "DmlExecutionProvider",
+    "dnnl": "DnnlExecutionProvider",
+    "qnn": "QNNExecutionProvider",
+    "xnnpack": "XnnpackExecutionProvider",
+}
+"""Short provider names (what the ``providers`` setting takes) -> onnxruntime's names."""
+
+_TENSORRT = PROVIDER_NAMES["tensorrt"]
+
+
+@dataclass(frozen=True)
+class ExecutionProviders:
+    """Where the encoder runs: onnxruntime execution providers in order of preference, and their options.
+
+    Attributes:
+        names: onnxruntime provider names, best first (``parse`` takes short names too).
+        tensorrt_fp16: let TensorRT build half-precision engines.
+        tensorrt_cache: folder where TensorRT keeps its built engines between runs (building one takes
+            minutes on a Jetson); None = no cache.
+
+    Raises:
+        EncoderError: an empty list or a name that is not an onnxruntime provider name.
+    """
+
+    names: tuple[str, ...] = (CPU_PROVIDER,)
+    tensorrt_fp16: bool = False
+    tensorrt_cache: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.names:
+            raise EncoderError("the execution provider list is empty; give at least one, e.g. 'cpu'")
+        for name in self.names:
+            if not (isinstance(name, str) and name.endswith("ExecutionProvider")):
+                raise EncoderError(f"{name!r} is not an onnxruntime execution provider name")
+
+    @classmethod
+    def parse(
+        cls,
+        providers: str | Sequence[str] | ExecutionProviders | None,
+        *,
+        tensorrt_fp16: bool = False,
+        tensorrt_cache: str | None = None,
+    ) -> ExecutionProviders:
+        """Read a provider list: ``"tensorrt,cuda,cpu"``, ``["cuda", "CPUExecutionProvider"]``.
+
+        Args:
+            providers: comma-separated text or a sequence of short names (:data:`PROVIDER_NAMES`, any
+                case) or onnxruntime names; an :class:`ExecutionProviders` is returned as it is; None or
+                "" = the CPU alone.
+            tensorrt_fp16, tensorrt_cache: the TensorRT options (class attributes).
+
+        Returns:
+            the providers, duplicates removed.
+
+        Raises:
+            EncoderError: an unknown short name (the known ones are listed) or an empty list.
+        """
+        if isinstance(providers, ExecutionProviders):
+            return providers
+        if providers is None or (isinstance(providers, str) and not providers.strip()):
+            items: list[str] = ["cpu"]
+        elif isinstance(providers, str):
+            items = [p.strip() for p in providers.split(",")]
+        else:
+            items = [str(p).strip() for p in providers]
+        names: list[str] = []
+        for item in items:
+            if not item:
+                raise EncoderError(f"empty name in the execution provider list {providers!r}")
+            name = item if item.endswith("ExecutionProvider") else PROVIDER_NAMES.get(item.lower())
+            if name is None:
+                raise EncoderError(
+                    f"unknown execution provider {item!r}; short names: {', '.join(PROVIDER_NAMES)}, "
+                    "or onnxruntime's full names (e.g. CUDAExecutionProvider)"
+                )
+            if name not in names:
+                names.append(name)
+        return cls(tuple(names), tensorrt_fp16=bool(tensorrt_fp16), tensorrt_cache=tensorrt_cache or None)
+
+    def available(self, installed: Sequence[str] | None = None) -> tuple[str, ...]:
+        """The requested providers this onnxruntime has, in order; warns once about the others.
+
+        Args:
+            installed: the providers of this onnxruntime build; None = what it reports
+                (``onnxruntime.get_available_providers()``).
+
+        Returns:
+            the usable providers, best first (never empty).
+
+        Raises:
+            EncoderError: none of them is installed (one line naming the installed ones).
+        """
+        if installed is None:
+            import onnxruntime as ort
+
+            installed = ort.get_available_providers()
+        usable = tuple(n for n in self.names if n in installed)
+        if not usable:
+            raise EncoderError(
+                f"none of the execution providers {', '.join(self.names)} is in this onnxruntime "
+                f"(installed: {', '.join(installed)})"
+            )
+        missing = [n for n in self.names if n not in installed]
+        if missing:
+            _log.warning(
+                "execution provider(s) %s not in this onnxruntime (installed: %s); using %s",
+                ", ".join(missing), ", ".join(installed), usable[0],
+            )
+        return usable
+
+    def session_providers(self, usable: Sequence[str]) -> list[Any]:
+        """onnxruntime's ``providers`` argument for ``usable``: names, with TensorRT's options attached."""
+        out: list[Any] = []
+        for name in usable:
+            if name == _TENSORRT:
+                options = {"trt_fp16_enable": str(self.tensorrt_fp16)}
+                if self.tensorrt_cache:
+                    options["trt_engine_cache_enable"] = "True"
+                    options["trt_engine_cache_path"] = self.tensorrt_cache
+                out.append((name, options))
+            else:
+                out.append(name)
+        return out
 
 
 @runtime_checkable
@@ -102,6 +254,7 @@ class IntensityEncoder:
     channels = 1
     input_channels = 1
     smoothing = Smoothing()  # intensity is tracked as it is
+    provider = "none"  # NumPy, no onnxruntime session
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """Encode an image.
@@ -131,7 +284,7 @@ def _merge_into(planes: list[np.ndarray], dst: np.ndarray) -> None:
 
 
 class OnnxEncoder:
-    """The NSFlow encoder exported to ONNX, run with onnxruntime on the CPU.
+    """The NSFlow encoder exported to ONNX, run with onnxruntime (on the CPU unless told otherwise).
 
     Args:
         path: the .onnx file.
@@ -144,15 +297,20 @@ class OnnxEncoder:
             locality check at load time (``tiled`` says whether this one does).
         smoothing: the map smoothing (module docstring); None = what the model's metadata declares
             (none when it declares nothing). ``Smoothing()`` turns it off.
+        providers: execution providers in order of preference (:meth:`ExecutionProviders.parse` takes
+            ``"tensorrt,cuda,cpu"``); None = the CPU. On a provider other than the CPU one session with
+            ``threads`` intra-op threads runs the whole frame (module docstring). ``provider`` is the
+            one in use.
 
     Raises:
         EncoderError: when the file is missing, is not a loadable model, its signature is not
-            (1, 1|3, H, W) float32 -> (1, d, H, W) float32, or its ``smoothing`` metadata is malformed.
+            (1, 1|3, H, W) float32 -> (1, d, H, W) float32, its ``smoothing`` metadata is malformed, or
+            none of the providers is installed.
     """
 
     def __init__(
         self, path: str | os.PathLike[str], threads: int | None = None, tile_rows: int | None = None,
-        smoothing: Smoothing | None = None,
+        smoothing: Smoothing | None = None, providers: ExecutionProviders | str | Sequence[str] | None = None,
     ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
@@ -162,8 +320,25 @@ class OnnxEncoder:
         if tile_rows is not None and tile_rows < 0:
             raise EncoderError(f"tile_rows must be >= 0 or None, got {tile_rows}")
         self.threads = threads or _usable_cores()
+        self.providers = ExecutionProviders.parse(providers)
+        usable = self.providers.available()
+        self._session_providers: list[Any] = [CPU_PROVIDER]
+        if usable[0] != CPU_PROVIDER:
+            self._session_providers = self.providers.session_providers(usable)
+            session = self._new_session(self.threads)
+            used = session.get_providers()[0]
+            if used != usable[0]:  # installed but could not start (no GPU, driver): onnxruntime fell back
+                _log.warning("execution provider %s could not start; using %s", usable[0], used)
+            if used == CPU_PROVIDER:
+                self._session_providers = [CPU_PROVIDER]
+            else:
+                tile_rows = 0 if tile_rows is None else tile_rows  # whole frame (module docstring)
+                self._sessions = [session]
         self._tile_rows = tile_rows
-        self._sessions = [self._new_session(1)]
+        if self._session_providers == [CPU_PROVIDER]:
+            self._sessions = [self._new_session(1)]
+        self.provider: str = self._sessions[0].get_providers()[0]
+        """The execution provider in use."""
         self._pool: ThreadPoolExecutor | None = None
         self._check_signature()
         if smoothing is not None and not isinstance(smoothing, Smoothing):
@@ -172,7 +347,7 @@ class OnnxEncoder:
         fine = self.smoothing.fine
         self._kernel = gaussian_kernel(fine) if fine > 0 else None
         self.halo: int | None = None if tile_rows == 0 else self._local_halo()
-        if self.threads > 1:
+        if self.threads > 1 and self.provider == CPU_PROVIDER:
             if self.halo is None:
                 self._sessions = [self._new_session(self.threads)]
             else:
@@ -192,7 +367,7 @@ class OnnxEncoder:
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         try:
-            return ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
+            return ort.InferenceSession(str(self.path), sess_options=opts, providers=self._session_providers)
         except Exception as err:  # onnxruntime raises several unrelated types for a bad file
             raise EncoderError(f"cannot load encoder model {self.path}: {err}") from err
 
@@ -346,9 +521,14 @@ def _usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def encoder_provider(encoder: Encoder | None) -> str:
+    """The onnxruntime execution provider an encoder runs on ("none": no onnxruntime session, no encoder)."""
+    return "none" if encoder is None else str(getattr(encoder, "provider", "none"))
+
+
 def load_encoder(
     path: str | os.PathLike[str] | None = None, threads: int | None = None, tile_rows: int | None = None,
-    smoothing: Smoothing | None = None,
+    smoothing: Smoothing | None = None, providers: ExecutionProviders | str | Sequence[str] | None = None,
 ) -> OnnxEncoder:
     """Load an ONNX encoder; ``path=None`` means the shipped model in models/.
 
@@ -357,12 +537,14 @@ def load_encoder(
         threads: CPU threads (None = all usable cores); see :class:`OnnxEncoder`.
         tile_rows: rows per strip (None = automatic, 0 = whole frame); see :class:`OnnxEncoder`.
         smoothing: None = the model's declared smoothing; see :class:`OnnxEncoder`.
+        providers: execution providers, best first (None = the CPU); see :class:`OnnxEncoder`.
 
     Returns:
         the encoder.
 
     Raises:
-        EncoderError: naming the path when the model is missing or has the wrong signature.
+        EncoderError: naming the path when the model is missing or has the wrong signature, or naming
+            the installed providers when none of ``providers`` is.
     """
     if path is None:
         from nsflow_ros.resources import ResourceError, share_file
@@ -371,4 +553,4 @@ def load_encoder(
             path = share_file(DEFAULT_MODEL)
         except ResourceError as err:
             raise EncoderError(f"the shipped encoder {DEFAULT_MODEL} is missing: {err}") from err
-    return OnnxEncoder(path, threads=threads, tile_rows=tile_rows, smoothing=smoothing)
+    return OnnxEncoder(path, threads=threads, tile_rows=tile_rows, smoothing=smoothing, providers=providers)

@@ -40,7 +40,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.encoder import Encoder, IntensityEncoder, load_encoder
+from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
@@ -658,6 +658,7 @@ def make_method(
     encoder: Encoder | None = None,
     model_path: str | None = None,
     threads: int | None = None,
+    providers: ExecutionProviders | str | None = None,
 ) -> TrackingMethod:
     """Build a tracking method: ``make_method("nsflow")`` is exactly what the tracker runs.
 
@@ -670,6 +671,7 @@ def make_method(
             not for a method without one.
         model_path: ONNX encoder of the learned methods; None = the shipped model.
         threads: encoder threads; None = all usable cores.
+        providers: onnxruntime execution providers of the learned encoder, best first; None = the CPU.
 
     Returns:
         the method; its ``spec`` is the configuration it runs.
@@ -686,7 +688,7 @@ def make_method(
             )
         return KLTMethod(spec)
     if encoder is None:
-        encoder = method_encoder(spec, model_path, threads)
+        encoder = method_encoder(spec, model_path, threads, providers)
     assert encoder is not None
     if spec.is_lm:
         return LMMethod(spec, encoder)
@@ -694,7 +696,8 @@ def make_method(
 
 
 def method_encoder(
-    method: str | MethodSpec, model_path: str | None = None, threads: int | None = None
+    method: str | MethodSpec, model_path: str | None = None, threads: int | None = None,
+    providers: ExecutionProviders | str | None = None,
 ) -> Encoder | None:
     """The encoder :func:`make_method` gives a method when none is passed.
 
@@ -711,4 +714,4 @@ def method_encoder(
     if spec.encoder is EncoderSource.INTENSITY:
         return IntensityEncoder()
     smoothing = None if spec.smoothed else Smoothing()  # None: as the model declares
-    return load_encoder(model_path, threads=threads, smoothing=smoothing)
+    return load_encoder(model_path, threads=threads, smoothing=smoothing, providers=providers)

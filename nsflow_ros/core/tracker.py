@@ -47,7 +47,7 @@ import numpy as np
 
 from nsflow_ros.core.camera import CameraModel
 from nsflow_ros.core.detector import detect_corners
-from nsflow_ros.core.encoder import Encoder, to_gray
+from nsflow_ros.core.encoder import Encoder, ExecutionProviders, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import body_to_camera_rotation, integrate_gyro, predict_pixels
 from nsflow_ros.core.methods import METHODS, SolveKind, TrackingMethod, make_method
@@ -101,6 +101,10 @@ class TrackerSettings:
         equalize: apply the method's CLAHE (VINS-Mono's clip 3, 8x8 tiles) before tracking and detection.
         stereo: track camera 0 into camera 1 (needs two cameras and an image pair per frame).
         use_imu_prediction: use gyro samples given to :meth:`FeatureTracker.process` to predict the flow.
+        providers: onnxruntime execution providers of the learned encoder, best first, comma-separated
+            (``"tensorrt,cuda,cpu"``; :class:`~nsflow_ros.core.encoder.ExecutionProviders`).
+        tensorrt_fp16: let TensorRT build half-precision engines.
+        tensorrt_cache: folder of TensorRT's engine cache; None = no cache.
 
     Raises:
         CoreError: an unknown method or an out-of-range value.
@@ -117,6 +121,9 @@ class TrackerSettings:
     equalize: bool = False
     stereo: bool = False
     use_imu_prediction: bool = False
+    providers: str = "cpu"
+    tensorrt_fp16: bool = False
+    tensorrt_cache: str | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -129,6 +136,7 @@ class TrackerSettings:
             raise CoreError(f"F_threshold must be > 0 when reject_with_f is on, got {self.F_threshold}")
         if self.num_threads is not None and self.num_threads < 1:
             raise CoreError(f"num_threads must be >= 1 or None, got {self.num_threads}")
+        self.execution_providers()  # names checked here, availability when the encoder loads
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> TrackerSettings:
         """Return a copy with some fields replaced; unknown names raise a CoreError listing the valid ones."""
@@ -137,6 +145,12 @@ class TrackerSettings:
         if unknown:
             raise CoreError(f"unknown tracker setting(s) {unknown}; valid: {sorted(names)}")
         return replace(self, **dict(overrides))
+
+    def execution_providers(self) -> ExecutionProviders:
+        """The encoder's execution providers with the TensorRT options (EncoderError: an unknown name)."""
+        return ExecutionProviders.parse(
+            self.providers, tensorrt_fp16=self.tensorrt_fp16, tensorrt_cache=self.tensorrt_cache
+        )
 
 
 @dataclass(frozen=True)
@@ -376,7 +390,10 @@ class FeatureTracker:
         s = self.settings
         # The method is chosen here, once; every solve below is method-blind.
         if method is None:
-            method = make_method(s.method, encoder=encoder, model_path=s.model_path, threads=s.num_threads)
+            method = make_method(
+                s.method, encoder=encoder, model_path=s.model_path, threads=s.num_threads,
+                providers=s.execution_providers(),
+            )
         elif encoder is not None or method.name != s.method:
             raise CoreError(
                 f"a given method ({method.name!r}) must be settings.method ({s.method!r}) and comes with "

@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from nsflow_ros.data.camera import EUROC_CAM0, EUROC_CAM1, PinholeRadtan
 from nsflow_ros.data.errors import DataError
@@ -57,6 +56,7 @@ from nsflow_ros.data.writers import (
     groundtruth_row,
     temp_sibling,
 )
+from nsflow_ros.progress import progress_bar
 
 __all__ = [
     "FORMATS",
@@ -284,7 +284,7 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
         imu_rate_hz: IMU and ground-truth rate.
         image_noise: standard deviation of the images' Gaussian noise in gray levels.
         imu_noise: add EuRoC-like IMU noise and bias random walk (False: exact kinematics, zero bias).
-        progress: show a tqdm bar; None shows it when stderr is a terminal.
+        progress: show progress; None shows it only when stderr is a terminal.
         overwrite: replace a non-empty ``out_dir`` that is not a sample sequence. An existing sample
             sequence with other parameters is always replaced; one with these parameters is reused.
         workers: render threads (NumPy and OpenCV release the GIL in the heavy parts).
@@ -406,7 +406,7 @@ def _generate(out: Path, p: _Params, key: dict[str, Any], fmts: tuple[str, ...],
         return [(img, asl.encode(img) if asl else None) for img in images]
 
     show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(total=n_frames, desc="sample sequence", unit="frame", disable=not show)
+    bar = progress_bar(total=n_frames, desc="sample sequence", unit="frame", enabled=show)
     m = 0
     try:
         with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:

@@ -51,6 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--seed", type=int, default=0, help="base seed of every random choice (default 0)")
     parser.add_argument("--threads", type=int, default=None, help="encoder threads (default: all cores)")
+    parser.add_argument(
+        "--providers", default="cpu",
+        help="onnxruntime execution providers of the encoder, best first, e.g. cuda,cpu (default cpu)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--list", action="store_true", help="list the analyses and exit")
     return parser
@@ -83,13 +87,15 @@ def main(args: list[str] | None = None) -> int:
         except OSError as err:
             raise EvaluationError(f"cannot create the report folder {out}: {err}") from err
         ctx = EvalContext(
-            methods=default_methods(str(model) if model else None, threads=opts.threads),
+            methods=default_methods(str(model) if model else None, threads=opts.threads,
+                                    providers=opts.providers),
             model=model,
             quick=opts.quick,
             out_dir=out,
             progress=not opts.no_progress,
             seed=opts.seed,
             threads=opts.threads,
+            providers=opts.providers,
         )
         result = run_analyses(ctx, analyses)
         report, _ = write_report(

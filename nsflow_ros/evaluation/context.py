@@ -42,10 +42,11 @@ class EvalContext:
         quick: tiny sizes (tests, CI): the whole quick run must take well under a minute, so every
             analysis shrinks its pairs / frames / grids drastically and says so in its text.
         out_dir: the report folder (exists); figures go directly into it, named after the section key.
-        progress: show tqdm progress bars (use :meth:`bar`).
+        progress: show progress (use :meth:`bar`).
         seed: base seed; analyses derive their generators from it (``np.random.default_rng([seed, k])``)
             so a run is reproducible.
         threads: onnxruntime / OpenCV threads the methods were built with (for timing sections).
+        providers: onnxruntime execution providers of the learned encoders, best first.
         extra: free-form settings for an analysis, keyed by the analysis key (unused by default).
     """
 
@@ -56,6 +57,7 @@ class EvalContext:
     progress: bool = True
     seed: int = 0
     threads: int | None = None
+    providers: str = "cpu"
     extra: dict[str, Any] = field(default_factory=dict)
 
     def method(self, name: str) -> PairMethod:
@@ -72,10 +74,11 @@ class EvalContext:
     def bar(
         self, iterable: Iterable[T], desc: str, total: int | None = None, unit: str = "it"
     ) -> Iterator[T]:
-        """``iterable`` wrapped in a tqdm progress bar (silent when ``progress`` is False)."""
-        from tqdm import tqdm
+        """``iterable`` with a progress bar (:func:`~nsflow_ros.progress.progress_bar`), if ``progress``."""
+        from nsflow_ros.progress import progress_bar
 
-        return iter(tqdm(iterable, desc=desc, total=total, unit=unit, disable=not self.progress, leave=False))
+        bar = progress_bar(iterable, desc=desc, total=total, unit=unit, enabled=self.progress, leave=False)
+        return iter(bar)
 
 
 def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:

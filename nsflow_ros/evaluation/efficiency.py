@@ -262,7 +262,7 @@ def run(ctx: EvalContext) -> Section:
     )
     if encoder is None:
         try:
-            encoder = load_encoder(ctx.model, threads=ctx.threads)
+            encoder = load_encoder(ctx.model, threads=ctx.threads, providers=ctx.providers)
         except CoreError as err:
             raise EvaluationError(str(err)) from err
     model_path = Path(encoder.path)  # type: ignore[attr-defined]
@@ -281,7 +281,8 @@ def run(ctx: EvalContext) -> Section:
     source = sequences.load_source(ctx, setup)
     count = len(source) if n_frames <= 0 else min(n_frames, len(source))
     frames = [source.image(i) for i in range(count)]
-    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads)
+    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
+                               providers=ctx.providers)
     kinds = sequences.TRACKER_METHODS
     tracker_times: dict[str, dict[str, dict[str, float]]] = {}
     for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
@@ -290,7 +291,7 @@ def run(ctx: EvalContext) -> Section:
             enc = encoder
         elif name in sequences.LEARNED:  # the same model, as the registry loads it for that method
             try:
-                enc = method_encoder(kinds[name]["method"], str(model_path), ctx.threads)
+                enc = method_encoder(kinds[name]["method"], str(model_path), ctx.threads, ctx.providers)
             except CoreError as err:
                 raise EvaluationError(str(err)) from err
         per = settings.with_overrides(kinds[name])

@@ -336,7 +336,7 @@ class KLTPairMethod(EvalMethod):
 
 def eval_method(
     label: str, *, encoder: Encoder | None = None, levels: int | None = None, model: str | None = None,
-    threads: int | None = None,
+    threads: int | None = None, providers: str = "cpu",
 ) -> EvalMethod:
     """Build the evaluated method ``label`` (a key of :data:`VARIANTS`) from its registry entry.
 
@@ -346,6 +346,7 @@ def eval_method(
         levels: pyramid levels; None = :func:`deployed_levels`.
         model: ONNX encoder of the learned methods when ``encoder`` is None; None = the shipped one.
         threads: encoder threads (None = all usable cores).
+        providers: onnxruntime execution providers of the learned encoder, best first.
 
     Raises:
         EvaluationError: an unknown label, bad levels, or a model that cannot be loaded.
@@ -358,7 +359,7 @@ def eval_method(
         raise EvaluationError(f"levels must be >= 1, got {lev}")
     spec = variant.spec.with_levels(lev)
     try:
-        enc = encoder if encoder is not None else method_encoder(spec, model, threads)
+        enc = encoder if encoder is not None else method_encoder(spec, model, threads, providers)
         core = make_method(spec, encoder=enc)
     except CoreError as err:
         raise EvaluationError(f"{label}: {err}") from err
@@ -368,7 +369,7 @@ def eval_method(
 
 
 def default_methods(
-    model: str | None = None, levels: int | None = None, threads: int | None = None
+    model: str | None = None, levels: int | None = None, threads: int | None = None, providers: str = "cpu"
 ) -> list[EvalMethod]:
     """Every evaluated method (:data:`METHOD_ORDER`), all at ``levels`` (None = the deployed depth).
 
@@ -377,6 +378,7 @@ def default_methods(
             method (NSFlow + OpenCV LK without the model's declared smoothing).
         levels: pyramid levels of every method; None = :func:`deployed_levels`.
         threads: encoder threads (None = all usable cores).
+        providers: onnxruntime execution providers of the learned encoders, best first.
 
     Returns:
         NSFlow, NSFlow + OpenCV LK, LM (intensity), OpenCV KLT, OpenCV KLT + CLAHE.
@@ -384,4 +386,7 @@ def default_methods(
     Raises:
         EvaluationError: bad levels, or the model cannot be loaded.
     """
-    return [eval_method(label, levels=levels, model=model, threads=threads) for label in METHOD_ORDER]
+    return [
+        eval_method(label, levels=levels, model=model, threads=threads, providers=providers)
+        for label in METHOD_ORDER
+    ]

@@ -492,12 +492,12 @@ def evaluate_sequences(
         settings: tracker settings shared by all methods.
         encoders: report name -> encoder for the LM methods (missing: loaded by the tracker).
         seed: perturbation and RANSAC seed.
-        progress: show a tqdm bar over all frames.
+        progress: show progress over all frames.
 
     Returns:
         the runs.
     """
-    from tqdm import tqdm
+    from nsflow_ros.progress import progress_bar
 
     if not methods:
         raise EvaluationError("no methods to evaluate")
@@ -506,7 +506,7 @@ def evaluate_sequences(
         raise EvaluationError(f"unknown method(s) {bad}; expected some of {list(TRACKER_METHODS)}")
     out: dict[str, dict[str, MethodRun]] = {}
     total = len(levels) * len(methods) * len(source)
-    with tqdm(total=total, desc="sequences", unit="frame", disable=not progress, leave=False) as bar:
+    with progress_bar(total=total, desc="sequences", unit="frame", enabled=progress, leave=False) as bar:
         for level in levels:
             out[level] = {}
             for m in methods:
@@ -698,10 +698,12 @@ def run(ctx: EvalContext) -> Section:
         from nsflow_ros.core.methods import method_encoder
 
         try:
-            encoders[name] = method_encoder(TRACKER_METHODS[name]["method"], ctx.model, ctx.threads)
+            kind = TRACKER_METHODS[name]["method"]
+            encoders[name] = method_encoder(kind, ctx.model, ctx.threads, ctx.providers)
         except CoreError as err:
             raise EvaluationError(str(err)) from err
-    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads)
+    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
+                               providers=ctx.providers)
     source = load_source(ctx, setup)
     runs = evaluate_sequences(
         source, methods, levels, settings=settings, encoders=encoders, seed=ctx.seed, progress=ctx.progress

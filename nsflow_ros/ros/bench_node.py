@@ -8,7 +8,11 @@ features have arrived), so the latency is the node's own, not queueing.
 Latency is measured inside the node, from the moment the image callback starts (for stereo: the callback
 of the image that completes the pair) to the return of ``publish``; the round trip publisher -> receiver
 is reported too. Memory is the process's resident set size after 1,000 and 10,000 frames. Images are
-320x240 by default so 10,000 frames take a few minutes on two cores.
+320x240 by default so 10,000 frames take a few minutes on two cores; the soak of a robot's stream is
+
+    python -m nsflow_ros.ros.bench_node --frames 10000 --stereo --method nsflow --width 752 --height 480
+
+which also reports the frames the node dropped or could not pair (both must stay 0 when fed lock-step).
 """
 
 from __future__ import annotations
@@ -86,6 +90,8 @@ def run_node_benchmark(
     height: int = 240,
     method: str = "classical",
     model_path: str | None = None,
+    threads: int = 0,
+    providers: str = "cpu",
     checkpoints: tuple[int, ...] = (1000, 10000),
     timeout_s: float = 5.0,
     progress: bool = False,
@@ -98,14 +104,17 @@ def run_node_benchmark(
         width, height: image size.
         method: "classical" or "nsflow" (the latter needs the shipped model or ``model_path``).
         model_path: ONNX encoder for "nsflow".
-        checkpoints: frame counts after which the RSS is recorded.
+        threads: the node's ``num_threads`` (0 = all usable cores).
+        providers: the node's ``providers`` (onnxruntime execution providers of the encoder).
+        checkpoints: frame counts after which the RSS is recorded (and after the last frame).
         timeout_s: how long to wait for one frame's features before counting it lost.
         progress: print a line every 1,000 frames to stderr.
 
     Returns:
-        dict with frames, stereo, method, image_size, latency_ms {median, p90, mean, max} (in the node),
-        roundtrip_ms {median, p90} (publisher -> receiver), features_per_frame (mean), lost_frames,
-        rss_mb {checkpoint: MB}, rss_growth_mb (last minus first checkpoint reached), wall_s, fps.
+        dict with frames, stereo, method, encoder_provider, image_size, latency_ms {median, p90, mean,
+        max} (in the node), roundtrip_ms {median, p90} (publisher -> receiver), features_per_frame
+        (mean), lost_frames, frames_dropped and images_unpaired (the node's counters), rss_mb
+        {checkpoint: MB}, rss_growth_mb (last minus first checkpoint reached), wall_s, fps.
     """
     import rclpy
     from rclpy.context import Context
@@ -114,6 +123,7 @@ def run_node_benchmark(
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import Image, PointCloud
 
+    from nsflow_ros.core.encoder import encoder_provider
     from nsflow_ros.ros.image_conv import numpy_to_image_fields
     from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode
 
@@ -128,10 +138,12 @@ def run_node_benchmark(
         try:
             params = [Parameter("config_file", value=str(config)), Parameter("method", value=method),
                       Parameter("feature_topic", value=f"{prefix}/feature"),
-                      Parameter("restart_topic", value=f"{prefix}/restart")]
+                      Parameter("restart_topic", value=f"{prefix}/restart"),
+                      Parameter("num_threads", value=threads), Parameter("providers", value=providers)]
             if model_path:
                 params.append(Parameter("model_path", value=str(model_path)))
             tracker = TrackerNode(context=ctx, parameter_overrides=params)
+            provider = encoder_provider(tracker.tracker.encoder)
             io = rclpy.create_node(f"bench_io_{uuid.uuid4().hex[:6]}", context=ctx)
             nodes = [tracker, io]
             pubs = [io.create_publisher(Image, f"{prefix}/cam{i}", qos_profile_sensor_data) for i in (0, 1)]
@@ -190,13 +202,14 @@ def run_node_benchmark(
                     node_lat[k] = tracker.latencies_ms[-1]
                     trip[k] = (received[-1][0] - sent) * 1e3
                     counts[k] = received[-1][1]
-                if k + 1 in checkpoints:
+                if k + 1 in checkpoints or k + 1 == frames:
                     rss[k + 1] = rss_mb()
                 if progress and (k + 1) % 1000 == 0:
                     print(f"  {k + 1} frames, RSS {rss_mb():.1f} MB", file=sys.stderr)
                 if len(received) > 100:  # keep the receiver's list bounded over 10,000 frames
                     received.clear()
             wall = time.perf_counter() - start
+            node_counts = tracker.counters()
         finally:
             executor.shutdown()
             for node in nodes:
@@ -208,6 +221,7 @@ def run_node_benchmark(
         "frames": frames,
         "stereo": stereo,
         "method": method,
+        "encoder_provider": provider,
         "image_size": [width, height],
         "latency_ms": {
             "median": float(np.median(node_lat[ok])) if ok.any() else None,
@@ -221,6 +235,8 @@ def run_node_benchmark(
         },
         "features_per_frame": float(np.mean(counts[ok])) if ok.any() else 0.0,
         "lost_frames": lost,
+        "frames_dropped": node_counts["frames_dropped"],
+        "images_unpaired": node_counts["images_unpaired"],
         "rss_mb": {str(k): round(v, 2) for k, v in rss.items()},
         "rss_growth_mb": round(rss[reached[-1]] - rss[reached[0]], 2) if len(reached) >= 2 else None,
         "wall_s": wall,
@@ -228,22 +244,45 @@ def run_node_benchmark(
     }
 
 
+def summary_line(res: dict[str, Any]) -> str:
+    """One line of a :func:`run_node_benchmark` result: size, method, latency, drops and memory."""
+    lat = res["latency_ms"]
+    rss = ", ".join(f"{v:.1f} MB after {k} frames" for k, v in res["rss_mb"].items()) or "n/a"
+    latency = "n/a" if lat["median"] is None else f"median {lat['median']:.2f} ms, p90 {lat['p90']:.2f} ms"
+    return (
+        f"node {'stereo' if res['stereo'] else 'mono'} {res['image_size'][0]}x{res['image_size'][1]} "
+        f"{res['method']} (encoder on {res['encoder_provider']}): {res['frames']} frames, latency {latency}; "
+        f"lost {res['lost_frames']}, dropped {res['frames_dropped']}, unpaired {res['images_unpaired']}; "
+        f"RSS {rss}; growth {res['rss_growth_mb']} MB"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m nsflow_ros.ros.bench_node``: print the benchmark as JSON."""
+    """``python -m nsflow_ros.ros.bench_node``: the benchmark as JSON; one line per run on stderr."""
+    from nsflow_ros.argtypes import non_negative_int, positive_int
+    from nsflow_ros.core.methods import METHODS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--frames", type=int, default=1000, help="frames per run (default 1000)")
+    p.add_argument("--frames", type=positive_int, default=1000, help="frames per run (default 1000)")
     p.add_argument("--stereo", action="store_true", help="stereo pairs only (default: mono then stereo)")
     p.add_argument("--mono", action="store_true", help="mono only")
-    p.add_argument("--method", choices=("classical", "nsflow"), default="classical")
-    p.add_argument("--model", default=None, help="ONNX encoder for --method nsflow")
-    p.add_argument("--width", type=int, default=320)
-    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--method", choices=tuple(METHODS), default="classical", help="tracking method")
+    p.add_argument("--model", default=None, help="ONNX encoder of the learned methods")
+    p.add_argument("--width", type=positive_int, default=320, help="image width (default 320)")
+    p.add_argument("--height", type=positive_int, default=240, help="image height (default 240)")
+    p.add_argument("--threads", type=non_negative_int, default=0,
+                   help="the node's num_threads (default 0 = all usable cores)")
+    p.add_argument("--providers", default="cpu", help="the node's providers (default cpu)")
     args = p.parse_args(argv)
     modes = [True] if args.stereo else [False] if args.mono else [False, True]
     out = []
     for stereo in modes:
-        out.append(run_node_benchmark(args.frames, stereo, width=args.width, height=args.height,
-                                      method=args.method, model_path=args.model, progress=True))
+        res = run_node_benchmark(
+            args.frames, stereo, width=args.width, height=args.height, method=args.method,
+            model_path=args.model, threads=args.threads, providers=args.providers, progress=True,
+        )
+        print(summary_line(res), file=sys.stderr)
+        out.append(res)
     print(json.dumps(out, indent=2))
     return 0
 

@@ -106,7 +106,8 @@ def publish_stream(
     """
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from rosgraph_msgs.msg import Clock
-    from tqdm import tqdm
+
+    from nsflow_ros.progress import progress_bar
 
     pubs: dict[str, Any] = {} if publishers is None else publishers
     clock_pub = node.create_publisher(Clock, "/clock", 10) if clock else None
@@ -134,8 +135,8 @@ def publish_stream(
     fmt = "{desc}: {percentage:3.0f}%|{bar}| {postfix} [{elapsed}<{remaining}]"
     if not total_s:
         fmt = "{desc}: {postfix} [{elapsed}]"
-    bar = tqdm(total=None if total_s is None else round(total_s * 10), disable=not progress, desc="replay",
-               bar_format=fmt)
+    total = None if total_s is None else round(total_s * 10)
+    bar = progress_bar(total=total, enabled=progress, desc="replay", bar_format=fmt)
     t0_data = t0_wall = None
     shown = 0
     count = 0
@@ -272,6 +273,11 @@ def _parser() -> argparse.ArgumentParser:
         + "; ".join(f"{name} = {entry.summary}" for name, entry in METHODS.items())
         + " (default nsflow)",
     )
+    p.add_argument(
+        "--providers", default="cpu",
+        help="onnxruntime execution providers of the encoder for --offline / --features-bag, best first, "
+        "e.g. cuda,cpu (default cpu; as the node's providers parameter)",
+    )
     return p
 
 
@@ -359,6 +365,7 @@ def main(args: list[str] | None = None) -> int:
                 cfg,
                 method=opts.method,
                 fmt=opts.features_bag_format,
+                overrides={"providers": opts.providers},
                 progress=not opts.no_progress,
             )
             print(bag.text())
@@ -368,7 +375,8 @@ def main(args: list[str] | None = None) -> int:
 
             _make_dir(opts.offline)
             summary = run_offline(
-                ropts, opts.offline, config=opts.config, method=opts.method, progress=not opts.no_progress
+                ropts, opts.offline, config=opts.config, method=opts.method,
+                overrides={"providers": opts.providers}, progress=not opts.no_progress,
             )
             print(summary.text())
             return 0

@@ -52,6 +52,7 @@ from sensor_msgs.msg import ChannelFloat32, Image, Imu, PointCloud
 from std_msgs.msg import Bool
 
 from nsflow_ros.allocator import keep_large_buffers
+from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.data.images import ImageDecodeError, image_for_tracker
 from nsflow_ros.errors import NSFlowError
@@ -205,7 +206,8 @@ class TrackerNode(Node):
         images = ", ".join(self._image_topics)
         self.get_logger().info(
             f"{cfg.dialect} config {cfg.path} ({'stereo' if s.stereo else 'mono'}, {cfg.image_width}x"
-            f"{cfg.image_height}); method {s.method}, layout {self.layout}, max_cnt {s.max_cnt}, min_dist "
+            f"{cfg.image_height}); method {s.method} (encoder on {encoder_provider(self.tracker.encoder)}), "
+            f"layout {self.layout}, max_cnt {s.max_cnt}, min_dist "
             f"{s.min_dist:g}, flow_back {s.flow_back}, F-RANSAC {s.reject_with_f}, IMU prediction {use_imu}; "
             f"images on {images}"
             + (f", IMU on {self._subs[-1].topic_name}" if use_imu else "")
@@ -452,6 +454,7 @@ class TrackerNode(Node):
             "latency p50 ms (period)": window["latency_p50"],
             "latency p90 ms (period)": window["latency_p90"],
             "method": c["method"],
+            "encoder provider": encoder_provider(self.session.tracker.encoder),
         }
         array_msg = DiagnosticArray()
         array_msg.header.stamp = self.get_clock().now().to_msg()

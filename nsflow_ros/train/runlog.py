@@ -14,7 +14,6 @@ import csv
 import os
 import platform
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -80,7 +79,8 @@ class StepLog:
 
 
 class Progress:
-    """A tqdm bar with the time to the end, shown only when ``enabled`` and stderr is a terminal.
+    """The run's progress with the time to the end (:func:`nsflow_ros.progress.progress_bar`: a bar on a
+    terminal, plain lines in a log), shown when ``enabled``.
 
     Args:
         enabled: the caller wants progress (``--no-progress`` turns it off).
@@ -92,10 +92,10 @@ class Progress:
     def __init__(self, enabled: bool, first: int, steps: int | None, deadline: float) -> None:
         self.bar = None
         self.deadline = deadline
-        if enabled and sys.stderr.isatty():
-            from tqdm import tqdm
+        if enabled:
+            from nsflow_ros.progress import progress_bar
 
-            self.bar = tqdm(total=steps, initial=first, unit="step", dynamic_ncols=True)
+            self.bar = progress_bar(total=steps, initial=first, unit="step", dynamic_ncols=True)
 
     def update(self, loss: float) -> None:
         if self.bar is None:

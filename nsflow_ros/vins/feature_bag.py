@@ -125,7 +125,7 @@ def write_feature_bag(
             (EncoderError), or a frame the tracker refuses. When the source is damaged part-way, the bag
             with the frames before the damage is written first.
     """
-    from tqdm import tqdm
+    from nsflow_ros.progress import progress_bar
 
     path = Path(out)
     kind = bag_format(path, fmt)
@@ -142,7 +142,7 @@ def write_feature_bag(
         raise DataError(f"cannot create {path}: {err.strerror}") from None
     frames = features = imu = 0
     error: NSFlowError | None = None
-    bar = tqdm(desc=f"feature bag {method}", unit="frame", disable=not progress)
+    bar = progress_bar(desc=f"feature bag {method}", unit="frame", enabled=progress)
     try:
         with BagWriter(tmp / path.name, ros1=kind == "ros1") as bag:
             try:

@@ -103,8 +103,7 @@ def run_offline(
         NSFlowError: a bad source (DataError), config (ConfigError) or model (EncoderError); outputs of
             the frames processed before a damaged part of a bag are still written.
     """
-    from tqdm import tqdm
-
+    from nsflow_ros.progress import progress_bar
     from nsflow_ros.resources import DEFAULT_CONFIG, share_file
     from nsflow_ros.vins.config import load_vins_config
 
@@ -118,7 +117,7 @@ def run_offline(
     rows: list[str] = []
     sheet: list[tuple[int, np.ndarray]] = []
     error: NSFlowError | None = None
-    bar = tqdm(desc=f"offline {method}", unit="frame", disable=not progress)
+    bar = progress_bar(desc=f"offline {method}", unit="frame", enabled=progress)
     try:
         for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
             if not isinstance(rec, ImageRecord):

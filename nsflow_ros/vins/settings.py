@@ -273,6 +273,24 @@ SETTINGS: tuple[Setting, ...] = (
     Setting(
         "summary_file", "", Mode.READ_ONLY,
         "Write the run's counters as JSON to this file when the node stops ('' = no file)."),
+    # accelerators: where the encoder runs
+    Setting(
+        "providers", "cpu", Mode.REBUILD,
+        "onnxruntime execution providers of the encoder, best first, comma-separated: cpu, cuda, tensorrt, "
+        "openvino, coreml, rocm, migraphx, directml, dnnl, qnn, xnnpack or onnxruntime's full names (e.g. "
+        "'tensorrt,cuda,cpu'). Providers this onnxruntime lacks are skipped with a warning; the one in "
+        "use is logged and shown on /diagnostics. On a provider other than the CPU the whole image is "
+        "encoded in one call.",
+        tracker=True, session=True, example="cuda,cpu"),
+    Setting(
+        "tensorrt_fp16", False, Mode.REBUILD,
+        "Let the TensorRT provider build half-precision engines.",
+        tracker=True, session=True),
+    Setting(
+        "tensorrt_cache", "", Mode.REBUILD,
+        "Folder where the TensorRT provider keeps the engines it builds, so a restart does not build them "
+        "again ('' = no cache).",
+        tracker=True, session=True, none_value=""),
 )
 """Every setting of the ``tracker`` node, in the order of the params file."""
 

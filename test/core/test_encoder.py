@@ -11,7 +11,7 @@ from onnx_models import conv_encoder, graph_encoder, reference_conv
 
 import nsflow_ros.resources as resources
 from nsflow_ros import EncoderError, IntensityEncoder, OnnxEncoder, Smoothing, load_encoder
-from nsflow_ros.core.encoder import to_gray
+from nsflow_ros.core.encoder import ExecutionProviders, encoder_provider, to_gray
 from nsflow_ros.core.pyramid import gaussian_kernel
 
 
@@ -234,3 +234,126 @@ def test_single_channel_models_keep_their_channel_axis(tmp_path):
 def test_tile_rows_must_not_be_negative(tmp_path):
     with pytest.raises(EncoderError, match="tile_rows"):
         load_encoder(conv_encoder(tmp_path / "m.onnx"), tile_rows=-1)
+
+
+# -- execution providers -------------------------------------------------------------------------------
+
+CPU = "CPUExecutionProvider"
+
+
+def _installed(monkeypatch, *names):
+    import onnxruntime
+
+    monkeypatch.setattr(onnxruntime, "get_available_providers", lambda: list(names))
+
+
+def test_provider_lists_take_short_and_full_names():
+    parse = ExecutionProviders.parse
+    assert parse("tensorrt, CUDA ,cpu").names == (
+        "TensorrtExecutionProvider", "CUDAExecutionProvider", CPU
+    )
+    assert parse(["cuda", "CPUExecutionProvider", "cpu"]).names == ("CUDAExecutionProvider", CPU)
+    assert parse(None).names == parse("").names == (CPU,) == ExecutionProviders().names
+    assert parse("OpenVINOExecutionProvider").names == ("OpenVINOExecutionProvider",)
+    with pytest.raises(EncoderError, match=r"unknown execution provider 'gpu'; short names: cpu, cuda"):
+        parse("gpu,cpu")
+    with pytest.raises(EncoderError, match="empty name"):
+        parse("cuda,,cpu")
+
+
+def test_tensorrt_options_become_provider_options():
+    eps = ExecutionProviders.parse("tensorrt,cuda,cpu", tensorrt_fp16=True, tensorrt_cache="/tmp/trt")
+    trt, cuda, cpu = eps.session_providers(eps.names)
+    assert trt == ("TensorrtExecutionProvider", {
+        "trt_fp16_enable": "True", "trt_engine_cache_enable": "True", "trt_engine_cache_path": "/tmp/trt"
+    })
+    assert (cuda, cpu) == ("CUDAExecutionProvider", CPU)
+    plain = ExecutionProviders.parse("tensorrt").session_providers(["TensorrtExecutionProvider"])
+    assert plain == [("TensorrtExecutionProvider", {"trt_fp16_enable": "False"})]
+
+
+def test_missing_providers_give_one_warning_and_the_cpu_runs(monkeypatch, caplog):
+    _installed(monkeypatch, "AzureExecutionProvider", CPU)
+    with caplog.at_level("WARNING", logger="nsflow_ros.core.encoder"):
+        enc = load_encoder(threads=2, providers="tensorrt,cuda,cpu")
+    assert enc.provider == CPU and enc.tiled
+    (record,) = caplog.records
+    message = record.getMessage()
+    assert "\n" not in message
+    assert message == (
+        "execution provider(s) TensorrtExecutionProvider, CUDAExecutionProvider not in this onnxruntime "
+        "(installed: AzureExecutionProvider, CPUExecutionProvider); using CPUExecutionProvider"
+    )
+
+
+def test_no_requested_provider_installed_is_a_one_line_error(monkeypatch):
+    _installed(monkeypatch, CPU)
+    with pytest.raises(EncoderError) as info:
+        load_encoder(providers="tensorrt,cuda")
+    text = str(info.value)
+    assert "\n" not in text
+    assert text == (
+        "none of the execution providers TensorrtExecutionProvider, CUDAExecutionProvider is in this "
+        "onnxruntime (installed: CPUExecutionProvider)"
+    )
+
+
+@pytest.mark.filterwarnings("ignore:Specified provider 'CUDAExecutionProvider' is not in available")
+def test_a_listed_provider_that_cannot_start_falls_back_with_a_warning(monkeypatch, caplog):
+    # this onnxruntime reports CUDA, but its session cannot use it: onnxruntime runs the CPU instead
+    _installed(monkeypatch, "CUDAExecutionProvider", CPU)
+    with caplog.at_level("WARNING", logger="nsflow_ros.core.encoder"):
+        enc = load_encoder(threads=2, providers="cuda,cpu")
+    assert enc.provider == CPU and enc.tiled and len(enc._sessions) == 2
+    assert [r.getMessage() for r in caplog.records] == [
+        "execution provider CUDAExecutionProvider could not start; using CPUExecutionProvider"
+    ]
+
+
+def test_cpu_provider_gives_the_descriptors_of_a_plain_cpu_session():
+    import onnxruntime
+
+    img = _image(480, 752, seed=5)
+    enc = load_encoder(threads=2, providers="cpu")
+    assert enc.provider == CPU and enc.tiled
+    assert all(s.get_providers() == [CPU] for s in enc._sessions)
+    plain = onnxruntime.InferenceSession(str(enc.path), providers=[CPU])
+    x = img[None, None].astype(np.float32)
+    x *= 1.0 / 255.0
+    (out,) = plain.run(None, {plain.get_inputs()[0].name: x})
+    reference = load_encoder(threads=2, smoothing=Smoothing())
+    unsmoothed = load_encoder(threads=2, providers=[CPU], smoothing=Smoothing())
+    np.testing.assert_array_equal(unsmoothed(img), reference(img))
+    np.testing.assert_allclose(unsmoothed(img), out[0].transpose(1, 2, 0), rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(enc(img), load_encoder(threads=2)(img))
+
+
+def test_another_provider_runs_one_whole_frame_session_with_the_same_descriptors():
+    # the Azure provider of the CPU build of onnxruntime stands in for a GPU one: it is not the CPU's
+    import onnxruntime
+
+    azure = "AzureExecutionProvider"
+    assert azure in onnxruntime.get_available_providers()
+    enc = load_encoder(threads=2, providers=[azure, "cpu"])
+    assert enc.provider == azure and not enc.tiled and len(enc._sessions) == 1
+    assert encoder_provider(enc) == azure and encoder_provider(IntensityEncoder()) == encoder_provider(None)
+    img = _image(480, 752, seed=6)
+    np.testing.assert_array_equal(enc(img), load_encoder(threads=2)(img))
+
+
+def test_the_tracker_settings_providers_reach_the_session(monkeypatch):
+    from nsflow_ros.core.camera import PinholeCamera
+    from nsflow_ros.core.methods import make_method
+    from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
+
+    azure = "AzureExecutionProvider"
+    assert make_method("nsflow", threads=1, providers=azure).encoder.provider == azure
+    cam = PinholeCamera(fx=200.0, fy=200.0, cx=160.0, cy=120.0, width=320, height=240)
+    tracker = FeatureTracker([cam], TrackerSettings(providers=f"{azure},cpu", num_threads=1))
+    assert tracker.encoder.provider == azure
+    assert FeatureTracker([cam], TrackerSettings(num_threads=1)).encoder.provider == CPU
+    with pytest.raises(EncoderError, match="unknown execution provider 'gpu'"):
+        TrackerSettings(providers="gpu")
+    _installed(monkeypatch, CPU)
+    with pytest.raises(EncoderError, match="none of the execution providers CUDAExecutionProvider"):
+        FeatureTracker([cam], TrackerSettings(providers="cuda"))

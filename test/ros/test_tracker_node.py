@@ -471,3 +471,40 @@ def test_declared_parameters_are_the_settings_table(tmp_path, prefix):
             assert desc.read_only == (p.mode is Mode.READ_ONLY)
     finally:
         h.close()
+
+
+AZURE = "AzureExecutionProvider"  # in the CPU build of onnxruntime; stands in for an accelerator here
+
+def test_providers_parameter_reaches_the_session_and_diagnostics(tmp_path, prefix, caplog):
+    with caplog.at_level("WARNING", logger="nsflow_ros.core.encoder"):
+        h = Harness(write_config(tmp_path, prefix), prefix, method="nsflow", num_threads=1,
+                    providers="cuda,cpu", status_period=0.2)
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    diags: list = []
+    h.io.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    name = h.tracker.get_fully_qualified_name()
+
+    def shown() -> dict[str, str]:
+        for msg in reversed(diags):
+            for s in msg.status:
+                if s.hardware_id == name:
+                    return {v.key: v.value for v in s.values}
+        return {}
+
+    try:
+        assert h.tracker.tracker.encoder.provider == "CPUExecutionProvider"
+        warned = [r.getMessage() for r in caplog.records]
+        assert len(warned) == 1 and "CUDAExecutionProvider not in this onnxruntime" in warned[0]
+        assert h.spin_until(lambda: shown().get("encoder provider") == "CPUExecutionProvider", 5.0)
+        # a rebuild setting: a new tracker on the new provider, shown on the next status
+        result = h.tracker.set_parameters([Parameter("providers", value=f"{AZURE},cpu")])
+        assert result[0].successful, result[0].reason
+        assert h.tracker.tracker.encoder.provider == AZURE and not h.tracker.tracker.encoder.tiled
+        diags.clear()
+        assert h.spin_until(lambda: shown().get("encoder provider") == AZURE, 5.0)
+        refused = h.tracker.set_parameters([Parameter("providers", value="gpu")])
+        assert not refused[0].successful and "unknown execution provider 'gpu'" in refused[0].reason
+        assert h.tracker.tracker.encoder.provider == AZURE
+    finally:
+        h.close()
