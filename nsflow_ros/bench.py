@@ -395,7 +395,8 @@ def main(args: list[str] | None = None) -> int:
     parser.add_argument(
         "--compress", default="none",
         help="comma-separated image transports of the node benchmark, one run each: none (raw), jpeg "
-        "(quality 90), png; none,jpeg,png compares the compressed runs' features with the raw run's (default none)",
+        "(quality 90), png; none,jpeg,png compares the compressed runs' features with the raw run's "
+        "(default none)",
     )
     parser.add_argument("--no-stages", action="store_true",
                         help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
