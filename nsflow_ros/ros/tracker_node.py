@@ -25,10 +25,9 @@ time land in the session (the settings table :data:`nsflow_ros.vins.settings.SET
 change does).
 
 A bad frame (unsupported encoding or compressed format, corrupt compressed data, wrong step, truncated data,
-wrong size, duplicate stamp) is logged once
-per cause, then counted, and skipped. A missing or malformed config or model file, or a parameter of the
-wrong type, stops the node at start-up with one line and exit code 1. SIGINT and SIGTERM stop it cleanly
-with exit code 0 after its summary line.
+wrong size, duplicate stamp) is logged once per cause, then counted, and skipped. A missing or malformed
+config or model file, or a parameter of the wrong type, stops the node at start-up with one line and exit
+code 1. SIGINT and SIGTERM stop it cleanly with exit code 0 after its summary line.
 """
 
 from __future__ import annotations
