@@ -397,6 +397,12 @@ def main(args: list[str] | None = None) -> int:
         help="seconds of the stereo sample replayed at camera rate (20 Hz) into a tracker node process over "
         "DDS, for nsflow and klt: pairs received / processed / dropped and latency (default 20; 0 = skip)",
     )
+    parser.add_argument(
+        "--compress", default="none",
+        help="comma-separated image transports of the node benchmark, one run each: none (raw), jpeg "
+        "(quality 90), png; none,jpeg,png compares the compressed runs' features with the raw run's "
+        "(default none)",
+    )
     parser.add_argument("--no-stages", action="store_true",
                         help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
     parser.add_argument(
@@ -426,7 +432,8 @@ def main(args: list[str] | None = None) -> int:
             from nsflow_ros.ros.bench_live import run_live_benchmark
 
             res["node_live"] = run_live_benchmark(
-                opts.node_seconds, ("nsflow", "klt"), progress=not opts.json
+                opts.node_seconds, ("nsflow", "klt"), progress=not opts.json,
+                compress=opts.compress.split(","),
             )
         if not opts.no_stages:
             res.update(

@@ -58,6 +58,52 @@ def test_remaps_rename_topics(seq):
         ReplayOptions(seq.asl_dir, rate=-1)
 
 
+def test_compressed_replay_publishes_what_image_transport_would(seq):
+    from nsflow_ros.data.images import decode_compressed
+    from nsflow_ros.data.messages import COMPRESSED_IMAGE, ros2_store
+
+    raw = list(replay_records(ReplayOptions(seq.asl_dir, ["/cam0/image_raw"])))
+    store = ros2_store()
+    sizes = {}
+    for codec, quality in (("png", 90), ("jpeg", 90), ("jpeg", 50)):
+        opts = ReplayOptions(seq.asl_dir, ["/cam0/image_raw"], remap={"/cam0/image_raw": "/left"},
+                             compress=codec, jpeg_quality=quality)
+        msgs = list(replay_stream(opts))
+        assert len(msgs) == len(raw) and {m.topic for m in msgs} == {"/left/compressed"}
+        assert {m.msgtype for m in msgs} == {COMPRESSED_IMAGE}
+        assert [m.stamp_ns for m in msgs] == [r.stamp_ns for r in raw]
+        sizes[codec, quality] = sum(len(m.cdr) for m in msgs)
+        for m, r in zip(msgs, raw, strict=True):
+            msg = store.deserialize_cdr(m.cdr, COMPRESSED_IMAGE)
+            assert msg.format == f"mono8; {codec} compressed mono8"
+            assert msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == r.stamp_ns
+            pixels, enc = decode_compressed(msg)
+            assert enc == "mono8" and pixels.shape == r.image.shape
+            if codec == "png":
+                np.testing.assert_array_equal(pixels, r.image)
+            else:
+                assert np.abs(pixels.astype(int) - r.image).mean() < 3.0
+    assert sizes["jpeg", 50] < sizes["jpeg", 90] < sizes["png", 90] < sum(r.image.size for r in raw)
+    with pytest.raises(ReplayError, match="compress"):
+        ReplayOptions(seq.asl_dir, compress="webp")
+    with pytest.raises(ReplayError, match="JPEG quality"):
+        ReplayOptions(seq.asl_dir, compress="jpeg", jpeg_quality=101)
+
+
+def test_compressed_imu_passes_through(seq):
+    msgs = list(replay_stream(ReplayOptions(seq.asl_dir, compress="png")))
+    assert {m.topic for m in msgs} == {"/cam0/image_raw/compressed", "/imu0"}
+
+
+def test_cli_compress_is_for_publishing_only(seq, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        replay_main([str(seq.asl_dir), "--compress", "png", "--write-bag", str(tmp_path / "x")])
+    assert info.value.code == 2 and "--compress applies to publishing" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        replay_main([str(seq.asl_dir), "--compress", "jpeg", "--jpeg-quality", "101"])
+    assert "--jpeg-quality: expected 1..100, got 101" in capsys.readouterr().err
+
+
 def test_offline_run_writes_features_sheet_and_summary(seq, tmp_path):
     summary = run_offline(ReplayOptions(seq.asl_dir), tmp_path, method="classical", progress=False)
     f = summary.figures

@@ -76,7 +76,10 @@ BORDER_PX = 1
 PREDICTION_MIN_TRACKED = 10
 """With an IMU prediction, the solve is repeated without it when fewer points survive (VINS: 10)."""
 
-REBUILD_FIELDS = frozenset({"method", "model_path", "num_threads", "equalize", "stereo"})
+REBUILD_FIELDS = frozenset({
+    "method", "model_path", "num_threads", "providers", "tensorrt_fp16", "tensorrt_cache",  # the encoder
+    "equalize", "stereo",  # the image preparation, the cameras
+})
 """Settings the tracker's method or image preparation is built from: changing one needs a new tracker."""
 
 

@@ -6,7 +6,11 @@ encodings, BGR (H, W, 3) for colour ones, 16-bit shifted to its 8 most significa
 the image as received rather than a gray copy so that a colour encoder sees colour and the debug image
 stays in colour; for a gray encoder (the shipped models) both give the same features.
 
-Works on any object with the Image fields (the header is not used), so no ROS import is needed.
+:func:`decode_compressed` does the same for a sensor_msgs/CompressedImage (JPEG or PNG, the ``format`` field
+as image_transport's ``compressed`` plugin writes it), so :func:`compressed_for_tracker` gives the array the
+raw path gives; :func:`encode_compressed` writes such a message's ``format`` and bytes.
+
+Works on any object with the message fields (the header is not used), so no ROS import is needed.
 """
 
 from __future__ import annotations
@@ -18,7 +22,19 @@ import numpy as np
 
 from nsflow_ros.data.errors import DataError
 
-__all__ = ["ENCODINGS", "ImageDecodeError", "decode_image", "image_for_tracker", "to_gray", "tracker_image"]
+__all__ = [
+    "CODECS",
+    "ENCODINGS",
+    "ImageDecodeError",
+    "compressed_for_tracker",
+    "compressed_format",
+    "decode_compressed",
+    "decode_image",
+    "encode_compressed",
+    "image_for_tracker",
+    "to_gray",
+    "tracker_image",
+]
 
 ENCODINGS: dict[str, tuple[np.dtype, int]] = {
     "mono8": (np.dtype(np.uint8), 1),
@@ -42,7 +58,8 @@ class ImageDecodeError(DataError):
 
     Attributes:
         cause: a short key of the failure kind ("encoding:<name>", "size", "step", "truncated",
-            "oversized"), for counting failures by kind.
+            "oversized"; for compressed images "format:<name>" and "corrupt:<codec>"), for counting
+            failures by kind.
     """
 
     def __init__(self, message: str, cause: str) -> None:
@@ -148,3 +165,146 @@ def image_for_tracker(msg: Any, topic: str = "") -> np.ndarray:
         ImageDecodeError: as :func:`decode_image`.
     """
     return tracker_image(*decode_image(msg, topic))
+
+
+CODECS = ("jpeg", "png")
+"""The compressed formats decoded: those of image_transport's ``compressed`` plugin."""
+
+_DECODED = {(np.dtype(np.uint8), 1): "mono8", (np.dtype(np.uint16), 1): "mono16",
+            (np.dtype(np.uint8), 3): "bgr8", (np.dtype(np.uint8), 4): "bgra8"}
+_MONO = ("mono8", "8UC1", "mono16", "16UC1")
+
+
+def _codec(fmt: str, data: bytes, where: str) -> tuple[str, str]:
+    """``(codec, original encoding or "")`` of a CompressedImage ``format`` field.
+
+    Accepts image_transport's ``"<encoding>; <codec> compressed [<target>]"``, the older bare ``"jpeg"`` /
+    ``"png"``, and an empty field (the codec is then read from the data's signature).
+    """
+    original, sep, rest = fmt.partition(";")
+    if sep:
+        words = rest.split()
+        codec = words[0].lower() if len(words) >= 2 and words[1] == "compressed" else rest.strip()
+        original = original.strip()
+    else:
+        codec, original = fmt.strip().lower(), ""
+        if not codec:
+            codec = "jpeg" if data[:2] == b"\xff\xd8" else "png" if data[:8] == b"\x89PNG\r\n\x1a\n" else ""
+            if not codec:
+                raise ImageDecodeError(
+                    f"{where}compressed image with an empty format whose data is neither JPEG nor PNG",
+                    "format:",
+                )
+    codec = "jpeg" if codec == "jpg" else codec
+    if codec not in CODECS:
+        raise ImageDecodeError(
+            f"{where}unsupported compressed image format {fmt!r}; accepted: JPEG or PNG as image_transport's "
+            "'compressed' plugin writes them (e.g. 'bgr8; jpeg compressed bgr8', 'mono16; png compressed "
+            "mono16', or plain 'jpeg' / 'png')",
+            f"format:{codec}",
+        )
+    return codec, original
+
+
+def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
+    """Pixels of a sensor_msgs/CompressedImage (JPEG or PNG), decoded by OpenCV.
+
+    A colour image decodes as BGR, as image_transport's plugin stores it; a mono source (the ``format``
+    field's first part is mono8 / mono16 / 8UC1 / 16UC1) stays mono even when stored with three channels.
+
+    Args:
+        msg: the message (fields format, data).
+        topic: named in error messages ("" = none).
+
+    Returns:
+        ``(image, encoding)``: encoding mono8, mono16, bgr8 or bgra8 (a key of :data:`ENCODINGS`).
+
+    Raises:
+        ImageDecodeError: a format other than JPEG / PNG (cause ``format:<codec>``), data that does not
+            decode (``corrupt:<codec>``), or decoded pixels the raw path has no encoding for (16-bit colour).
+
+    Shape:
+        image: (H, W) uint8 / uint16 for mono, (H, W, 3|4) uint8 for colour.
+    """
+    where = f"{topic}: " if topic else ""
+    data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    data = data.reshape(-1).view(np.uint8)
+    fmt = str(msg.format)
+    codec, original = _codec(fmt, data[:8].tobytes(), where)
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error:
+        img = None
+    if img is None:
+        raise ImageDecodeError(
+            f"{where}compressed image ({fmt!r}, {data.size} bytes) is not valid {codec.upper()} data",
+            f"corrupt:{codec}",
+        )
+    channels = 1 if img.ndim == 2 else img.shape[2]
+    if original in _MONO and channels > 1:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if channels == 3 else cv2.COLOR_BGRA2GRAY)
+        channels = 1
+    encoding = _DECODED.get((img.dtype, channels))
+    if encoding is None:
+        raise ImageDecodeError(
+            f"{where}compressed image ({fmt!r}) decodes to {channels}-channel {img.dtype}; accepted: 8 or "
+            "16-bit mono, 8-bit colour",
+            f"encoding:{img.dtype}x{channels}",
+        )
+    return img, encoding
+
+
+def compressed_for_tracker(msg: Any, topic: str = "") -> np.ndarray:
+    """Decode a sensor_msgs/CompressedImage into the array the tracker is given (:func:`tracker_image`).
+
+    Raises:
+        ImageDecodeError: as :func:`decode_compressed`.
+    """
+    return tracker_image(*decode_compressed(msg, topic))
+
+
+def compressed_format(encoding: str, codec: str) -> str:
+    """The ``format`` field image_transport's ``compressed`` plugin writes for an image of ``encoding``.
+
+    Raises:
+        DataError: for an unknown encoding or codec.
+    """
+    _check_encoding(encoding)
+    if codec not in CODECS:
+        raise DataError(f"unknown compression {codec!r}; supported: {', '.join(CODECS)}")
+    dtype, channels = ENCODINGS[encoding]
+    depth = 8 if codec == "jpeg" else 8 * dtype.itemsize  # JPEG stores 8 bits
+    return f"{encoding}; {codec} compressed {'bgr' if channels > 1 else 'mono'}{depth}"
+
+
+def encode_compressed(image: np.ndarray, encoding: str, codec: str, quality: int = 90) -> tuple[str, bytes]:
+    """Compress decoded pixels as image_transport's ``compressed`` plugin does.
+
+    Colour goes in as BGR (alpha dropped); 16-bit mono goes into PNG as 16 bits and into JPEG as its 8 most
+    significant bits, the bits the tracker uses.
+
+    Args:
+        image: pixels as :func:`decode_image` returns them.
+        encoding: their encoding (a key of :data:`ENCODINGS`).
+        codec: ``jpeg`` or ``png``.
+        quality: JPEG quality, 1..100.
+
+    Returns:
+        ``(format, data)`` of the sensor_msgs/CompressedImage.
+
+    Raises:
+        DataError: for an unknown encoding or codec, or a quality out of range.
+    """
+    fmt = compressed_format(encoding, codec)
+    if not 1 <= quality <= 100:
+        raise DataError(f"JPEG quality must be in 1..100, got {quality}")
+    pixels = image
+    if ENCODINGS[encoding][1] > 1:
+        pixels = tracker_image(image, encoding)
+    elif codec == "jpeg" and ENCODINGS[encoding][0].itemsize == 2:
+        pixels = to_gray(image, encoding)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if codec == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    ok, buf = cv2.imencode(".jpg" if codec == "jpeg" else ".png", pixels, params)
+    if not ok:
+        raise DataError(f"OpenCV could not encode a {encoding} image of shape {image.shape} as {codec}")
+    return fmt, buf.tobytes()

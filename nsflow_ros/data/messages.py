@@ -12,12 +12,11 @@ from collections.abc import Sequence
 from functools import cache
 from typing import Any
 
-import cv2
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from nsflow_ros.data.errors import DataError
-from nsflow_ros.data.images import ENCODINGS, decode_image
+from nsflow_ros.data.images import ENCODINGS, decode_compressed, decode_image
 from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
 from nsflow_ros.stamps import stamp_to_ns
 
@@ -189,20 +188,6 @@ def serialize(store: Any, msg: Any, msgtype: str) -> bytes:
     if is_ros1(store):
         return bytes(store.serialize_ros1(msg, msgtype))
     return bytes(store.serialize_cdr(msg, msgtype))
-
-
-def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
-    """Pixels of a sensor_msgs/CompressedImage (png / jpeg), as mono8 / mono16 / bgr8 / bgra8.
-
-    Raises:
-        DataError: when the bytes cannot be decoded.
-    """
-    img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"{topic or 'image'}: cannot decode compressed image (format {msg.format!r})")
-    ch = 1 if img.ndim == 2 else img.shape[2]
-    enc = {1: "mono8" if img.dtype == np.uint8 else "mono16", 3: "bgr8", 4: "bgra8"}[ch]
-    return img, enc
 
 
 def record_to_message(store: Any, record: Record, seq: int = 0) -> tuple[str, Any]:

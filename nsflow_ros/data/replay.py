@@ -1,7 +1,8 @@
 """What a replay publishes, independent of ROS: the (optionally perturbed, remapped) message stream.
 
 The ROS shell (:mod:`nsflow_ros.ros.replay_node`) only paces and publishes what :func:`replay_stream`
-yields, so the stream itself (and its reproducibility from a seed) is tested without middleware.
+yields, so the stream itself (and its reproducibility from a seed) is tested without middleware. Images can
+go out compressed, as image_transport's ``compressed`` plugin publishes them (``<topic>/compressed``).
 """
 
 from __future__ import annotations
@@ -10,13 +11,22 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
 from nsflow_ros.data.errors import DataError
-from nsflow_ros.data.messages import record_to_cdr
+from nsflow_ros.data.images import CODECS, encode_compressed
+from nsflow_ros.data.messages import COMPRESSED_IMAGE, record_to_cdr, ros2_store, serialize
 from nsflow_ros.data.perturb import IlluminationPerturber, perturb_records
-from nsflow_ros.data.records import RawMessage, Record
+from nsflow_ros.data.records import ImageRecord, RawMessage, Record
 from nsflow_ros.data.sources import SensorSource
 
-__all__ = ["ReplayError", "ReplayOptions", "parse_remaps", "replay_records", "replay_stream"]
+__all__ = [
+    "COMPRESSIONS", "ReplayError", "ReplayOptions", "compressed_image_cdr", "parse_remaps", "replay_records",
+    "replay_stream",
+]
+
+COMPRESSIONS = ("none", *CODECS)
+"""What ``ReplayOptions.compress`` takes: ``none`` (sensor_msgs/Image) or a codec of CompressedImage."""
 
 
 class ReplayError(DataError):
@@ -36,6 +46,9 @@ class ReplayOptions:
         perturb: illumination perturbation level, ``none`` / ``small`` / ``large``.
         seed: seed of the perturbation processes.
         remap: topic renames, source topic -> published topic.
+        compress: ``none``, or publish camera images as sensor_msgs/CompressedImage of this codec
+            (``jpeg`` / ``png``) on ``<published topic>/compressed``.
+        jpeg_quality: JPEG quality (1..100) with ``compress="jpeg"``.
     """
 
     path: Path
@@ -46,10 +59,16 @@ class ReplayOptions:
     perturb: str = "none"
     seed: int = 0
     remap: Mapping[str, str] | None = None
+    compress: str = "none"
+    jpeg_quality: int = 90
 
     def __post_init__(self) -> None:
         if self.rate < 0:
             raise ReplayError(f"rate must be >= 0 (0 = as fast as possible), got {self.rate}")
+        if self.compress not in COMPRESSIONS:
+            raise ReplayError(f"compress must be one of {', '.join(COMPRESSIONS)}, got {self.compress!r}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ReplayError(f"JPEG quality must be in 1..100, got {self.jpeg_quality}")
 
 
 def parse_remaps(items: Sequence[str]) -> dict[str, str]:
@@ -70,21 +89,41 @@ def parse_remaps(items: Sequence[str]) -> dict[str, str]:
 def replay_stream(opts: ReplayOptions) -> Iterator[RawMessage]:
     """The messages of a replay, in time order, as ROS 2 CDR bytes on their published topics.
 
-    Without perturbation the source's bytes pass through untouched (any topic type); with it, camera
-    images are decoded, perturbed as a function of (seed, stamp) and re-serialised, IMU passes through.
+    Without perturbation or compression the source's bytes pass through untouched (any topic type); with
+    either, camera images are decoded, perturbed as a function of (seed, stamp), re-serialised (compressed
+    on ``<topic>/compressed``), and the IMU passes through.
 
     Raises:
         DataError: from the source (missing path or topic, damaged bag after the last good message).
     """
     source = _source(opts)
     remap = dict(opts.remap or {})
-    if opts.perturb == "none":
+    if opts.perturb == "none" and opts.compress == "none":
         for msg in source.raw_messages():
             yield RawMessage(remap.get(msg.topic, msg.topic), msg.msgtype, msg.stamp_ns, msg.cdr)
         return
     for rec in _records(source, remap, opts):
+        if opts.compress != "none" and isinstance(rec, ImageRecord):
+            cdr = compressed_image_cdr(rec, opts.compress, opts.jpeg_quality)
+            yield RawMessage(f"{rec.topic}/compressed", COMPRESSED_IMAGE, rec.stamp_ns, cdr)
+            continue
         msgtype, cdr = record_to_cdr(rec)
         yield RawMessage(rec.topic, msgtype, rec.stamp_ns, cdr)
+
+
+def compressed_image_cdr(rec: ImageRecord, codec: str, quality: int = 90) -> bytes:
+    """ROS 2 CDR bytes of the sensor_msgs/CompressedImage of an image record (format as image_transport's).
+
+    Raises:
+        DataError: an encoding or codec :func:`~nsflow_ros.data.images.encode_compressed` refuses.
+    """
+    fmt, data = encode_compressed(rec.image, rec.encoding, codec, quality)
+    store = ros2_store()
+    sec, nanosec = divmod(rec.stamp_ns, 1_000_000_000)
+    stamp = store.types["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=int(nanosec))
+    header = store.types["std_msgs/msg/Header"](stamp=stamp, frame_id=rec.frame_id)
+    msg = store.types[COMPRESSED_IMAGE](header=header, format=fmt, data=np.frombuffer(data, np.uint8))
+    return serialize(store, msg, COMPRESSED_IMAGE)
 
 
 def replay_records(opts: ReplayOptions) -> Iterator[Record]:

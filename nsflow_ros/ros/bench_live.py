@@ -5,7 +5,10 @@ replays the sample sequence's two 752x480 image topics at ``rate`` (1.0 = the ca
 sensor-data QoS, as a camera driver would, through the shipped Fast DDS profile. Reported per method:
 image pairs sent, received and processed by the node, dropped (the node's own count of frames it could
 not keep up with), feature messages out, and the node's image-to-features latency (p50, p90: from the
-image callback, queueing included, to the publication), from the node's summary file.
+image callback, queueing included, to the publication), from the node's summary file. With ``compress``
+the images also go out as CompressedImage (JPEG or PNG) into a node with ``image_transport:=compressed``
+(decoding then counts in the latency), and each such run's camera-0 features are compared with the raw
+run's of the same method, frame by frame.
 """
 
 from __future__ import annotations
@@ -17,9 +20,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["STEREO_TOPICS", "format_live_table", "run_live_benchmark"]
+__all__ = ["STEREO_TOPICS", "feature_agreement", "format_live_table", "run_live_benchmark"]
 
 STEREO_TOPICS = ("/cam0/image_raw", "/cam1/image_raw")
 
@@ -32,6 +37,8 @@ def run_live_benchmark(
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
+    compress: Sequence[str] = ("none",),
+    jpeg_quality: int = 90,
 ) -> dict[str, Any]:
     """Replay ``seconds`` of the stereo sample at ``rate`` into a tracker node per method.
 
@@ -42,10 +49,14 @@ def run_live_benchmark(
         seed: the sample sequence's seed.
         cache_dir: where the sample (ROS 2 bag) is rendered and reused; None = a temporary folder.
         progress: print a line per run to stderr.
+        compress: image transports, one node run each per method: ``none`` (raw), ``jpeg``, ``png``.
+        jpeg_quality: JPEG quality of the ``jpeg`` runs.
 
     Returns:
-        ``{"setup": ..., method: {"frames_sent", "tracker_received", "tracker_processed",
-        "tracker_dropped", "frames" (feature messages out), "tracker_latency_ms_p50", "..._p90", ...}}``.
+        ``{"setup": ..., run: {"frames_sent", "tracker_received", "tracker_processed",
+        "tracker_dropped", "frames" (feature messages out), "tracker_latency_ms_p50", "..._p90", ...}}``
+        where a run is the method's name, or ``<method>/jpeg<quality>`` / ``<method>/png`` for a compressed
+        run, which also has ``"agreement"`` (:func:`feature_agreement` against the method's raw run).
 
     Raises:
         NSFlowError: a tracker node did not come up, or bad arguments.
@@ -61,9 +72,13 @@ def run_live_benchmark(
 
     if not seconds > 0 or not rate > 0:
         raise NSFlowError(f"seconds and rate must be > 0, got {seconds} and {rate}")
+    bad = [c for c in compress if c not in ("none", "jpeg", "png")]
+    if bad or not compress:
+        raise NSFlowError(f"compress takes none, jpeg and png, got {', '.join(compress) or 'nothing'}")
     tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
     out: dict[str, Any] = {"setup": {"seconds": seconds, "rate": rate, "size": [752, 480], "stereo": True,
-                                     "config": STEREO_CONFIG}}
+                                     "config": STEREO_CONFIG, "compress": list(compress),
+                                     "jpeg_quality": jpeg_quality}}
     try:
         root = Path(tmp.name if tmp else cache_dir)
         seq = make_sample_sequence(root / f"sample-live-seed{seed}-{seconds:g}s", seed=seed, duration=seconds,
@@ -75,18 +90,66 @@ def run_live_benchmark(
         rclpy.init(context=ctx)
         try:
             for method in methods:
-                if progress:
-                    print(f"[bench] node {method}: {seconds:g} s stereo at rate {rate:g} ...",
-                          file=sys.stderr, flush=True)
-                figs, _ = run_live(ctx, seq, config, method, root / f"live_{method}.log", seed=seed,
-                                   rate=rate, topics=STEREO_TOPICS, show_track=False)
-                out[method] = figs
+                raw: dict[int, dict[int, np.ndarray]] | None = None
+                for codec in compress:
+                    name = method if codec == "none" else f"{method}/{codec}"
+                    name += f"{jpeg_quality}" if codec == "jpeg" else ""
+                    if progress:
+                        print(f"[bench] node {name}: {seconds:g} s stereo at rate {rate:g} ...",
+                              file=sys.stderr, flush=True)
+                    frames: dict[int, dict[int, np.ndarray]] = {}
+                    figs, _ = run_live(ctx, seq, config, method, root / f"live_{name.replace('/', '_')}.log",
+                                       seed=seed, rate=rate, topics=STEREO_TOPICS, show_track=False,
+                                       compress=codec, jpeg_quality=jpeg_quality, frames_out=frames)
+                    if codec == "none":
+                        raw = frames
+                    elif raw is not None:
+                        figs["agreement"] = feature_agreement(raw, frames)
+                    out[name] = figs
         finally:
             rclpy.shutdown(context=ctx)
     finally:
         if tmp is not None:
             tmp.cleanup()
     return out
+
+
+def feature_agreement(
+    reference: dict[int, dict[int, np.ndarray]], other: dict[int, dict[int, np.ndarray]], within: float = 0.1
+) -> dict[str, Any]:
+    """How far one run's features are from a reference run's, over the frames both published.
+
+    Features are matched by position (ids diverge once one track differs): each reference feature's nearest
+    feature of the other run in the same frame.
+
+    Args:
+        reference, other: stamp -> {feature id: (u, v)}, camera 0.
+        within: distance in pixels counted as the same feature.
+
+    Returns:
+        ``{"frames": frames compared, "identical_frames": frames whose feature positions are equal,
+        "same_share": share of reference features with one of the other run within ``within`` px,
+        "median_px": median distance to the nearest one}``.
+    """
+    common = sorted(set(reference) & set(other))
+    identical, same, total, dists = 0, 0, 0, []
+    for stamp in common:
+        a = np.array(list(reference[stamp].values()), np.float64).reshape(-1, 2)
+        b = np.array(list(other[stamp].values()), np.float64).reshape(-1, 2)
+        identical += bool(a.shape == b.shape and np.array_equal(np.sort(a, axis=0), np.sort(b, axis=0)))
+        if not len(a) or not len(b):
+            total += len(a)
+            continue
+        d = np.sqrt(((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)).min(axis=1)
+        same += int((d <= within).sum())
+        total += len(a)
+        dists.append(d)
+    return {
+        "frames": len(common),
+        "identical_frames": identical,
+        "same_share": same / total if total else None,
+        "median_px": float(np.median(np.concatenate(dists))) if dists else None,
+    }
 
 
 def format_live_table(res: dict[str, Any]) -> str:
@@ -96,8 +159,8 @@ def format_live_table(res: dict[str, Any]) -> str:
         f"tracker node, {s['seconds']:g} s stereo sample ({s['size'][0]}x{s['size'][1]}) replayed at rate "
         f"{s['rate']:g} over DDS (shipped Fast DDS profile)",
         "",
-        f"{'method':11s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'out':>6s}{'processed':>11s}"
-        f"{'lat p50 ms':>12s}{'lat p90 ms':>12s}",
+        f"{'method':14s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'out':>6s}{'processed':>11s}"
+        f"{'lat p50 ms':>12s}{'lat p90 ms':>12s}{'same feat':>11s}",
     ]
     for m, f in res.items():
         if m == "setup":
@@ -108,11 +171,16 @@ def format_live_table(res: dict[str, Any]) -> str:
             return "?" if v is None else format(v, fmt)
 
         sent, proc = f.get("frames_sent") or 0, f.get("tracker_processed") or 0
+        share = (f.get("agreement") or {}).get("same_share")
         lines.append(
-            f"{m:11s}{num('frames_sent'):>6s}{num('tracker_received'):>6s}{num('tracker_processed'):>6s}"
+            f"{m:14s}{num('frames_sent'):>6s}{num('tracker_received'):>6s}{num('tracker_processed'):>6s}"
             f"{num('tracker_dropped'):>6s}{num('frames'):>6s}{(proc / sent if sent else 0):11.1%}"
             f"{num('tracker_latency_ms_p50', '.1f'):>12s}{num('tracker_latency_ms_p90', '.1f'):>12s}"
+            f"{'' if share is None else format(share, '.1%'):>11s}"
         )
     lines.append("sent: image pairs replayed; recv / proc / drop: pairs the node received / tracked / "
                  "dropped because it was busy; out: feature messages received back")
+    if any("agreement" in f for m, f in res.items() if m != "setup"):
+        lines.append("method/jpegN, method/png: images as CompressedImage (decoding in the latency); same "
+                     "feat: share of the raw run's camera-0 features within 0.1 px in the same frame")
     return "\n".join(lines)

@@ -20,7 +20,7 @@ import numpy as np
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import Image, PointCloud
+from sensor_msgs.msg import CompressedImage, Image, PointCloud
 
 from nsflow_ros.data.replay import ReplayOptions, replay_stream
 from nsflow_ros.data.scoring import TrackStats
@@ -96,6 +96,9 @@ def run_live(
     rate: float = 1.0,
     topics: tuple[str, ...] = ("/cam0/image_raw",),
     show_track: bool = True,
+    compress: str = "none",
+    jpeg_quality: int = 90,
+    frames_out: dict[int, dict[int, np.ndarray]] | None = None,
 ) -> tuple[dict[str, Any], Any]:
     """Replay ``seq`` over ROS 2 into a ``tracker`` node process started for it, and collect its output.
 
@@ -112,6 +115,10 @@ def run_live(
         rate: replay speed factor (1.0 = camera rate).
         topics: image topics to replay.
         show_track: have the tracker publish its debug image.
+        compress: ``none``, or replay the images as CompressedImage (``jpeg`` / ``png``) on
+            ``<topic>/compressed`` into a tracker with ``image_transport:=compressed``.
+        jpeg_quality: JPEG quality with ``compress="jpeg"``.
+        frames_out: filled with the camera-0 features received, stamp -> {id: (u, v)}.
 
     Returns:
         (track figures of camera 0 plus the tracker's own counters, the middle debug image or None).
@@ -133,6 +140,9 @@ def run_live(
         "-p", f"show_track:={int(show_track)}",
         "-p", f"summary_file:={summary_file}",
     ]
+    if compress != "none":
+        cmd += ["-p", "image_transport:=compressed"]
+        topics = tuple(f"{t}/compressed" for t in topics)
     with log.open("wb") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
     sent = 0
@@ -143,10 +153,13 @@ def run_live(
             raise NSFlowError(
                 f"the tracker node ({method}) did not come up; its log {log} ends with:\n{tail}"
             )
-        opts = ReplayOptions(seq.ros2_dir, list(topics), perturb=level, seed=seed, rate=rate)
+        sources = [t.removesuffix("/compressed") for t in topics] if compress != "none" else list(topics)
+        opts = ReplayOptions(seq.ros2_dir, sources, perturb=level, seed=seed, rate=rate, compress=compress,
+                             jpeg_quality=jpeg_quality)
         # the publishers first, matched with the tracker's subscriptions both ways, so the first frame is
         # not lost (a reader drops samples of a writer it has not matched yet)
-        pubs = {t: node.create_publisher(Image, t, qos_profile_sensor_data) for t in topics}
+        kind = Image if compress == "none" else CompressedImage
+        pubs = {t: node.create_publisher(kind, t, qos_profile_sensor_data) for t in topics}
         _wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 30.0, proc)
         time.sleep(0.5)
         sent = publish_stream(node, replay_stream(opts), rate=rate, clock=False, progress=False,
@@ -166,6 +179,8 @@ def run_live(
         collector.node.destroy_node()
     with collector.lock:
         frames, debug = dict(collector.frames), dict(collector.debug)
+    if frames_out is not None:
+        frames_out.update(frames)
     figures = _stats(frames, seq)
     figures["frames_sent"] = sent // len(topics)
     # what the tracker itself saw: frames that reached it and frames it tracked (its summary file)

@@ -6,7 +6,9 @@ loads a whole bag), and publishes the images and IMU as serialised messages with
 wall time by ``--rate``. Images go out with sensor-data QoS, everything else reliable. Before the first
 message it waits (bounded by ``--wait-timeout``) until ``--wait-subscribers`` subscribers listen to a
 camera topic, so a tracker started just before or after the replay still gets the first frame.
-``--perturb`` applies the paper's illumination perturbation on the fly; ``--write-bag`` writes the
+``--perturb`` applies the paper's illumination perturbation on the fly; ``--compress jpeg|png`` publishes
+the images as sensor_msgs/CompressedImage on ``<topic>/compressed``, as image_transport's ``compressed``
+plugin does (``--remap`` renames the image topic before the suffix); ``--write-bag`` writes the
 (perturbed) stream to a new ROS 2 bag instead of publishing; ``--offline`` runs the tracker core straight
 over the data without middleware (see :mod:`nsflow_ros.vins.offline`); ``--features-bag`` tracks every frame
 offline and writes a VINS feature bag (see :mod:`nsflow_ros.vins.feature_bag`).
@@ -23,10 +25,16 @@ from itertools import chain
 from pathlib import Path
 from typing import Any
 
-from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_float, program_name
+from nsflow_ros.argtypes import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    program_name,
+)
 from nsflow_ros.core.methods import METHODS
 from nsflow_ros.data.records import RawMessage
-from nsflow_ros.data.replay import ReplayOptions, parse_remaps, replay_stream
+from nsflow_ros.data.replay import COMPRESSIONS, ReplayOptions, parse_remaps, replay_stream
 from nsflow_ros.errors import NSFlowError
 
 __all__ = ["DESCRIPTION", "main", "message_class", "publish_stream", "wait_for_subscribers"]
@@ -206,6 +214,18 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0, help="perturbation seed (default 0)")
     p.add_argument(
+        "--compress",
+        choices=COMPRESSIONS,
+        default="none",
+        help="publish the camera images as sensor_msgs/CompressedImage of this codec on <topic>/compressed, "
+        "as image_transport's compressed plugin does (for the tracker's image_transport:=compressed; "
+        "default none: sensor_msgs/Image)",
+    )
+    p.add_argument(
+        "--jpeg-quality", type=positive_int, default=90, metavar="N",
+        help="JPEG quality 1..100 with --compress jpeg (default 90)",
+    )
+    p.add_argument(
         "--remap",
         action="append",
         nargs="+",
@@ -326,7 +346,12 @@ def main(args: list[str] | None = None) -> int:
     ros_args: list[str] = []
     if "--ros-args" in argv:
         argv, ros_args = argv[: argv.index("--ros-args")], argv[argv.index("--ros-args") :]
-    opts = _parser().parse_args(argv)
+    parser = _parser()
+    opts = parser.parse_args(argv)
+    if opts.compress != "none" and (opts.write_bag or opts.offline or opts.features_bag):
+        parser.error("--compress applies to publishing, not to --write-bag / --offline / --features-bag")
+    if opts.jpeg_quality > 100:
+        parser.error(f"--jpeg-quality: expected 1..100, got {opts.jpeg_quality}")
     prog = program_name("nsflow-replay")
     try:
         from nsflow_ros.data.sources import detect_kind
@@ -341,6 +366,8 @@ def main(args: list[str] | None = None) -> int:
             opts.perturb,
             opts.seed,
             parse_remaps(_remaps(opts.remap)),
+            compress=opts.compress,
+            jpeg_quality=opts.jpeg_quality,
         )
         if opts.offline is not None or opts.features_bag is not None:
             from nsflow_ros.allocator import keep_large_buffers

@@ -3,14 +3,17 @@
     ros2 run nsflow_ros tracker --ros-args -p config_file:=<VINS config.yaml>
     nsflow-tracker --help      (what it does, its topics, every parameter with its default)
 
-Subscribes to the config's image0_topic (and image1_topic for stereo, paired by exact stamp) with
-sensor-data QoS (overridable through ``qos_overrides.<topic>.subscription.*``), optionally to its imu_topic
-(gyro prediction), and publishes
+Subscribes to the config's image0_topic (and image1_topic for stereo, paired within
+``stereo_sync_tolerance`` seconds) with sensor-data QoS (overridable through
+``qos_overrides.<topic>.subscription.*``), as sensor_msgs/Image or, with ``image_transport:=compressed``, as
+sensor_msgs/CompressedImage on ``<topic>/compressed``; optionally to its imu_topic (gyro prediction); and
+publishes
 
 * ``/feature_tracker/feature`` (sensor_msgs/PointCloud, reliable, depth 2000 like the estimator's queue),
   header = the image header, in the VINS-Fusion or VINS-Mono layout;
 * ``/feature_tracker/restart`` (std_msgs/Bool, VINS-Mono layout) on a stamp gap > 1 s or time going back;
-* ``image_track`` (sensor_msgs/Image, bgr8) when show_track is on;
+* ``image_track`` (sensor_msgs/Image, bgr8) when show_track is on, drawn only while something subscribes
+  and at most ``track_image_rate`` times a second;
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) with the status that is also logged every
   ``status_period`` seconds: frames received / processed / dropped, features, latency.
 
@@ -21,10 +24,10 @@ falls behind, the oldest waiting frame is dropped and counted, never silently. P
 time land in the session (the settings table :data:`nsflow_ros.vins.settings.SETTINGS` says what each
 change does).
 
-A bad frame (unsupported encoding, wrong step, truncated data, wrong size, duplicate stamp) is logged once
-per cause, then counted, and skipped. A missing or malformed config or model file, or a parameter of the
-wrong type, stops the node at start-up with one line and exit code 1. SIGINT and SIGTERM stop it cleanly
-with exit code 0 after its summary line.
+A bad frame (unsupported encoding or compressed format, corrupt compressed data, wrong step, truncated data,
+wrong size, duplicate stamp) is logged once per cause, then counted, and skipped. A missing or malformed
+config or model file, or a parameter of the wrong type, stops the node at start-up with one line and exit
+code 1. SIGINT and SIGTERM stop it cleanly with exit code 0 after its summary line.
 """
 
 from __future__ import annotations
@@ -48,13 +51,13 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from sensor_msgs.msg import ChannelFloat32, Image, Imu, PointCloud
+from sensor_msgs.msg import ChannelFloat32, CompressedImage, Image, Imu, PointCloud
 from std_msgs.msg import Bool
 
 from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.tracker import FrameFeatures
-from nsflow_ros.data.images import ImageDecodeError, image_for_tracker
+from nsflow_ros.data.images import ImageDecodeError, compressed_for_tracker, image_for_tracker
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.ros.counters import WINDOWED, NodeCounters
@@ -72,7 +75,9 @@ from nsflow_ros.vins.pairing import StereoPairer
 from nsflow_ros.vins.session import FrameOutcome, FrontEndSession, Skip
 from nsflow_ros.vins.settings import SESSION_SETTINGS, Mode
 
-__all__ = ["FEATURE_QOS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "resolve_config_path"]
+__all__ = [
+    "FEATURE_QOS", "IMAGE_TRANSPORTS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "resolve_config_path"
+]
 
 FEATURE_QOS = QoSProfile(
     depth=2000, reliability=QoSReliabilityPolicy.RELIABLE, history=QoSHistoryPolicy.KEEP_LAST
@@ -81,6 +86,12 @@ IMU_QOS = QoSProfile(
     depth=400, reliability=QoSReliabilityPolicy.BEST_EFFORT, history=QoSHistoryPolicy.KEEP_LAST
 )
 DIAGNOSTIC_NAME = f"{NODE_NAME}: front-end"
+
+IMAGE_TRANSPORTS: dict[str, tuple[type, Any, str]] = {
+    "raw": (Image, image_for_tracker, ""),
+    "compressed": (CompressedImage, compressed_for_tracker, "/compressed"),
+}
+"""image_transport -> (message type, decoder to the tracker's array, suffix of the image topic)."""
 
 
 def resolve_config_path(value: str) -> Path:
@@ -168,8 +179,16 @@ class TrackerNode(Node):
         self._lat_lock = threading.Lock()
         self._logged_causes: set[str] = set()
         self._pairer: StereoPairer[tuple[Any, np.ndarray, float]] = StereoPairer(
-            2 if self.session.tracker.settings.stereo else 1
+            2 if self.session.tracker.settings.stereo else 1, float(p["stereo_sync_tolerance"])
         )
+        transport = str(p["image_transport"])
+        if transport not in IMAGE_TRANSPORTS:
+            raise ParameterError(
+                f"parameter image_transport: got {transport!r}, expected one of {', '.join(IMAGE_TRANSPORTS)}"
+            )
+        image_type, self._decode, suffix = IMAGE_TRANSPORTS[transport]
+        self._track_last = -np.inf  # monotonic time of the last debug image
+        self.track_images_published = 0
         self._lock = threading.Lock()  # the session and the publishers: worker vs. parameter updates
         self._queue: deque[_Frame] = deque()
         self._queue_size = int(p["queue_size"])
@@ -183,15 +202,17 @@ class TrackerNode(Node):
         self._track_pub: Any = None
         self._set_track_publisher(self.session.show_track)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # image_transport's naming: the image topic (remapped) plus the transport's suffix
+        topics = [self.resolve_topic_name(t) + suffix if suffix else t for t in cfg.image_topics]
         self._subs = [
             self.create_subscription(
-                Image,
+                image_type,
                 topic,
                 lambda m, i=i: self._on_image(i, m),
                 qos_profile_sensor_data,
                 qos_overriding_options=QoSOverridingOptions.with_default_policies(),
             )
-            for i, topic in enumerate(cfg.image_topics)
+            for i, topic in enumerate(topics)
         ]
         if use_imu:
             self._subs.append(self.create_subscription(Imu, cfg.imu_topic, self._on_imu, IMU_QOS))
@@ -209,7 +230,7 @@ class TrackerNode(Node):
             f"{cfg.image_height}); method {s.method} (encoder on {encoder_provider(self.tracker.encoder)}), "
             f"layout {self.layout}, max_cnt {s.max_cnt}, min_dist "
             f"{s.min_dist:g}, flow_back {s.flow_back}, F-RANSAC {s.reject_with_f}, IMU prediction {use_imu}; "
-            f"images on {images}"
+            f"{transport} images on {images}"
             + (f", IMU on {self._subs[-1].topic_name}" if use_imu else "")
             + f"; features on {self._feature_pub.topic_name}"
         )
@@ -254,6 +275,8 @@ class TrackerNode(Node):
             with self._lock:
                 notes = self.session.update(**session) if session else []
                 self._set_track_publisher(self.session.show_track)
+            if "stereo_sync_tolerance" in values:  # the pairer runs in this (the executor's) thread
+                self._pairer.tolerance = float(values["stereo_sync_tolerance"])
         except NSFlowError as err:
             return SetParametersResult(successful=False, reason=str(err))
         if period is not None:
@@ -288,11 +311,11 @@ class TrackerNode(Node):
         with self._lock:
             self.session.add_gyro(stamp_to_s(msg.header.stamp), (w.x, w.y, w.z))
 
-    def _on_image(self, cam: int, msg: Image) -> None:
+    def _on_image(self, cam: int, msg: Image | CompressedImage) -> None:
         t_recv = time.perf_counter()
         self.stats.images_received += 1
         try:
-            img = image_for_tracker(msg)
+            img = self._decode(msg)
         except ImageDecodeError as err:
             self._bad(err.cause, f"camera {cam}: {err}", image=True)
             return
@@ -357,7 +380,7 @@ class TrackerNode(Node):
         self._status.add(latency, len(out.features.cameras[0]))
         self._feature_pub.publish(msg)
         self.stats.frames_published += 1
-        if self._track_pub is not None:
+        if self._track_pub is not None and self._track_due():
             self._publish_track(item.header, out.features, item.image0, item.image1)
 
     # -- outputs ---------------------------------------------------------------------------------------
@@ -375,6 +398,17 @@ class TrackerNode(Node):
         msg.channels = chans
         return msg
 
+    def _track_due(self) -> bool:
+        """Whether to draw the debug image now: someone subscribes, and track_image_rate allows one."""
+        if self._track_pub.get_subscription_count() == 0:
+            return False
+        rate = float(self._params["track_image_rate"])
+        now = time.monotonic()
+        if rate > 0 and now - self._track_last < 1.0 / rate:
+            return False
+        self._track_last = now
+        return True
+
     def _publish_track(
         self, header: Any, frame: FrameFeatures, img0: np.ndarray, img1: np.ndarray | None
     ) -> None:
@@ -384,6 +418,7 @@ class TrackerNode(Node):
         msg.header = header
         msg.data = fields["data"]
         self._track_pub.publish(msg)
+        self.track_images_published += 1
 
     # -- status ----------------------------------------------------------------------------------------
 
@@ -400,6 +435,7 @@ class TrackerNode(Node):
             **s.totals(),
             "frames_skipped_by_policy": self.session.counters.skipped_by_policy,
             "dropped": {"busy": s.frames_dropped_busy, "refused": s.frames_refused},
+            "track_images_published": self.track_images_published,
             "restarts": self.session.counters.restarts,
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p90": _percentile(lat, 90),

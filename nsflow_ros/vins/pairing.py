@@ -1,47 +1,75 @@
-"""Stereo pairing by exact stamp, as VINS-Fusion pairs its image topics: one pairer for node and feature bag.
+"""Stereo pairing within a stamp tolerance, as VINS-Fusion pairs its image topics: one pairer for node and
+feature bag.
 
-Images of the two cameras arrive one at a time; an image waits until the other camera's image of the same
-stamp arrives, then the pair is a frame. An image whose partner never comes is dropped and counted once,
-when more than ``max_pending`` images of its camera wait, or at :meth:`StereoPairer.flush`.
+Images of the two cameras arrive one at a time; an image waits until an image of the other camera whose
+stamp is within the tolerance arrives (the nearest of those waiting wins), then the pair is a frame. Cameras
+that stamp left and right separately are a few milliseconds apart, hence VINS-Fusion's 3 ms
+(:data:`STEREO_SYNC_TOLERANCE`). Each camera's images arrive in stamp order, so when a pair forms, the
+images that arrived before its two members can no longer pair: they are dropped and counted once in
+:attr:`StereoPairer.unpaired`, as are images pushed out when more than ``max_pending`` of one camera wait,
+and those waiting at :meth:`StereoPairer.flush`.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Generic, TypeVar
 
-__all__ = ["MAX_PENDING", "StereoPairer"]
+__all__ = ["MAX_PENDING", "STEREO_SYNC_TOLERANCE", "StereoPairer"]
 
 T = TypeVar("T")
 
 MAX_PENDING = 10
 """Unpaired images kept per camera before the oldest is dropped."""
 
+STEREO_SYNC_TOLERANCE = 0.003
+"""Largest stamp difference in seconds between the two images of a pair, VINS-Fusion's."""
+
 
 class StereoPairer(Generic[T]):
-    """Pairs camera-0 and camera-1 items (decoded images, records) of the same stamp.
+    """Pairs camera-0 and camera-1 items (decoded images, records) whose stamps are within a tolerance.
 
     Args:
         cameras: 1 (every item is a frame at once) or 2.
-        max_pending: unpaired items kept per camera.
+        tolerance: largest stamp difference of a pair in seconds (0 = equal stamps only).
+        max_pending: unpaired items kept per camera (>= 1).
 
     Attributes:
         unpaired: items dropped because their partner never came.
+
+    Raises:
+        ValueError: cameras not 1 or 2, a negative tolerance or max_pending < 1.
     """
 
-    def __init__(self, cameras: int, max_pending: int = MAX_PENDING) -> None:
+    def __init__(self, cameras: int, tolerance: float = STEREO_SYNC_TOLERANCE,
+                 max_pending: int = MAX_PENDING) -> None:
         if cameras not in (1, 2):
             raise ValueError(f"cameras must be 1 or 2, got {cameras}")
+        if max_pending < 1:
+            raise ValueError(f"max_pending must be >= 1, got {max_pending}")
         self.cameras = cameras
         self.max_pending = max_pending
+        self.tolerance = tolerance
         self.unpaired = 0
-        self._pending: tuple[dict[int, T], dict[int, T]] = ({}, {})
+        self._pending: tuple[deque[tuple[int, T]], deque[tuple[int, T]]] = (deque(), deque())
+
+    @property
+    def tolerance(self) -> float:
+        """Largest stamp difference of a pair in seconds; may change between items."""
+        return self._tolerance_ns * 1e-9
+
+    @tolerance.setter
+    def tolerance(self, seconds: float) -> None:
+        if not seconds >= 0:
+            raise ValueError(f"stereo sync tolerance must be >= 0 seconds, got {seconds}")
+        self._tolerance_ns = round(seconds * 1e9)
 
     def add(self, camera: int, stamp_ns: int, item: T) -> tuple[T, T | None] | None:
         """Add one camera's item.
 
         Args:
             camera: 0 or 1.
-            stamp_ns: the image's stamp in nanoseconds (pairs match exactly).
+            stamp_ns: the image's stamp in nanoseconds.
             item: what to pair.
 
         Returns:
@@ -49,14 +77,24 @@ class StereoPairer(Generic[T]):
         """
         if self.cameras == 1:
             return item, None
-        other = self._pending[1 - camera].pop(stamp_ns, None)
-        if other is None:
-            pending = self._pending[camera]
-            pending[stamp_ns] = item
-            while len(pending) > self.max_pending:  # the partner never came
-                pending.pop(min(pending))
+        mine, others = self._pending[camera], self._pending[1 - camera]
+        best, best_gap = -1, self._tolerance_ns
+        for k, (stamp, _) in enumerate(others):
+            gap = abs(stamp - stamp_ns)
+            if gap <= best_gap and (best < 0 or gap < best_gap):
+                best, best_gap = k, gap
+        if best < 0:
+            mine.append((stamp_ns, item))
+            if len(mine) > self.max_pending:  # the partner never came
+                mine.popleft()
                 self.unpaired += 1
             return None
+        # what arrived before the pair's members is older than both: its partner can no longer come
+        self.unpaired += best + len(mine)
+        for _ in range(best):
+            others.popleft()
+        other = others.popleft()[1]
+        mine.clear()
         return (item, other) if camera == 0 else (other, item)
 
     def flush(self) -> int:

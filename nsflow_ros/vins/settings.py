@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from nsflow_ros.resources import DEFAULT_CONFIG
 from nsflow_ros.vins.errors import ConfigError
+from nsflow_ros.vins.pairing import STEREO_SYNC_TOLERANCE
 
 if TYPE_CHECKING:
     from nsflow_ros.vins.config import VinsConfig
@@ -291,6 +292,24 @@ SETTINGS: tuple[Setting, ...] = (
         "Folder where the TensorRT provider keeps the engines it builds, so a restart does not build them "
         "again ('' = no cache).",
         tracker=True, session=True, none_value=""),
+    # -- inputs and the debug image on a robot: compressed topics, stereo stamp tolerance, image_track rate
+    Setting(
+        "image_transport", "raw", Mode.READ_ONLY,
+        "How the images arrive: 'raw' (sensor_msgs/Image on the config's image topics) or 'compressed' "
+        "(sensor_msgs/CompressedImage, JPEG or PNG, on '<image topic>/compressed' as image_transport names "
+        "it; a remap of the image topic applies before '/compressed' is added).",
+        example="compressed"),
+    Setting(
+        "stereo_sync_tolerance", STEREO_SYNC_TOLERANCE, Mode.LIVE,
+        "Largest stamp difference of a stereo pair (as VINS-Fusion's 3 ms): each image pairs with the "
+        "nearest image of the other camera within it, and the frame takes the left image's stamp; "
+        "0 = equal stamps only. Images left without a partner are counted as unpaired.",
+        unit="s", minimum=0),
+    Setting(
+        "track_image_rate", 10.0, Mode.LIVE,
+        "Most image_track debug images per second (wall time), drawn only while something subscribes to "
+        "it; 0 = every tracked frame.",
+        unit="Hz", minimum=0),
 )
 """Every setting of the ``tracker`` node, in the order of the params file."""
 

@@ -21,6 +21,35 @@ def test_klt_node_keeps_up_with_a_short_stereo_replay(tmp_path):
     assert "klt" in table and "lat p90 ms" in table
 
 
+def test_png_compressed_node_run_reproduces_the_raw_features(tmp_path):
+    res = run_live_benchmark(1.0, ["klt"], cache_dir=tmp_path, compress=("none", "png"))
+    raw, png = res["klt"], res["klt/png"]
+    assert png["frames_sent"] == 20 and png["tracker_processed"] >= 18
+    agree = png["agreement"]
+    assert agree["frames"] >= 18
+    if raw["tracker_processed"] == png["tracker_processed"] == 20:  # no frame dropped: the same tracks
+        assert agree["identical_frames"] == 20 and agree["same_share"] == 1.0 and agree["median_px"] == 0.0
+    else:  # a dropped frame starts other tracks, but the frames before it agree
+        assert agree["same_share"] > 0.5
+    assert raw["tracker_processed"] >= 18
+    assert "klt/png" in format_live_table(res) and "same feat" in format_live_table(res)
+
+
+def test_feature_agreement_matches_by_position():
+    import numpy as np
+
+    from nsflow_ros.ros.bench_live import feature_agreement
+
+    a = {1: {0: np.array([10.0, 10.0]), 1: np.array([50.0, 20.0])}, 2: {0: np.array([1.0, 1.0])}}
+    b = {1: {7: np.array([50.0, 20.0]), 8: np.array([10.05, 10.0])}, 3: {0: np.array([1.0, 1.0])}}
+    out = feature_agreement(a, b)
+    assert out["frames"] == 1 and out["identical_frames"] == 0
+    assert out["same_share"] == 1.0 and abs(out["median_px"] - 0.025) < 1e-9
+    assert feature_agreement(a, a)["identical_frames"] == 2
+
+
 def test_bad_arguments_are_errors():
     with pytest.raises(NSFlowError, match="must be > 0"):
         run_live_benchmark(0.0, ["klt"])
+    with pytest.raises(NSFlowError, match="compress takes none, jpeg and png, got webp"):
+        run_live_benchmark(1.0, ["klt"], compress=("webp",))

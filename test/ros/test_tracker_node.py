@@ -19,9 +19,10 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import Image, PointCloud
+from sensor_msgs.msg import CompressedImage, Image, PointCloud
 from std_msgs.msg import Bool
 
+from nsflow_ros.data.images import encode_compressed
 from nsflow_ros.ros.image_conv import numpy_to_image_fields
 from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode
 from nsflow_ros.vins.errors import ConfigError
@@ -75,25 +76,41 @@ def image_msg(arr: np.ndarray, t: float, **changes) -> Image:
     return msg
 
 
-class Harness:
-    """One context, a tracker node, a publisher node and a receiver node on one executor."""
+def compressed_msg(arr: np.ndarray, t: float, codec: str = "png") -> CompressedImage:
+    """The CompressedImage image_transport's compressed plugin would publish for ``image_msg(arr, t)``."""
+    raw = image_msg(arr, t)
+    fmt, data = encode_compressed(arr, raw.encoding, codec)
+    msg = CompressedImage(header=raw.header, format=fmt)
+    msg.data = data
+    return msg
 
-    def __init__(self, config: Path, prefix: str, **params) -> None:
+
+class Harness:
+    """One context, a tracker node, a publisher node and a receiver node on one executor.
+
+    ``transport="compressed"`` publishes CompressedImage on ``<prefix>/cam<i>/compressed`` (or on
+    ``image_topics``) and sets the node's image_transport; ``ros_args`` go to the context (remaps).
+    """
+
+    def __init__(self, config: Path, prefix: str, *, transport: str = "raw",
+                 ros_args: list[str] | None = None, image_topics: list[str] | None = None, **params) -> None:
         self.ctx = Context()
-        rclpy.init(context=self.ctx)
+        rclpy.init(context=self.ctx, args=["test", "--ros-args", *ros_args] if ros_args else None)
         self.nodes = []
         self.executor = SingleThreadedExecutor(context=self.ctx)
         overrides = [Parameter("config_file", value=str(config)), Parameter("method", value="classical"),
                      Parameter("feature_topic", value=f"{prefix}/feature"),
                      Parameter("restart_topic", value=f"{prefix}/restart"),
                      Parameter("image_track_topic", value=f"{prefix}/image_track")]
+        if transport != "raw":
+            overrides.append(Parameter("image_transport", value=transport))
         overrides += [Parameter(k, value=v) for k, v in params.items()]
         self.tracker = TrackerNode(context=self.ctx, parameter_overrides=overrides)
         self.io = rclpy.create_node(f"io_{uuid.uuid4().hex[:8]}", context=self.ctx)
         self.nodes = [self.tracker, self.io]
-        self.pubs = [
-            self.io.create_publisher(Image, f"{prefix}/cam{i}", qos_profile_sensor_data) for i in (0, 1)
-        ]
+        kind, suffix = (Image, "") if transport == "raw" else (CompressedImage, "/compressed")
+        topics = image_topics or [f"{prefix}/cam{i}{suffix}" for i in (0, 1)]
+        self.pubs = [self.io.create_publisher(kind, t, qos_profile_sensor_data) for t in topics]
         self.clouds: list[PointCloud] = []
         self.restarts: list[bool] = []
         self.tracks: list[Image] = []
@@ -101,7 +118,7 @@ class Harness:
         self.io.create_subscription(
             Bool, f"{prefix}/restart", lambda m: self.restarts.append(m.data), FEATURE_QOS
         )
-        self.io.create_subscription(Image, f"{prefix}/image_track", self.tracks.append, 10)
+        self.track_sub = self.io.create_subscription(Image, f"{prefix}/image_track", self.tracks.append, 10)
         for node in self.nodes:
             self.executor.add_node(node)
         used = self.pubs[: len(self.tracker.config.image_topics)]
@@ -153,7 +170,7 @@ def _cloud_arrays(msg: PointCloud) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_mono_fusion_layout_end_to_end(tmp_path, prefix, pan):
-    h = Harness(write_config(tmp_path, prefix), prefix)
+    h = Harness(write_config(tmp_path, prefix), prefix, track_image_rate=0.0)
     try:
         for k in range(len(pan.frames)):
             h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
@@ -194,7 +211,7 @@ def test_mono_fusion_layout_end_to_end(tmp_path, prefix, pan):
 
 
 def test_stereo_pairs_by_stamp_and_orders_camera_0_first(tmp_path, prefix, pan):
-    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix)
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, track_image_rate=0.0)
     try:
         for k in range(len(pan.frames)):
             t = T0 + pan.stamps[k]
@@ -475,6 +492,7 @@ def test_declared_parameters_are_the_settings_table(tmp_path, prefix):
 
 AZURE = "AzureExecutionProvider"  # in the CPU build of onnxruntime; stands in for an accelerator here
 
+
 def test_providers_parameter_reaches_the_session_and_diagnostics(tmp_path, prefix, caplog):
     with caplog.at_level("WARNING", logger="nsflow_ros.core.encoder"):
         h = Harness(write_config(tmp_path, prefix), prefix, method="nsflow", num_threads=1,
@@ -506,5 +524,151 @@ def test_providers_parameter_reaches_the_session_and_diagnostics(tmp_path, prefi
         refused = h.tracker.set_parameters([Parameter("providers", value="gpu")])
         assert not refused[0].successful and "unknown execution provider 'gpu'" in refused[0].reason
         assert h.tracker.tracker.encoder.provider == AZURE
+    finally:
+        h.close()
+
+
+# -- on a robot: compressed images, stereo stamp tolerance, the debug image ---------------------------------
+
+
+def _run_stereo(h: Harness, pan: syn.Sequence, make, right_offset=lambda k: 0.0) -> list[PointCloud]:
+    for k in range(len(pan.frames)):
+        t = T0 + pan.stamps[k]
+        h.send(0, make(pan.frames[k], t), expect_cloud=False)
+        h.send(1, make(pan.right[k], t + right_offset(k)))
+    return h.clouds
+
+
+def test_png_compressed_input_gives_the_raw_features_and_corrupt_data_is_counted(tmp_path, prefix, pan):
+    config = write_config(tmp_path, prefix, stereo=True)
+    raw = Harness(config, prefix)
+    try:
+        want = [_cloud_arrays(m) for m in _run_stereo(raw, pan, image_msg)]
+    finally:
+        raw.close()
+    h = Harness(config, prefix, transport="compressed")
+    try:
+        names = [s.topic_name for s in h.tracker._subs]
+        assert names == [f"{prefix}/cam0/compressed", f"{prefix}/cam1/compressed"]
+        assert isinstance(h.tracker._subs[0].msg_type(), CompressedImage)
+        corrupt = compressed_msg(pan.frames[0], T0 - 1.0)
+        corrupt.data = bytes(corrupt.data)[:100]
+        h.send(0, corrupt, expect_cloud=False)
+        webp = compressed_msg(pan.frames[0], T0 - 0.5)
+        webp.format = "mono8; webp compressed mono8"
+        h.send(1, webp, expect_cloud=False)
+        got = [_cloud_arrays(m) for m in _run_stereo(h, pan, compressed_msg)]
+        assert len(got) == len(want) == len(pan.frames)
+        for (gp, gc), (wp, wc) in zip(got, want, strict=True):
+            np.testing.assert_array_equal(gp, wp)
+            np.testing.assert_array_equal(gc, wc)
+        stats = h.tracker.stats
+        assert stats.images_undecodable == 2
+        assert stats.bad["corrupt:png"] == 1 and stats.bad["format:webp"] == 1
+        assert stats.frames_processed == len(pan.frames)
+    finally:
+        h.close()
+
+
+def test_compressed_topics_follow_remaps_and_take_qos_overrides(tmp_path, prefix, pan):
+    from rclpy.qos import ReliabilityPolicy
+
+    left = f"{prefix}/left"
+    h = Harness(write_config(tmp_path, prefix), prefix, transport="compressed",
+                ros_args=["-r", f"{prefix}/cam0:={left}"], image_topics=[f"{left}/compressed"],
+                **{f"qos_overrides.{left}/compressed.subscription.reliability": "reliable"})
+    try:
+        sub = h.tracker._subs[0]
+        assert sub.topic_name == f"{left}/compressed"
+        assert sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+        for k in range(2):
+            h.send(0, compressed_msg(pan.frames[k], T0 + pan.stamps[k], codec="jpeg"))
+        assert len(h.clouds) == 2 and len(_cloud_arrays(h.clouds[-1])[0]) > 40
+    finally:
+        h.close()
+
+
+def test_image_transport_must_be_raw_or_compressed(tmp_path, prefix):
+    from nsflow_ros.ros.errors import ParameterError
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        with pytest.raises(ParameterError, match="got 'theora', expected one of raw, compressed"):
+            TrackerNode(context=ctx, parameter_overrides=[
+                Parameter("config_file", value=str(write_config(tmp_path, prefix))),
+                Parameter("image_transport", value="theora")])
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+def test_right_stamps_jittered_by_up_to_2_ms_pair_every_frame_with_the_left_stamp(tmp_path, prefix, pan):
+    jitter = np.random.default_rng(3).uniform(-0.002, 0.002, len(pan.frames))
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix)
+    try:
+        clouds = _run_stereo(h, pan, image_msg, lambda k: float(jitter[k]))
+        assert len(clouds) == len(pan.frames)
+        for k, msg in enumerate(clouds):
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            assert t == pytest.approx(T0 + pan.stamps[k], abs=1e-9)  # the left image's stamp
+            feats = decode_fusion(*_cloud_arrays(msg))
+            assert sum(len(v) == 2 for v in feats.values()) > 0.5 * len(feats)  # the right image was used
+        h.tracker.stop_worker()
+        assert h.tracker.stats.frames_processed == len(pan.frames) and h.tracker.stats.images_unpaired == 0
+    finally:
+        h.close()
+
+
+def test_right_stamps_5_ms_off_are_counted_unpaired_and_none_processed(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix)
+    try:
+        for k in range(len(pan.frames)):
+            t = T0 + pan.stamps[k]
+            h.send(0, image_msg(pan.frames[k], t), expect_cloud=False)
+            h.send(1, image_msg(pan.right[k], t + 0.005), expect_cloud=False)
+        assert h.spin_until(lambda: h.tracker.stats.images_received == 2 * len(pan.frames), 5.0)
+        assert not h.clouds and h.tracker.stats.frames_received == 0
+        h.tracker.stop_worker()  # the images still waiting for a partner are counted at the stop
+        assert h.tracker.stats.images_unpaired == 2 * len(pan.frames)
+        assert h.tracker.stats.frames_processed == 0
+    finally:
+        h.close()
+
+
+def test_stereo_sync_tolerance_changes_at_run_time(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, stereo_sync_tolerance=0.0)
+    try:
+        h.send(0, image_msg(pan.frames[0], T0), expect_cloud=False)
+        h.send(1, image_msg(pan.right[0], T0 + 0.001), expect_cloud=False)
+        assert not h.clouds
+        (res,) = _set_remote(h, stereo_sync_tolerance=0.002)
+        assert res.successful and h.tracker._pairer.tolerance == pytest.approx(0.002)
+        h.send(1, image_msg(pan.right[0], T0 + 0.0015))
+        (res,) = _set_remote(h, stereo_sync_tolerance=-1.0)
+        assert not res.successful and "stereo_sync_tolerance" in res.reason
+    finally:
+        h.close()
+
+
+def test_debug_image_only_while_watched_and_at_most_track_image_rate(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix), prefix, track_image_rate=0.2)  # one per 5 s
+    try:
+        for k in range(4):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+        assert h.spin_until(lambda: len(h.tracks) >= 1, 2.0)
+        h.spin_until(lambda: False, 0.2)
+        assert len(h.tracks) == 1 and h.tracker.track_images_published == 1
+        (res,) = _set_remote(h, track_image_rate=0.0)  # every frame
+        assert res.successful
+        h.send(0, image_msg(pan.frames[4], T0 + pan.stamps[4]))
+        assert h.spin_until(lambda: len(h.tracks) == 2, 2.0)
+        # nobody watching: not drawn, not published
+        h.io.destroy_subscription(h.track_sub)
+        assert h.spin_until(lambda: h.tracker._track_pub.get_subscription_count() == 0, 5.0)
+        drawn = []
+        h.tracker._publish_track = lambda *a: drawn.append(a)
+        for k in range(5, 8):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+        assert not drawn and h.tracker.counters()["track_images_published"] == 2
     finally:
         h.close()
