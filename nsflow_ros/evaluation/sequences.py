@@ -77,6 +77,7 @@ __all__ = [
     "epipolar_distances",
     "evaluate_sequences",
     "fundamental_inliers",
+    "learned_encoder",
     "load_source",
     "relative_rotation_error",
     "rotation_angle_deg",
@@ -631,6 +632,20 @@ def _verdict(runs: dict[str, dict[str, MethodRun]]) -> str:
     return "\n".join(lines)
 
 
+def learned_encoder(name: str, model: str | Path | None, threads: int | None) -> Encoder:
+    """The encoder of a method of :data:`LEARNED`, as the method registry loads it for that method.
+
+    Raises:
+        EvaluationError: the model cannot be loaded.
+    """
+    from nsflow_ros.core.methods import method_encoder
+
+    try:
+        return method_encoder(TRACKER_METHODS[name]["method"], model, threads)
+    except CoreError as err:
+        raise EvaluationError(str(err)) from err
+
+
 def load_source(ctx: EvalContext, setup: SequenceSetup) -> FrameSource:
     """The sample sequence of ``setup`` (made once under the cache folder) as a :class:`FrameSource`.
 
@@ -695,12 +710,7 @@ def run(ctx: EvalContext) -> Section:
         if m.name in (*LEARNED, CLASSICAL) and isinstance(enc, Encoder):
             encoders[m.name] = enc  # reuse the run's loaded model instead of opening it again
     for name in (n for n in LEARNED if n in methods and n not in encoders):
-        from nsflow_ros.core.methods import method_encoder
-
-        try:
-            encoders[name] = method_encoder(TRACKER_METHODS[name]["method"], ctx.model, ctx.threads)
-        except CoreError as err:
-            raise EvaluationError(str(err)) from err
+        encoders[name] = learned_encoder(name, ctx.model, ctx.threads)
     settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads)
     source = load_source(ctx, setup)
     runs = evaluate_sequences(
