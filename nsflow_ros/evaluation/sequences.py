@@ -642,7 +642,7 @@ def _verdict(runs: dict[str, dict[str, MethodRun]]) -> str:
     return "\n".join(lines)
 
 
-def learned_encoder(name: str, model: str | Path | None, threads: int | None) -> Encoder:
+def learned_encoder(name: str, model: str | Path | None, threads: int | None) -> Encoder | None:
     """The encoder of a method of :data:`LEARNED`, as the method registry loads it for that method.
 
     Raises:
