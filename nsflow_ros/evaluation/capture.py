@@ -49,8 +49,8 @@ from nsflow_ros.evaluation.pairs import (
     render_pair,
     true_flow,
 )
-from nsflow_ros.evaluation.section import Section
-from nsflow_ros.evaluation.targets import Clause, Target
+from nsflow_ros.evaluation.section import HeadlineRow, Section, config_data, quick_note
+from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = [
     "BIN_EDGES",
@@ -332,6 +332,17 @@ def _plot(bins: dict, names: list[str], fewer_set: tuple[int, ...], path: Path) 
     save_figure(fig, path)
 
 
+@dataclass(frozen=True)
+class _Shares:
+    """Each method's share within 1 px per (source, condition, levels fewer), per bin, pooled over sources."""
+
+    names: list[str]
+    fewer_set: tuple[int, ...]
+    share: dict[tuple[str, str, int], dict[str, float]]
+    bins: dict[tuple[str, str, int], dict[str, list[float]]]
+    pooled: dict[tuple[str, int], dict[str, float]]
+
+
 def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
     """The ``capture`` section: share within 1 px from zero flow per method, source, condition, depth.
 
@@ -350,10 +361,37 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
     cfg = cfg or (CaptureConfig.quick() if ctx.quick else CaptureConfig())
     if not ctx.methods:
         raise EvaluationError("capture needs at least one method")
+    pairs = photo_pairs(cfg, ctx.seed) + stereo_pairs(load_stereo_sequence(ctx, cfg), cfg, ctx.seed)
+    shares, displacement = _measure(ctx, pairs)
+    fig_path = ctx.out_dir / f"{KEY}.png"
+    _plot(shares.bins, shares.names, shares.fewer_set, fig_path)
+    clean = [p for p in pairs if p.condition == "none"]  # the lit copies share geometry and points
+    points = {s: sum(len(p.points) for p in clean if p.source == s) for s in SOURCES}
+    n_pairs = {s: sum(1 for p in clean if p.source == s) for s in SOURCES}
+    stereo_d = np.concatenate([np.zeros(0), *displacement[(SOURCES[1], "none")]])
+    stereo_d = stereo_d if stereo_d.size else np.full(1, np.nan)
+    md = "\n".join([_method_text(ctx, cfg, n_pairs, points, stereo_d, shares.fewer_set),
+                    *_tables(ctx, shares, fig_path.name)])  # fmt: skip
+    data = {
+        "config": config_data(cfg),
+        "levels": {m.name: m.levels for m in ctx.methods},
+        "pairs": n_pairs,
+        "points": points,
+        "bin_edges_px": list(BIN_EDGES),
+        **_share_data(shares),
+        "stereo_disparity_px": {
+            "min": float(np.min(stereo_d)), "median": float(np.median(stereo_d)),
+            "max": float(np.max(stereo_d)),
+        },
+    }  # fmt: skip
+    return Section(KEY, "Capture from zero flow (photo shifts and EuRoC-baseline stereo)", md,
+                   [fig_path], _headline(ctx, shares), data)  # fmt: skip
+
+
+def _measure(ctx: EvalContext, pairs: list[CapturePair]) -> tuple[_Shares, dict[tuple[str, str], list]]:
+    """Every method on every pair at each depth: the shares, and the true displacements per source, light."""
     names = [m.name for m in ctx.methods]
     fewer_set = (0, 1) if min(m.levels for m in ctx.methods) > 1 else (0,)
-    pairs = photo_pairs(cfg, ctx.seed) + stereo_pairs(load_stereo_sequence(ctx, cfg), cfg, ctx.seed)
-
     errors: dict[tuple[str, str, int], dict[str, list[np.ndarray]]] = {}
     displacement: dict[tuple[str, str], list[np.ndarray]] = {}
     for pair in ctx.bar(pairs, desc=KEY, unit="pair"):
@@ -362,7 +400,6 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
             per = errors.setdefault((pair.source, pair.condition, f), {n: [] for n in names})
             for n, e in capture_errors(ctx.methods, pair, f).items():
                 per[n].append(e)
-
     share = {key: {n: _share(v) for n, v in per.items()} for key, per in errors.items()}
     bins = {
         key: {n: _bin_shares(v, displacement[key[:2]]) for n, v in per.items()} for key, per in errors.items()
@@ -372,16 +409,13 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
         for cond in CONDITIONS
         for f in fewer_set
     }
-    fig_path = ctx.out_dir / f"{KEY}.png"
-    _plot(bins, names, fewer_set, fig_path)
+    return _Shares(names, fewer_set, share, bins, pooled), displacement
 
-    depth, fewer_depth = levels_text(ctx.methods), levels_text(ctx.methods, 1)
-    clean = [p for p in pairs if p.condition == "none"]  # the lit copies share geometry and points
-    points = {s: sum(len(p.points) for p in clean if p.source == s) for s in SOURCES}
-    n_pairs = {s: sum(1 for p in clean if p.source == s) for s in SOURCES}
-    disp = {s: np.concatenate([np.zeros(0), *displacement[(s, "none")]]) for s in SOURCES}
-    stereo_d = disp[SOURCES[1]] if disp[SOURCES[1]].size else np.full(1, np.nan)
-    lines = [
+
+def _method_text(ctx: EvalContext, cfg: CaptureConfig, n_pairs: dict[str, int], points: dict[str, int],
+                 stereo_d: np.ndarray, fewer_set: tuple[int, ...]) -> str:  # fmt: skip
+    """The paragraph saying what was run."""
+    return (
         f"Tracked from zero flow. Photo shifts: {n_pairs[SOURCES[0]]} pairs of {cfg.width}x{cfg.height} px "
         f"from the held-out photos ({', '.join(cfg.photos)}) moved by "
         f"{', '.join(f'{d:g}' for d in cfg.displacements)} px in random directions, {points[SOURCES[0]]} "
@@ -389,20 +423,22 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
         f"{cfg.sequence_seed}) through EuRoC's cameras, {points[SOURCES[1]]} keypoints seen by both, "
         f"disparities {np.min(stereo_d):.1f}-{np.max(stereo_d):.1f} px "
         f"(median {np.median(stereo_d):.1f}). Each pair once without and once with a full-strength "
-        f"lighting change of both frames. Every method at {depth} (the tracker's deployed depth)"
-        + (f" and at {fewer_depth} (one fewer)" if 1 in fewer_set else "")
-        + ". Share of keypoints within 1 px of the truth (a lost point is not)."
-        + (" **Quick mode: tiny sizes, figures not meaningful.**" if ctx.quick else ""),
-        "",
-        "| source | condition | levels | " + " | ".join(names) + " |",
-        "|---|---|---|" + "---|" * len(names),
-    ]
-    for s in SOURCES:
-        for cond in CONDITIONS:
-            for f in fewer_set:
-                tag = depth if f == 0 else f"{fewer_depth} (one fewer)"
-                cells = " | ".join(f"{100 * share[(s, cond, f)][n]:.1f} %" for n in names)
-                lines.append(f"| {s} | {cond} | {tag} | {cells} |")
+        f"lighting change of both frames. Every method at {levels_text(ctx.methods)} (the tracker's deployed "
+        "depth)" + (f" and at {levels_text(ctx.methods, 1)} (one fewer)" if 1 in fewer_set else "")
+        + ". Share of keypoints within 1 px of the truth (a lost point is not)." + quick_note(ctx.quick)
+    )
+
+
+def _tables(ctx: EvalContext, sh: _Shares, figure: str) -> list[str]:
+    """The share tables (per source, condition and depth; then per displacement bin too) and the figure."""
+    depth, fewer_depth, names = levels_text(ctx.methods), levels_text(ctx.methods, 1), sh.names
+    keys = [(s, cond, f) for s in SOURCES for cond in CONDITIONS for f in sh.fewer_set]
+    lines = ["", "| source | condition | levels | " + " | ".join(names) + " |",
+             "|---|---|---|" + "---|" * len(names)]  # fmt: skip
+    for s, cond, f in keys:
+        tag = depth if f == 0 else f"{fewer_depth} (one fewer)"
+        cells = " | ".join(f"{100 * sh.share[(s, cond, f)][n]:.1f} %" for n in names)
+        lines.append(f"| {s} | {cond} | {tag} | {cells} |")
     lines += [
         "",
         "Share within 1 px per true displacement (5 px bins; `-`: no keypoint in the bin):",
@@ -410,54 +446,38 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
         "| source | condition | levels | method | " + " | ".join(f"{c:g} px" for c in _centres()) + " |",
         "|---|---|---|---|" + "---|" * len(_centres()),
     ]
-    for s in SOURCES:
-        for cond in CONDITIONS:
-            for f in fewer_set:
-                for n in names:
-                    vals = bins[(s, cond, f)][n]
-                    cells = " | ".join("-" if np.isnan(v) else f"{100 * v:.0f} %" for v in vals)
-                    tag = "deployed" if f == 0 else "one fewer"
-                    lines.append(f"| {s} | {cond} | {tag} | {n} | {cells} |")
-    lines += ["", f"![capture from zero flow]({fig_path.name})", ""]
+    for s, cond, f in keys:
+        for n in names:
+            cells = " | ".join("-" if np.isnan(v) else f"{100 * v:.0f} %" for v in sh.bins[(s, cond, f)][n])
+            lines.append(f"| {s} | {cond} | {'deployed' if f == 0 else 'one fewer'} | {n} | {cells} |")
+    return [*lines, "", f"![capture from zero flow]({figure})", ""]
 
-    headline = []
-    for s in SOURCES:
-        for cond in CONDITIONS:
-            sh = share[(s, cond, 0)]
-            headline.append(TARGETS[cond].row(
-                f"capture from zero flow, {s}, share < 1 px, {condition_label(cond)} ({depth})",
-                {n: f"{100 * v:.1f}%" for n, v in sh.items()}, sh,
-            ))  # fmt: skip
-    if 1 in fewer_set:
-        for cond in CONDITIONS:
-            vals = {n: f"{100 * v:.1f}%" for n, v in pooled[(cond, 1)].items()}
-            figures = {NSFLOW: pooled[(cond, 1)].get(NSFLOW), KLT: pooled[(cond, 0)].get(KLT)}
-            headline.append(stretch_target(depth, pooled[(cond, 0)].get(KLT, np.nan)).row(
-                f"capture from zero flow, both sources, share < 1 px, {condition_label(cond)}, "
-                f"one level fewer ({fewer_depth})",
-                vals, figures,
-            ))  # fmt: skip
-    data = {
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-        "levels": {m.name: m.levels for m in ctx.methods},
-        "pairs": n_pairs,
-        "points": points,
-        "bin_edges_px": list(BIN_EDGES),
-        "share_within_1px": [
-            {"source": s, "condition": c, "levels_fewer": f, **share[(s, c, f)]}
-            for s in SOURCES for c in CONDITIONS for f in fewer_set
-        ],
-        "share_within_1px_by_displacement": [
-            {"source": s, "condition": c, "levels_fewer": f, **bins[(s, c, f)]}
-            for s in SOURCES for c in CONDITIONS for f in fewer_set
-        ],
-        "pooled_within_1px": [
-            {"condition": c, "levels_fewer": f, **pooled[(c, f)]} for c in CONDITIONS for f in fewer_set
-        ],
-        "stereo_disparity_px": {
-            "min": float(np.min(stereo_d)), "median": float(np.median(stereo_d)),
-            "max": float(np.max(stereo_d)),
-        },
-    }  # fmt: skip
-    return Section(KEY, "Capture from zero flow (photo shifts and EuRoC-baseline stereo)", "\n".join(lines),
-                   [fig_path], headline, data)  # fmt: skip
+
+def _headline(ctx: EvalContext, sh: _Shares) -> list[HeadlineRow]:
+    """Each source's share at the deployed depth against :data:`TARGETS`, then the stretch goal per light."""
+    depth, fewer_depth, pct = levels_text(ctx.methods), levels_text(ctx.methods, 1), "{:.1%}".format
+    rows = [
+        headline_row(f"capture from zero flow, {s}, share < 1 px, {condition_label(cond)} ({depth})",
+                     sh.share[(s, cond, 0)], pct, TARGETS[cond])
+        for s in SOURCES for cond in CONDITIONS
+    ]  # fmt: skip
+    for cond in CONDITIONS if 1 in sh.fewer_set else ():
+        deployed, fewer = sh.pooled[(cond, 0)], sh.pooled[(cond, 1)]
+        rows.append(stretch_target(depth, deployed.get(KLT, np.nan)).row(
+            f"capture from zero flow, both sources, share < 1 px, {condition_label(cond)}, "
+            f"one level fewer ({fewer_depth})",
+            {n: pct(v) for n, v in fewer.items()}, {NSFLOW: fewer.get(NSFLOW), KLT: deployed.get(KLT)},
+        ))  # fmt: skip
+    return rows
+
+
+def _share_data(sh: _Shares) -> dict[str, list[dict]]:
+    """The shares as the section's JSON data."""
+    keys = [(s, c, f) for s in SOURCES for c in CONDITIONS for f in sh.fewer_set]
+
+    def rows(table: dict) -> list[dict]:
+        return [{"source": s, "condition": c, "levels_fewer": f, **table[(s, c, f)]} for s, c, f in keys]
+
+    return {"share_within_1px": rows(sh.share), "share_within_1px_by_displacement": rows(sh.bins),
+            "pooled_within_1px": [{"condition": c, "levels_fewer": f, **sh.pooled[(c, f)]}
+                                  for c in CONDITIONS for f in sh.fewer_set]}  # fmt: skip

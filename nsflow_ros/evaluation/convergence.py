@@ -52,8 +52,8 @@ from nsflow_ros.evaluation.pairs import (
     render_pair,
     true_flow,
 )
-from nsflow_ros.evaluation.section import Section
-from nsflow_ros.evaluation.targets import Clause, Target
+from nsflow_ros.evaluation.section import Section, config_data, quick_note
+from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = ["TARGETS", "ConvergenceConfig", "capture_range", "convergence_curves", "prepare_pair", "run"]
 
@@ -282,6 +282,39 @@ def run(ctx: EvalContext, cfg: ConvergenceConfig | None = None) -> Section:
     cfg = cfg or (ConvergenceConfig.quick() if ctx.quick else ConvergenceConfig())
     names = [m.name for m in ctx.methods]
     items = _pairs(cfg, ctx.seed)
+    curves, finals, basin = _measure(ctx, cfg, items, names)
+    mean = {c: {n: np.hstack(curves[c][n]).mean(axis=1) for n in names} for c in CONDITIONS}
+    median = {c: {n: np.median(np.hstack(curves[c][n]), axis=1) for n in names} for c in CONDITIONS}
+    final = {c: {n: np.concatenate(finals[c][n]) for n in names} for c in CONDITIONS}
+    npts = {c: len(final[c][names[0]]) if names else 0 for c in CONDITIONS}
+    within1 = {key: {n: float(np.mean(np.concatenate(v) < 1.0)) for n, v in per.items()}
+               for key, per in sorted(basin.items(), key=_basin_order)}  # fmt: skip
+    fig_path = ctx.out_dir / "convergence.png"
+    _plot(mean, median, names, cfg, fig_path)
+    md = _markdown(ctx, cfg, len(items), npts, mean, final, within1, fig_path.name)
+    k5 = min(5, cfg.iterations)
+    headline = [
+        headline_row(f"convergence: mean error after {k5} iterations, one level, {condition_label(c)} (px)",
+                     {n: mean[c][n][k5] for n in names}, "{:.3f}".format, target)
+        for c, target in TARGETS.items()
+    ]  # fmt: skip
+    data = {
+        "config": config_data(cfg),
+        "mean_clipped": {c: {n: mean[c][n].tolist() for n in names} for c in CONDITIONS},
+        "median": {c: {n: median[c][n].tolist() for n in names} for c in CONDITIONS},
+        "final_tracked": {c: {n: float(np.mean(np.isfinite(e))) for n, e in per.items()}
+                          for c, per in final.items()},
+        "points": npts,
+        "capture_within_1px": [{"condition": c, "levels": lev, "initial_error_px": err, **per}
+                               for (c, lev, err), per in within1.items()],
+    }  # fmt: skip
+    return Section("convergence", "Convergence from a 5 px initial error", md, [fig_path], headline, data)
+
+
+def _measure(
+    ctx: EvalContext, cfg: ConvergenceConfig, items: list, names: list[str]
+) -> tuple[dict, dict, dict[tuple[str, int, float], dict[str, list[np.ndarray]]]]:
+    """Every method's curves and final errors per condition, and the capture range per depth and error."""
     curves: dict[str, dict[str, list[np.ndarray]]] = {c: {n: [] for n in names} for c in CONDITIONS}
     finals: dict[str, dict[str, list[np.ndarray]]] = {c: {n: [] for n in names} for c in CONDITIONS}
     # the curves' single level, each method's deployed depth and one level fewer (the basin per level)
@@ -305,31 +338,24 @@ def run(ctx: EvalContext, cfg: ConvergenceConfig | None = None) -> Section:
             for err, per in basins.items():
                 for n, e in per.items():
                     basin.setdefault((cond, lev, err), {}).setdefault(n, []).append(e)
-    within1 = {
-        key: {n: float(np.mean(np.concatenate(v) < 1.0)) for n, v in per.items()}
-        for key, per in basin.items()
-    }
-    mean = {c: {n: np.hstack(curves[c][n]).mean(axis=1) for n in names} for c in CONDITIONS}
-    median = {c: {n: np.median(np.hstack(curves[c][n]), axis=1) for n in names} for c in CONDITIONS}
-    final = {c: {n: np.concatenate(finals[c][n]) for n in names} for c in CONDITIONS}
-    fig_path = ctx.out_dir / "convergence.png"
-    _plot(mean, median, names, cfg, fig_path)
+    return curves, finals, basin
 
+
+def _markdown(ctx: EvalContext, cfg: ConvergenceConfig, n_pairs: int, npts: dict[str, int], mean: dict,
+              final: dict, within1: dict[tuple, dict[str, float]], figure: str) -> str:  # fmt: skip
+    """The section's text: what was run, the curves' table, the figure, the capture-range table."""
+    names = [m.name for m in ctx.methods]
     at = [k for k in REPORT_AT if k <= cfg.iterations]
-    npts = {c: len(final[c][names[0]]) if names else 0 for c in CONDITIONS}
     lines = [
-        f"{len(items)} pairs of {cfg.width}x{cfg.height} px from the held-out photos "
+        f"{n_pairs} pairs of {cfg.width}x{cfg.height} px from the held-out photos "
         f"({', '.join(cfg.photos)}, a mild homography, without / with illumination perturbation), "
         f"up to {cfg.max_points} GFTT keypoints "
         f"({npts['none']} / {npts['light']} in all), initial flow off by {cfg.init_error:g} px, "
         f"{cfg.levels} pyramid level(s), {cfg.iterations} iterations. LM methods: the solver's recorded "
         "history; OpenCV LK methods: re-run with max_iterations = k. Mean of min(error, "
-        f"{cfg.ceiling:g} px) after k iterations:"
-        + (" **Quick mode: tiny sizes, figures not meaningful.**" if ctx.quick else ""),
+        f"{cfg.ceiling:g} px) after k iterations:" + quick_note(ctx.quick),
         "",
-        "| condition | method | "
-        + " | ".join(f"k={k}" for k in at)
-        + " | final median (px) | final tracked |",
+        f"| condition | method | {' | '.join(f'k={k}' for k in at)} | final median (px) | final tracked |",
         "|---|---|" + "---|" * (len(at) + 2),
     ]
     for c in CONDITIONS:
@@ -337,48 +363,18 @@ def run(ctx: EvalContext, cfg: ConvergenceConfig | None = None) -> Section:
             e = final[c][n]
             med = float(np.median(e)) if e.size else float("nan")
             tracked = float(np.mean(np.isfinite(e))) if e.size else float("nan")
-            lines.append(
-                f"| {c} | {n} | "
-                + " | ".join(f"{mean[c][n][k]:.3f}" for k in at)
-                + f" | {med:.3f} | {tracked:.1%} |"
-            )
+            ks = " | ".join(f"{mean[c][n][k]:.3f}" for k in at)
+            lines.append(f"| {c} | {n} | {ks} | {med:.3f} | {tracked:.1%} |")
     lines += [
-        "",
-        f"![convergence]({fig_path.name})",
-        "",
+        "", f"![convergence]({figure})", "",
         "Capture range: share of keypoints ending within 1 px of the truth (lost = not), from initial "
         "errors of several lengths (same directions), at the single level of the curves, at the deployed "
         "levels and at one level fewer:",
         "",
         "| condition | levels | initial error (px) | " + " | ".join(names) + " |",
         "|---|---|---|" + "---|" * len(names),
-    ]
-    for (c, lev, err), per in sorted(within1.items(), key=_basin_order):
+    ]  # fmt: skip
+    for (c, lev, err), per in within1.items():
         cells = [f"{per[n]:.1%}" if n in per else "-" for n in names]
         lines.append(f"| {c} | {lev} | {err:g} | " + " | ".join(cells) + " |")
-    lines.append("")
-
-    k5 = min(5, cfg.iterations)
-    headline = []
-    for c in CONDITIONS:
-        at_k5 = {n: mean[c][n][k5] for n in names}
-        headline.append(TARGETS[c].row(
-            f"convergence: mean error after {k5} iterations, one level, {condition_label(c)} (px)",
-            {n: f"{v:.3f}" for n, v in at_k5.items()}, at_k5,
-        ))  # fmt: skip
-    data = {
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-        "mean_clipped": {c: {n: mean[c][n].tolist() for n in names} for c in CONDITIONS},
-        "median": {c: {n: median[c][n].tolist() for n in names} for c in CONDITIONS},
-        "final_tracked": {
-            c: {n: float(np.mean(np.isfinite(final[c][n]))) for n in names} for c in CONDITIONS
-        },
-        "points": npts,
-        "capture_within_1px": [
-            {"condition": c, "levels": lev, "initial_error_px": err, **per}
-            for (c, lev, err), per in sorted(within1.items(), key=_basin_order)
-        ],
-    }
-    return Section(
-        "convergence", "Convergence from a 5 px initial error", "\n".join(lines), [fig_path], headline, data
-    )
+    return "\n".join([*lines, ""])

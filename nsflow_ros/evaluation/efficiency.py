@@ -33,6 +33,7 @@ from nsflow_ros.evaluation.context import EvalContext, axis_label, new_figure, s
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW
 from nsflow_ros.evaluation.section import HeadlineRow, Section
+from nsflow_ros.evaluation.targets import headline_row
 from nsflow_ros.evaluation.timing import time_encoder, timing_stats
 
 __all__ = [
@@ -247,106 +248,43 @@ def run(ctx: EvalContext) -> Section:
     Raises:
         EvaluationError: no ONNX model, no onnx package, or a run that fails.
     """
-    from nsflow_ros.core.encoder import load_encoder
-    from nsflow_ros.core.methods import method_encoder
     from nsflow_ros.evaluation import sequences
 
     opts = dict(ctx.extra.get(KEY, {}))
     repeats = int(opts.get("repeats", 3 if ctx.quick else 50))
     warmup = 1 if ctx.quick else 5
     n_frames = int(opts.get("frames", 0 if ctx.quick else 40))  # 0: the whole (quick) sequence
-
-    # NSFlow's encoder: the run's loaded model, or loaded here
-    encoder: Encoder | None = next(
-        (getattr(m, "encoder", None) for m in ctx.methods if m.name == NSFLOW), None
-    )
-    if encoder is None:
-        try:
-            encoder = load_encoder(ctx.model, threads=ctx.threads, providers=ctx.providers)
-        except CoreError as err:
-            raise EvaluationError(str(err)) from err
+    encoder = _nsflow_encoder(ctx)
     model_path = Path(encoder.path)  # type: ignore[attr-defined]
     counts = {f"{w}x{h}": onnx_complexity(model_path, w, h) for w, h in SIZES}
-
-    encoders: dict[str, Encoder] = {NSFLOW: encoder, "intensity": IntensityEncoder()}
-    enc_times: dict[str, dict[str, dict[str, float]]] = {name: {} for name in encoders}
-    jobs = [(name, size) for size in SIZES for name in encoders]
-    for name, (w, h) in ctx.bar(jobs, desc="efficiency: encoders", unit="size"):
-        try:
-            enc_times[name][f"{w}x{h}"] = time_encoder(encoders[name], (w, h), repeats, warmup)
-        except CoreError as err:
-            raise EvaluationError(f"{name} encoder at {w}x{h}: {err}") from err
-
+    enc_times = _time_encoders(ctx, {NSFLOW: encoder, "intensity": IntensityEncoder()}, repeats, warmup)
     setup = sequences.QUICK if ctx.quick else sequences.FULL
     source = sequences.load_source(ctx, setup)
     count = len(source) if n_frames <= 0 else min(n_frames, len(source))
-    frames = [source.image(i) for i in range(count)]
-    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
-                               providers=ctx.providers)
-    kinds = sequences.TRACKER_METHODS
-    tracker_times: dict[str, dict[str, dict[str, float]]] = {}
-    for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
-        enc: Encoder | None = None
-        if name == NSFLOW:
-            enc = encoder
-        elif name in sequences.LEARNED:  # the same model, as the registry loads it for that method
-            try:
-                enc = method_encoder(kinds[name]["method"], str(model_path), ctx.threads, ctx.providers)
-            except CoreError as err:
-                raise EvaluationError(str(err)) from err
-        per = settings.with_overrides(kinds[name])
-        tracker_times[name] = time_tracker(frames, source.camera, per.method, settings=per, encoder=enc)
-
-    out = Path(ctx.out_dir)
-    fig = _figure(enc_times, tracker_times, source.size, out / f"{KEY}_times.png")
-    c320 = counts["320x240"]
+    tracker_times = _time_trackers(ctx, source, count, setup, encoder, model_path)
+    fig = _figure(enc_times, tracker_times, source.size, Path(ctx.out_dir) / f"{KEY}_times.png")
     size_txt = f"{source.size[0]}x{source.size[1]}"
-
-    def ms(st: dict[str, float]) -> str:
-        return f"{st['median_ms']:.2f} / {st['p90_ms']:.2f}"
-
-    rows = [
-        "| encoder | parameters | GFLOPs 320x240 | GFLOPs 752x480 | CPU ms 320x240 (median / p90) "
-        "| CPU ms 752x480 (median / p90) |",
-        "|---|---|---|---|---|---|",
-        f"| NSFlow ({encoder.name}, d={encoder.channels}) | {c320.parameters:,} | {c320.flops / 1e9:.3f} "
-        f"| {counts['752x480'].flops / 1e9:.3f} | {ms(enc_times[NSFLOW]['320x240'])} "
-        f"| {ms(enc_times[NSFLOW]['752x480'])} |",
-        f"| intensity (classical baseline) | 0 | 0 | 0 | {ms(enc_times['intensity']['320x240'])} "
-        f"| {ms(enc_times['intensity']['752x480'])} |",
-        f"| paper, Table II (RGB, d=3, their CPU) | {PAPER_TABLE_II['parameters']:,} "
-        f"| {PAPER_TABLE_II['gflops']} | - | {PAPER_TABLE_II['cpu_ms_320x240']} | - |",
-    ]
-    trows = [
-        "| method | encode ms | track + flow-back ms | detect ms | total ms (median / p90; the rest is gray "
-        "conversion, undistortion, mask) |",
-        "|---|---|---|---|---|",
-    ]
-    for name, st in tracker_times.items():
-        trows.append(
-            f"| {name} | {st['encode']['median_ms']:.2f} | {st['track']['median_ms']:.2f} "
-            f"| {st['detect']['median_ms']:.2f} | {ms(st['total'])} |"
-        )
     threads = "all usable cores" if ctx.threads is None else str(ctx.threads)
     quick = " Quick mode: few runs on tiny frames, the times are not meaningful." if ctx.quick else ""
     md = "\n\n".join([
         f"Encoder `{model_path.name}`; FLOPs = 2 x multiply-adds of the Conv/Gemm/MatMul nodes, counted from "
         "the ONNX graph (biases, activations and padding not counted); parameters = elements of their "
         f"initializers. Times: {repeats} runs after {warmup} warm-up, threads {threads}.{quick}",
-        "\n".join(rows),
+        _encoder_table(encoder, counts, enc_times),
         f"Whole `FeatureTracker` per frame on {count - 1} frames of the sample sequence ({size_txt}, max_cnt "
         f"{setup.max_cnt}, flow-back on; first frame left out), every stage timed inside the tracker:",
-        "\n".join(trows),
+        _tracker_table(tracker_times),
         f"![efficiency]({fig.name})",
     ])
+    c320 = counts["320x240"]
     headline = [
         HeadlineRow("encoder parameters / GFLOPs at 320x240",
                     {NSFLOW: f"{c320.parameters:,} / {c320.flops / 1e9:.3f}"}),
         HeadlineRow("encoder CPU ms at 320x240 (median)",
                     {NSFLOW: f"{enc_times[NSFLOW]['320x240']['median_ms']:.2f}",
                      CLASSICAL: f"{enc_times['intensity']['320x240']['median_ms']:.2f}"}),
-        HeadlineRow(f"whole tracker ms per frame at {size_txt} (median)",
-                    {name: f"{st['total']['median_ms']:.1f}" for name, st in tracker_times.items()}),
+        headline_row(f"whole tracker ms per frame at {size_txt} (median)",
+                     {name: st["total"]["median_ms"] for name, st in tracker_times.items()}, "{:.1f}".format),
     ]
     data = {
         "model": str(model_path),
@@ -359,3 +297,86 @@ def run(ctx: EvalContext) -> Section:
         "paper_table_ii": PAPER_TABLE_II,
     }
     return Section(KEY, "Inference efficiency (Table II) and per-frame time", md, [fig], headline, data)
+
+
+def _nsflow_encoder(ctx: EvalContext) -> Encoder:
+    """NSFlow's encoder: the run's loaded model, or loaded here."""
+    from nsflow_ros.core.encoder import load_encoder
+
+    found = (getattr(m, "encoder", None) for m in ctx.methods if m.name == NSFLOW)
+    encoder: Encoder | None = next(found, None)
+    if encoder is not None:
+        return encoder
+    try:
+        return load_encoder(ctx.model, threads=ctx.threads, providers=ctx.providers)
+    except CoreError as err:
+        raise EvaluationError(str(err)) from err
+
+
+def _time_encoders(ctx: EvalContext, encoders: dict[str, Encoder], repeats: int,
+                   warmup: int) -> dict[str, dict[str, dict[str, float]]]:  # fmt: skip
+    """Each encoder's time per size: name -> "WxH" -> median / p90 ms."""
+    enc_times: dict[str, dict[str, dict[str, float]]] = {name: {} for name in encoders}
+    jobs = [(name, size) for size in SIZES for name in encoders]
+    for name, (w, h) in ctx.bar(jobs, desc="efficiency: encoders", unit="size"):
+        try:
+            enc_times[name][f"{w}x{h}"] = time_encoder(encoders[name], (w, h), repeats, warmup)
+        except CoreError as err:
+            raise EvaluationError(f"{name} encoder at {w}x{h}: {err}") from err
+    return enc_times
+
+
+def _time_trackers(ctx: EvalContext, source: Any, count: int, setup: Any, encoder: Encoder,
+                   model_path: Path) -> dict[str, dict[str, dict[str, float]]]:  # fmt: skip
+    """The whole tracker's stage times on the first ``count`` frames, per method of the sequences analysis."""
+    from nsflow_ros.evaluation import sequences
+
+    frames = [source.image(i) for i in range(count)]
+    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
+                               providers=ctx.providers)
+    kinds = sequences.TRACKER_METHODS
+    tracker_times: dict[str, dict[str, dict[str, float]]] = {}
+    for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
+        enc: Encoder | None = None
+        if name == NSFLOW:
+            enc = encoder
+        elif name in sequences.LEARNED:  # the same model, as the registry loads it for that method
+            enc = sequences.learned_encoder(name, str(model_path), ctx.threads, ctx.providers)
+        per = settings.with_overrides(kinds[name])
+        tracker_times[name] = time_tracker(frames, source.camera, per.method, settings=per, encoder=enc)
+    return tracker_times
+
+
+def _ms(st: dict[str, float]) -> str:
+    """Median / p90 ms as a table cell."""
+    return f"{st['median_ms']:.2f} / {st['p90_ms']:.2f}"
+
+
+def _encoder_table(encoder: Encoder, counts: dict[str, ModelComplexity], enc_times: dict) -> str:
+    """Table II: NSFlow's and the intensity encoder's size, cost and time, with the paper's row."""
+    c320 = counts["320x240"]
+    return "\n".join([
+        "| encoder | parameters | GFLOPs 320x240 | GFLOPs 752x480 | CPU ms 320x240 (median / p90) "
+        "| CPU ms 752x480 (median / p90) |",
+        "|---|---|---|---|---|---|",
+        f"| NSFlow ({encoder.name}, d={encoder.channels}) | {c320.parameters:,} | {c320.flops / 1e9:.3f} "
+        f"| {counts['752x480'].flops / 1e9:.3f} | {_ms(enc_times[NSFLOW]['320x240'])} "
+        f"| {_ms(enc_times[NSFLOW]['752x480'])} |",
+        f"| intensity (classical baseline) | 0 | 0 | 0 | {_ms(enc_times['intensity']['320x240'])} "
+        f"| {_ms(enc_times['intensity']['752x480'])} |",
+        f"| paper, Table II (RGB, d=3, their CPU) | {PAPER_TABLE_II['parameters']:,} "
+        f"| {PAPER_TABLE_II['gflops']} | - | {PAPER_TABLE_II['cpu_ms_320x240']} | - |",
+    ])
+
+
+def _tracker_table(tracker_times: dict[str, dict[str, dict[str, float]]]) -> str:
+    """Each method's median time per tracker stage."""
+    rows = [
+        "| method | encode ms | track + flow-back ms | detect ms | total ms (median / p90; the rest is gray "
+        "conversion, undistortion, mask) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, st in tracker_times.items():
+        rows.append(f"| {name} | {st['encode']['median_ms']:.2f} | {st['track']['median_ms']:.2f} "
+                    f"| {st['detect']['median_ms']:.2f} | {_ms(st['total'])} |")  # fmt: skip
+    return "\n".join(rows)

@@ -36,11 +36,11 @@ from nsflow_ros.core.errors import CoreError
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
-from nsflow_ros.evaluation.context import EvalContext, axis_label, new_figure, save_figure
+from nsflow_ros.evaluation.context import EvalContext, axis_label, levels_text, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, KLT, KLT_CLAHE, PairMethod, PairResult
-from nsflow_ros.evaluation.section import Section
-from nsflow_ros.evaluation.targets import Clause, Target
+from nsflow_ros.evaluation.section import HeadlineRow, Section, config_data, quick_note
+from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = [
     "SUBSETS",
@@ -318,14 +318,6 @@ def _track_pair(
     return np.linalg.norm(gt, axis=1), errs
 
 
-def _depth(methods: list[PairMethod]) -> str:
-    """The methods' pyramid depth in words ("4 levels", or each method's when they differ)."""
-    depths = sorted({m.levels for m in methods})
-    if len(depths) == 1:
-        return f"{depths[0]} level{'s' if depths[0] != 1 else ''}"
-    return ", ".join(f"{m.name} {m.levels}" for m in methods) + " levels"
-
-
 def _fmt(v: float, digits: int = 3) -> str:
     return "nan" if np.isnan(v) else ("inf" if np.isinf(v) else f"{v:.{digits}f}")
 
@@ -353,6 +345,16 @@ def _box_plot(errors: dict[str, dict[str, np.ndarray]], names: list[str], path: 
     save_figure(fig, path)
 
 
+@dataclass(frozen=True)
+class _Subset:
+    """One subset's tracking: pairs, each method's errors over all of them and per strength level."""
+
+    count: int
+    errors: dict[str, np.ndarray]
+    per_level: dict[int, dict[str, dict[str, float]]]
+    displacement: dict[int, float]
+
+
 def run(ctx: EvalContext, cfg: PairSetConfig | None = None) -> Section:
     """Track GFTT keypoints on both subsets with every method and summarise the errors.
 
@@ -365,38 +367,43 @@ def run(ctx: EvalContext, cfg: PairSetConfig | None = None) -> Section:
     """
     cfg = cfg or (PairSetConfig.quick() if ctx.quick else PairSetConfig())
     names = [m.name for m in ctx.methods]
-    errors: dict[str, dict[str, np.ndarray]] = {}
-    per_level: dict[str, dict[int, dict[str, dict[str, float]]]] = {}
-    displacement: dict[str, dict[int, float]] = {}
-    counts: dict[str, int] = {}
-    for subset in SUBSETS:
-        pairs = make_pairs(subset, cfg, ctx.seed)
-        counts[subset] = len(pairs)
-        collected: dict[int, list[tuple[np.ndarray, dict[str, np.ndarray]]]] = {}
-        for pair in ctx.bar(pairs, desc=f"pairs {subset}", unit="pair"):
-            collected.setdefault(pair.level, []).append(_track_pair(pair, ctx.methods, cfg))
-        errors[subset] = {
-            n: np.concatenate([e[n] for lv in collected.values() for _, e in lv]) for n in names
-        }
-        per_level[subset] = {
-            lv: {n: error_summary(np.concatenate([e[n] for _, e in items])) for n in names}
-            for lv, items in collected.items()
-        }
-        displacement[subset] = {
-            lv: float(np.median(np.concatenate([d for d, _ in items]))) for lv, items in collected.items()
-        }
-    summary = {s: {n: error_summary(errors[s][n]) for n in names} for s in SUBSETS}
+    subsets = {s: _track_subset(ctx, cfg, s, names) for s in SUBSETS}
+    summary = {s: {n: error_summary(subsets[s].errors[n]) for n in names} for s in SUBSETS}
     fig_path = ctx.out_dir / "pairs_boxplot.png"
-    _box_plot(errors, names, fig_path)
+    _box_plot({s: r.errors for s, r in subsets.items()}, names, fig_path)
+    md = _markdown(ctx, cfg, names, subsets, summary, fig_path.name)
+    return Section("pairs", "Tracking error on homography pairs (HPatches-style)", md, [fig_path],
+                   _headline(summary, names), _data(cfg, subsets, summary))  # fmt: skip
 
+
+def _track_subset(ctx: EvalContext, cfg: PairSetConfig, subset: str, names: list[str]) -> _Subset:
+    """Every method on every pair of one subset, pooled and per strength level."""
+    pairs = make_pairs(subset, cfg, ctx.seed)
+    collected: dict[int, list[tuple[np.ndarray, dict[str, np.ndarray]]]] = {}
+    for pair in ctx.bar(pairs, desc=f"pairs {subset}", unit="pair"):
+        collected.setdefault(pair.level, []).append(_track_pair(pair, ctx.methods, cfg))
+    errors = {n: np.concatenate([e[n] for lv in collected.values() for _, e in lv]) for n in names}
+    per_level = {
+        lv: {n: error_summary(np.concatenate([e[n] for _, e in items])) for n in names}
+        for lv, items in collected.items()
+    }
+    displacement = {
+        lv: float(np.median(np.concatenate([d for d, _ in items]))) for lv, items in collected.items()
+    }
+    return _Subset(len(pairs), errors, per_level, displacement)
+
+
+def _markdown(ctx: EvalContext, cfg: PairSetConfig, names: list[str], subsets: dict[str, _Subset],
+              summary: dict[str, dict[str, dict[str, float]]], figure: str) -> str:  # fmt: skip
+    """The section's text: what was run, the per-subset table, the per-level table, the figure."""
+    counts = {s: r.count for s, r in subsets.items()}
     lines = [
         f"{sum(counts.values())} pairs ({counts['viewpoint']} viewpoint, {counts['illumination']} "
         f"illumination) of {cfg.width}x{cfg.height} px rendered from the held-out photos "
         f"{', '.join(cfg.photos)} with exact homographies; up to {cfg.max_points} GFTT keypoints "
         f"(minimum distance {cfg.min_distance:g} px) on frame 1, tracked from zero initial flow at "
-        f"{_depth(ctx.methods)} by every method (the tracker's deployed depth). A lost point counts as an "
-        "infinite error."
-        + (" **Quick mode: tiny sizes, figures not meaningful.**" if ctx.quick else ""),
+        f"{levels_text(ctx.methods)} by every method (the tracker's deployed depth). A lost point counts as "
+        "an infinite error." + quick_note(ctx.quick),
         "",
         "| subset | method | points | median error (px) | < 1 px | < 3 px | tracked "
         "| median of tracked (px) |",
@@ -418,36 +425,28 @@ def run(ctx: EvalContext, cfg: PairSetConfig | None = None) -> Section:
         "|---|---|---|" + "---|" * len(names),
     ]
     for s in SUBSETS:
-        for lv in sorted(per_level[s]):
-            cells = [
-                f"{_fmt(per_level[s][lv][n]['median'])} / {per_level[s][lv][n]['within_1px']:.0%}"
-                for n in names
-            ]
-            lines.append(f"| {s} | {lv} | {displacement[s][lv]:.1f} | " + " | ".join(cells) + " |")
-    lines += ["", f"![tracking error box plots]({fig_path.name})", ""]
+        per_level = subsets[s].per_level
+        for lv in sorted(per_level):
+            cells = [f"{_fmt(per_level[lv][n]['median'])} / {per_level[lv][n]['within_1px']:.0%}"
+                     for n in names]  # fmt: skip
+            lines.append(f"| {s} | {lv} | {subsets[s].displacement[lv]:.1f} | " + " | ".join(cells) + " |")
+    return "\n".join([*lines, "", f"![tracking error box plots]({figure})", ""])
 
-    headline = []
-    for s in SUBSETS:
-        medians = {n: summary[s][n]["median"] for n in names}
-        headline.append(TARGETS[(s, "median")].row(
-            f"pairs {s}: median error (px)", {n: _fmt(v) for n, v in medians.items()}, medians,
-        ))  # fmt: skip
-        share = {n: summary[s][n]["within_1px"] for n in names}
-        headline.append(TARGETS[(s, "within_1px")].row(
-            f"pairs {s}: share < 1 px", {n: f"{v:.1%}" for n, v in share.items()}, share,
-        ))  # fmt: skip
-    data = {
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-        "pairs": counts,
-        "summary": summary,
-        "per_level": {s: {str(lv): v for lv, v in per_level[s].items()} for s in SUBSETS},
-        "median_displacement": {s: {str(lv): v for lv, v in displacement[s].items()} for s in SUBSETS},
-    }
-    return Section(
-        "pairs",
-        "Tracking error on homography pairs (HPatches-style)",
-        "\n".join(lines),
-        [fig_path],
-        headline,
-        data,
-    )
+
+def _headline(summary: dict[str, dict[str, dict[str, float]]], names: list[str]) -> list[HeadlineRow]:
+    """The median error and share within 1 px of each subset against their :data:`TARGETS`."""
+    metrics = {"median": ("median error (px)", _fmt), "within_1px": ("share < 1 px", "{:.1%}".format)}
+    return [
+        headline_row(f"pairs {s}: {metrics[key][0]}", {n: summary[s][n][key] for n in names}, metrics[key][1],
+                     target)
+        for (s, key), target in TARGETS.items()
+    ]  # fmt: skip
+
+
+def _data(cfg: PairSetConfig, subsets: dict[str, _Subset], summary: dict) -> dict:
+    """The section's JSON data."""
+    def by_level(field: str) -> dict[str, dict[str, object]]:
+        return {s: {str(lv): v for lv, v in getattr(r, field).items()} for s, r in subsets.items()}
+
+    return {"config": config_data(cfg), "pairs": {s: r.count for s, r in subsets.items()}, "summary": summary,
+            "per_level": by_level("per_level"), "median_displacement": by_level("displacement")}  # fmt: skip

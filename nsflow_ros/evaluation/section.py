@@ -4,8 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-__all__ = ["HeadlineRow", "Section"]
+__all__ = ["QUICK_NOTE", "HeadlineRow", "Section", "config_data", "quick_note"]
+
+QUICK_NOTE = " **Quick mode: tiny sizes, figures not meaningful.**"
+"""What a quick run's section appends to its first paragraph."""
 
 
 @dataclass(frozen=True)
@@ -45,3 +49,13 @@ class Section:
     figures: list[Path] = field(default_factory=list)
     headline: list[HeadlineRow] = field(default_factory=list)
     data: dict = field(default_factory=dict)
+
+
+def quick_note(quick: bool) -> str:
+    """:data:`QUICK_NOTE` in a quick run, else nothing."""
+    return QUICK_NOTE if quick else ""
+
+
+def config_data(cfg: Any) -> dict[str, Any]:
+    """An analysis's settings dataclass as the section's JSON data (tuples as lists)."""
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()}

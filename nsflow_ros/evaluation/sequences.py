@@ -60,7 +60,7 @@ from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW, VARIANTS
 from nsflow_ros.evaluation.section import HeadlineRow, Section
-from nsflow_ros.evaluation.targets import Clause, Target
+from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = [
     "FULL",
@@ -77,6 +77,7 @@ __all__ = [
     "epipolar_distances",
     "evaluate_sequences",
     "fundamental_inliers",
+    "learned_encoder",
     "load_source",
     "relative_rotation_error",
     "rotation_angle_deg",
@@ -531,6 +532,19 @@ _COLUMNS = (
     ("f_inlier_rate", "F inlier rate", "{:.1%}"),
     ("f_epipolar_error_px", "epipolar err px", "{:.3f}"),
 )
+_MEASURES = (
+    "Tracked share: features carried over from the previous frame over all features of frames 2..N. "
+    "Track length: frames an id was seen (tracks alive at the end count as they are); `tracks >= 10 fr`: "
+    "distinct tracks that reached 10 frames; `>= 10 fr per frame`: features per frame (frames 10..N) "
+    "whose track is at least 10 frames old. Errors: each "
+    "carried-over feature against the exact ground-truth flow of its previous position (occluded points "
+    "left out). Rotation: 5-point RANSAC (`findEssentialMat`, 1 px threshold, + `recoverPose`) on the "
+    "undistorted normalised points of consecutive frames, against the ground-truth relative rotation. "
+    f"F (the paper's Table III method): `findFundamentalMat` RANSAC at {F_THRESHOLD_PX:g} px on "
+    "undistorted pixels of consecutive frames; inlier rate over all features of the first frame, "
+    "epipolar error = mean point-to-line distance of the inliers (px)."
+)
+"""What the table's figures are, in words."""
 
 
 def _fmt(value: Any, fmt: str) -> str:
@@ -593,20 +607,17 @@ def _hist_figure(runs: dict[str, dict[str, MethodRun]], path: Path) -> Path:
 
 
 def _headline(runs: dict[str, dict[str, MethodRun]]) -> list[HeadlineRow]:
-    rows: list[HeadlineRow] = []
+    """The figures of :data:`TARGET_ROWS` against :data:`TARGETS`, then the rotation error per level."""
 
-    def values(level: str, key: str, fmt: str) -> dict[str, str]:
-        return {m: _fmt(r.figures.get(key), fmt) for m, r in runs.get(level, {}).items()}
+    def row(level: str, key: str, metric: str, fmt: str, target: Target | None = None) -> HeadlineRow:
+        figures = {m: r.figures.get(key) for m, r in runs[level].items()}
+        return headline_row(metric, figures, lambda v: _fmt(v, fmt), target)
 
-    for (level, key), (metric, fmt) in TARGET_ROWS.items():
-        if level in runs:
-            figures = {m: r.figures.get(key) for m, r in runs[level].items()}
-            rows.append(TARGETS[(level, key)].row(metric, values(level, key, fmt), figures))
-    for level in ("none", "large"):
-        if level in runs:
-            rows.append(HeadlineRow(f"5-point relative-rotation error, median, perturbation {level} (deg)",
-                                    values(level, "rotation_error_median_deg", "{:.3f}")))
-    return rows
+    rows = [row(level, key, metric, fmt, TARGETS[(level, key)])
+            for (level, key), (metric, fmt) in TARGET_ROWS.items() if level in runs]  # fmt: skip
+    return rows + [row(level, "rotation_error_median_deg",
+                       f"5-point relative-rotation error, median, perturbation {level} (deg)", "{:.3f}")
+                   for level in ("none", "large") if level in runs]  # fmt: skip
 
 
 def _verdict(runs: dict[str, dict[str, MethodRun]]) -> str:
@@ -629,6 +640,22 @@ def _verdict(runs: dict[str, dict[str, MethodRun]]) -> str:
     if parts:
         lines += ["", f"Tracks lost between frames (perturbation {level}): " + "; ".join(parts) + "."]
     return "\n".join(lines)
+
+
+def learned_encoder(
+    name: str, model: str | Path | None, threads: int | None, providers: str = "cpu"
+) -> Encoder | None:
+    """The encoder of a method of :data:`LEARNED`, as the method registry loads it for that method.
+
+    Raises:
+        EvaluationError: the model cannot be loaded.
+    """
+    from nsflow_ros.core.methods import method_encoder
+
+    try:
+        return method_encoder(TRACKER_METHODS[name]["method"], model, threads, providers)
+    except CoreError as err:
+        raise EvaluationError(str(err)) from err
 
 
 def load_source(ctx: EvalContext, setup: SequenceSetup) -> FrameSource:
@@ -674,34 +701,12 @@ def run(ctx: EvalContext) -> Section:
     Raises:
         EvaluationError: no usable method, a model or sequence that cannot be loaded.
     """
-    from dataclasses import replace
-
-    opts = dict(ctx.extra.get(KEY, {}))
-    base = QUICK if ctx.quick else FULL
-    setup = replace(
-        base,
-        duration=float(opts.get("duration", base.duration)),
-        scale=float(opts.get("scale", base.scale)),
-        seed=int(opts.get("sequence_seed", base.seed)),
-    )
-    levels = tuple(opts.get("levels", LEVELS))
+    setup, levels = _setup(ctx)
     methods = [m.name for m in ctx.methods if m.name in TRACKER_METHODS]
     if not methods:
         have = [m.name for m in ctx.methods]
         raise EvaluationError(f"none of the run's methods {have} is one of {list(TRACKER_METHODS)}")
-    encoders: dict[str, Encoder] = {}
-    for m in ctx.methods:
-        enc = getattr(m, "encoder", None)
-        if m.name in (*LEARNED, CLASSICAL) and isinstance(enc, Encoder):
-            encoders[m.name] = enc  # reuse the run's loaded model instead of opening it again
-    for name in (n for n in LEARNED if n in methods and n not in encoders):
-        from nsflow_ros.core.methods import method_encoder
-
-        try:
-            kind = TRACKER_METHODS[name]["method"]
-            encoders[name] = method_encoder(kind, ctx.model, ctx.threads, ctx.providers)
-        except CoreError as err:
-            raise EvaluationError(str(err)) from err
+    encoders = _encoders(ctx, methods)
     settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
                                providers=ctx.providers)
     source = load_source(ctx, setup)
@@ -713,34 +718,15 @@ def run(ctx: EvalContext) -> Section:
         _bar_figure(runs, out / f"{KEY}_metrics.png"),
         _hist_figure(runs, out / f"{KEY}_track_lengths.png"),
     ]
-    w, h = source.size
-    mode = "quick mode (tiny sequence: numbers are not meaningful)" if ctx.quick else "full mode"
     md = "\n\n".join([
-        f"Sample sequence seed {setup.seed}, {len(source)} frames at 20 Hz, {w}x{h} ({mode}); illumination "
-        f"perturbation seed {ctx.seed}. Every method runs through the VINS-style `FeatureTracker` "
-        f"(max_cnt {setup.max_cnt}, min_dist {setup.min_dist:g}, flow-back 0.5 px), offline with every frame "
-        "processed; the LM methods use the tracker's 4 levels, the OpenCV LK methods (KLT, KLT on CLAHE'd "
-        "images, LK on the uint8 NSFlow descriptors) are called exactly as VINS-Fusion calls KLT (21x21, "
-        "maxLevel 3, 30 iterations / eps 0.01).",
-        _table(runs),
-        "Tracked share: features carried over from the previous frame over all features of frames 2..N. "
-        "Track length: frames an id was seen (tracks alive at the end count as they are); `tracks >= 10 fr`: "
-        "distinct tracks that reached 10 frames; `>= 10 fr per frame`: features per frame (frames 10..N) "
-        "whose track is at least 10 frames old. Errors: each "
-        "carried-over feature against the exact ground-truth flow of its previous position (occluded points "
-        "left out). Rotation: 5-point RANSAC (`findEssentialMat`, 1 px threshold, + `recoverPose`) on the "
-        "undistorted normalised points of consecutive frames, against the ground-truth relative rotation. "
-        f"F (the paper's Table III method): `findFundamentalMat` RANSAC at {F_THRESHOLD_PX:g} px on "
-        "undistorted pixels of consecutive frames; inlier rate over all features of the first frame, "
-        "epipolar error = mean point-to-line distance of the inliers (px).",
-        _verdict(runs),
+        _method_text(ctx, setup, source), _table(runs), _MEASURES, _verdict(runs),
         f"![front-end metrics]({figs[0].name})\n\n![track lengths]({figs[1].name})",
     ])
     data = {
         "setup": {
-            "frames": len(source), "size": [w, h], "sequence_seed": setup.seed, "perturb_seed": ctx.seed,
-            "max_cnt": setup.max_cnt, "min_dist": setup.min_dist, "quick": ctx.quick,
-            "f_threshold_px": F_THRESHOLD_PX,
+            "frames": len(source), "size": list(source.size), "sequence_seed": setup.seed,
+            "perturb_seed": ctx.seed, "max_cnt": setup.max_cnt, "min_dist": setup.min_dist,
+            "quick": ctx.quick, "f_threshold_px": F_THRESHOLD_PX,
         },
         "results": {lv: {m: r.figures for m, r in per.items()} for lv, per in runs.items()},
         # histogram counts: index = track length in frames
@@ -748,5 +734,46 @@ def run(ctx: EvalContext) -> Section:
             lv: {m: np.bincount(r.lengths).tolist() if r.lengths else [] for m, r in per.items()}
             for lv, per in runs.items()
         },
-    }
+    }  # fmt: skip
     return Section(KEY, "Front-end metrics on the sample sequences", md, figs, _headline(runs), data)
+
+
+def _setup(ctx: EvalContext) -> tuple[SequenceSetup, tuple[str, ...]]:
+    """The quick / full setup with ``ctx.extra["sequences"]``'s overrides, and the perturbation levels."""
+    from dataclasses import replace
+
+    opts = dict(ctx.extra.get(KEY, {}))
+    base = QUICK if ctx.quick else FULL
+    setup = replace(
+        base,
+        duration=float(opts.get("duration", base.duration)),
+        scale=float(opts.get("scale", base.scale)),
+        seed=int(opts.get("sequence_seed", base.seed)),
+    )
+    return setup, tuple(opts.get("levels", LEVELS))
+
+
+def _encoders(ctx: EvalContext, methods: list[str]) -> dict[str, Encoder]:
+    """The encoders of the methods that have one: the run's loaded models, the missing learned ones loaded."""
+    encoders: dict[str, Encoder] = {}
+    for m in ctx.methods:
+        enc = getattr(m, "encoder", None)
+        if m.name in (*LEARNED, CLASSICAL) and isinstance(enc, Encoder):
+            encoders[m.name] = enc  # reuse the run's loaded model instead of opening it again
+    for name in (n for n in LEARNED if n in methods and n not in encoders):
+        encoders[name] = learned_encoder(name, ctx.model, ctx.threads, ctx.providers)
+    return encoders
+
+
+def _method_text(ctx: EvalContext, setup: SequenceSetup, source: FrameSource) -> str:
+    """The paragraph saying what was run."""
+    w, h = source.size
+    mode = "quick mode (tiny sequence: numbers are not meaningful)" if ctx.quick else "full mode"
+    return (
+        f"Sample sequence seed {setup.seed}, {len(source)} frames at 20 Hz, {w}x{h} ({mode}); illumination "
+        f"perturbation seed {ctx.seed}. Every method runs through the VINS-style `FeatureTracker` "
+        f"(max_cnt {setup.max_cnt}, min_dist {setup.min_dist:g}, flow-back 0.5 px), offline with every frame "
+        "processed; the LM methods use the tracker's 4 levels, the OpenCV LK methods (KLT, KLT on CLAHE'd "
+        "images, LK on the uint8 NSFlow descriptors) are called exactly as VINS-Fusion calls KLT (21x21, "
+        "maxLevel 3, 30 iterations / eps 0.01)."
+    )

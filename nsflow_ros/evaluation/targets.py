@@ -17,7 +17,7 @@ from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import NSFLOW
 from nsflow_ros.evaluation.section import HeadlineRow
 
-__all__ = ["OPERATORS", "Clause", "Target"]
+__all__ = ["OPERATORS", "Clause", "Target", "headline_row"]
 
 OPERATORS: dict[str, Callable[[Any, Any], Any]] = {
     "<": operator.lt,
@@ -137,3 +137,11 @@ class Target:
     def row(self, metric: str, values: dict[str, str], figures: Mapping[str, Any]) -> HeadlineRow:
         """The headline row of this target: the formatted values, the target in words and its verdict."""
         return HeadlineRow(metric, values, self.text(figures), self.check(figures))
+
+
+def headline_row(
+    metric: str, figures: Mapping[str, Any], fmt: Callable[[Any], str], target: Target | None = None
+) -> HeadlineRow:
+    """A headline row: each method's figure printed by ``fmt``, and ``target``'s text and verdict if given."""
+    values = {name: fmt(v) for name, v in figures.items()}
+    return HeadlineRow(metric, values) if target is None else target.row(metric, values, figures)

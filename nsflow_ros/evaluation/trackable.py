@@ -55,8 +55,8 @@ from nsflow_ros.evaluation.pairs import (
     render_pair,
     true_flow,
 )
-from nsflow_ros.evaluation.section import HeadlineRow, Section
-from nsflow_ros.evaluation.targets import Clause, Target
+from nsflow_ros.evaluation.section import HeadlineRow, Section, config_data, quick_note
+from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = [
     "CLIP_SHARE",
@@ -327,17 +327,6 @@ def _median(ratios: dict[str, dict[str, list[float]]], names: list[str]) -> dict
     }  # fmt: skip
 
 
-def _headline(median: dict[str, dict[str, list[float]]], names: list[str], suffix: str,
-              targets: bool) -> list[HeadlineRow]:  # fmt: skip
-    rows = []
-    for cond in CONDITIONS:
-        at1 = {n: median[cond][n][0] for n in names}
-        metric = f"trackable region @1 px, {condition_label(cond)}{suffix}"
-        values = {n: f"{v:.1%}" for n, v in at1.items()}
-        rows.append(TARGETS[cond].row(metric, values, at1) if targets else HeadlineRow(metric, values))
-    return rows
-
-
 def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
     """Trackable-region ratios of every method on the held-out pairs, with the heat map.
 
@@ -353,84 +342,22 @@ def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
     cfg = cfg or (TrackableConfig.quick() if ctx.quick else TrackableConfig())
     names = [m.name for m in ctx.methods]
     fewer_set = (0, 1) if ctx.methods and min(m.levels for m in ctx.methods) > 1 else (0,)
-    maps: dict[int, list[TrackableMap]] = {f: [] for f in fewer_set}
-    pairs = make_trackable_pairs(cfg, ctx.seed)
-    jobs = [(f, k, label, pair) for f in fewer_set for k, (label, pair) in enumerate(pairs)]
-    for f, k, label, pair in ctx.bar(jobs, desc="trackable", total=len(jobs), unit="pair"):
-        rng = np.random.default_rng([ctx.seed, 9, k])  # the same offsets at either depth
-        maps[f].append(
-            trackable_map(
-                ctx.methods, pair, rng, stride=cfg.stride, perturbation=cfg.perturbation, chunk=cfg.chunk,
-                label=label, fewer_levels=f,
-            )
-        )  # fmt: skip
+    maps = _measure(ctx, cfg, make_trackable_pairs(cfg, ctx.seed), fewer_set)
     fig_path = ctx.out_dir / "trackable_heatmap.png"
     _heat_map(maps[0], names, fig_path)
-
     ratios = {f: {tm.label: tm.ratios() for tm in maps[f]} for f in fewer_set}
     median = {f: _median(ratios[f], names) for f in fewer_set}
     unclipped = {tm.label: tm.ratios(unclipped=True) for tm in maps[0]}
     median_unclipped = _median(unclipped, names)
     clipped_share = {tm.label: float(np.mean(tm.clipped)) if tm.clipped.size else 0.0 for tm in maps[0]}
-    grid = "every pixel" if cfg.stride == 1 else f"every {cfg.stride}th pixel in x and y"
-    depth = levels_text(ctx.methods)
-    lines = [
-        f"{len(pairs)} pairs of {cfg.width}x{cfg.height} px (held-out photos {', '.join(cfg.photos)}, a "
-        "mild homography, without and with full-strength illumination perturbation of both frames); "
-        f"{grid} at least {MARGIN} px inside is a keypoint ({sum(len(tm.points) for tm in maps[0])} in "
-        f"all), its initial flow off by {cfg.perturbation:g} px in a random direction; {depth} for every "
-        "method (what the tracker deploys)"
-        + (f", and {levels_text(ctx.methods, 1)} (one fewer)" if 1 in fewer_set else "")
-        + ". Share of keypoints recovered within 1 / 2 / 3 px (a lost point is not recovered)."
-        + (" **Quick mode: tiny sizes, figures not meaningful.**" if ctx.quick else ""),
-        "",
-        "| levels | pair | points | " + " | ".join(f"{n} @1/@2/@3" for n in names) + " |",
-        "|---|---|---|" + "---|" * len(names),
-    ]
-
-    def cells(r: dict[str, list[float]]) -> str:
-        return " | ".join("/".join(f"{100 * v:.1f}" for v in r[n]) for n in names)
-
-    for f in fewer_set:
-        tag = "deployed" if f == 0 else "one fewer"
-        for tm in maps[f]:
-            lines.append(f"| {tag} | {tm.label} | {len(tm.points)} | {cells(ratios[f][tm.label])} |")
-        for cond in CONDITIONS:
-            lines.append(f"| {tag} | **median, {cond}** | | {cells(median[f][cond])} |")
-    lines += [
-        "", "(percent of keypoints)", "",
-        f"Keypoints whose {deployed_lm().window} px window is clipped (more than {CLIP_SHARE:.0%} of its "
-        f"pixels at <= {CLIP_DARK} or >= {CLIP_BRIGHT} gray around the keypoint in frame 1 or its true "
-        "position in frame 2) carry little of the photo; the same shares among the others "
-        f"({levels_text(ctx.methods)}):",
-        "",
-        "| pair | clipped windows | points not clipped | "
-        + " | ".join(f"{n} @1/@2/@3" for n in names) + " |",
-        "|---|---|---|" + "---|" * len(names),
-    ]  # fmt: skip
-    for tm in maps[0]:
-        lines.append(
-            f"| {tm.label} | {100 * clipped_share[tm.label]:.1f} | {int(np.sum(~tm.clipped))} "
-            f"| {cells(unclipped[tm.label])} |"
-        )
-    for cond in CONDITIONS:
-        lines.append(f"| **median, {cond}** | | | {cells(median_unclipped[cond])} |")
-    lines += [
-        "", "(percent of keypoints)", "",
-        f"![trackable regions]({fig_path.name})", "",
+    md = "\n".join([
+        _method_text(ctx, cfg, maps), *_ratio_table(names, maps, ratios, median),
+        *_clipped_table(ctx, names, maps[0], clipped_share, unclipped, median_unclipped), "",
+        "(percent of keypoints)", "", f"![trackable regions]({fig_path.name})", "",
         "(heat map: the deployed levels)", "",
-    ]  # fmt: skip
-
-    headline = _headline(median[0], names, f" ({depth})", targets=True)
-    headline.append(HeadlineRow(
-        f"trackable region @1 px, lighting change, windows not clipped ({depth})",
-        {n: f"{median_unclipped['light'][n][0]:.1%}" for n in names},
-    ))  # fmt: skip
-    if 1 in fewer_set:
-        fewer = f" ({levels_text(ctx.methods, 1)}: one fewer)"
-        headline += _headline(median[1], names, fewer, targets=False)
+    ])  # fmt: skip
     data = {
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
+        "config": config_data(cfg),
         "thresholds_px": list(THRESHOLDS),
         "levels": {m.name: m.levels for m in ctx.methods},
         "ratios": ratios[0],
@@ -443,6 +370,92 @@ def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
     if 1 in fewer_set:
         data["ratios_one_level_fewer"] = ratios[1]
         data["median_one_level_fewer"] = median[1]
-    return Section(
-        "trackable", "Trackable-region ratio (paper Table I)", "\n".join(lines), [fig_path], headline, data
+    return Section("trackable", "Trackable-region ratio (paper Table I)", md, [fig_path],
+                   _headline(ctx, median, median_unclipped), data)  # fmt: skip
+
+
+def _measure(ctx: EvalContext, cfg: TrackableConfig, pairs: list[tuple[str, HomographyPair]],
+             fewer_set: tuple[int, ...]) -> dict[int, list[TrackableMap]]:  # fmt: skip
+    """Every method on every pair at each depth (levels fewer -> the pairs' maps)."""
+    maps: dict[int, list[TrackableMap]] = {f: [] for f in fewer_set}
+    jobs = [(f, k, label, pair) for f in fewer_set for k, (label, pair) in enumerate(pairs)]
+    for f, k, label, pair in ctx.bar(jobs, desc="trackable", total=len(jobs), unit="pair"):
+        rng = np.random.default_rng([ctx.seed, 9, k])  # the same offsets at either depth
+        maps[f].append(
+            trackable_map(
+                ctx.methods, pair, rng, stride=cfg.stride, perturbation=cfg.perturbation, chunk=cfg.chunk,
+                label=label, fewer_levels=f,
+            )
+        )  # fmt: skip
+    return maps
+
+
+def _method_text(ctx: EvalContext, cfg: TrackableConfig, maps: dict[int, list[TrackableMap]]) -> str:
+    """The paragraph saying what was run."""
+    grid = "every pixel" if cfg.stride == 1 else f"every {cfg.stride}th pixel in x and y"
+    return (
+        f"{len(maps[0])} pairs of {cfg.width}x{cfg.height} px (held-out photos {', '.join(cfg.photos)}, a "
+        "mild homography, without and with full-strength illumination perturbation of both frames); "
+        f"{grid} at least {MARGIN} px inside is a keypoint ({sum(len(tm.points) for tm in maps[0])} in "
+        f"all), its initial flow off by {cfg.perturbation:g} px in a random direction; "
+        f"{levels_text(ctx.methods)} for every method (what the tracker deploys)"
+        + (f", and {levels_text(ctx.methods, 1)} (one fewer)" if 1 in maps else "")
+        + ". Share of keypoints recovered within 1 / 2 / 3 px (a lost point is not recovered)."
+        + quick_note(ctx.quick)
     )
+
+
+def _cells(names: list[str], r: dict[str, list[float]]) -> str:
+    """Each method's shares at 1 / 2 / 3 px in percent, as table cells."""
+    return " | ".join("/".join(f"{100 * v:.1f}" for v in r[n]) for n in names)
+
+
+def _ratio_table(names: list[str], maps: dict[int, list[TrackableMap]], ratios: dict,
+                 median: dict) -> list[str]:  # fmt: skip
+    """Each pair's shares and their median per condition, at each depth."""
+    lines = ["", "| levels | pair | points | " + " | ".join(f"{n} @1/@2/@3" for n in names) + " |",
+             "|---|---|---|" + "---|" * len(names)]  # fmt: skip
+    for f, per in maps.items():
+        tag = "deployed" if f == 0 else "one fewer"
+        for tm in per:
+            lines.append(f"| {tag} | {tm.label} | {len(tm.points)} | {_cells(names, ratios[f][tm.label])} |")
+        for cond in CONDITIONS:
+            lines.append(f"| {tag} | **median, {cond}** | | {_cells(names, median[f][cond])} |")
+    return lines
+
+
+def _clipped_table(ctx: EvalContext, names: list[str], maps: list[TrackableMap], clipped_share: dict,
+                   unclipped: dict, median_unclipped: dict) -> list[str]:  # fmt: skip
+    """The shares among the keypoints whose windows are not clipped, per pair and their median."""
+    lines = [
+        "", "(percent of keypoints)", "",
+        f"Keypoints whose {deployed_lm().window} px window is clipped (more than {CLIP_SHARE:.0%} of its "
+        f"pixels at <= {CLIP_DARK} or >= {CLIP_BRIGHT} gray around the keypoint in frame 1 or its true "
+        "position in frame 2) carry little of the photo; the same shares among the others "
+        f"({levels_text(ctx.methods)}):",
+        "",
+        "| pair | clipped windows | points not clipped | "
+        + " | ".join(f"{n} @1/@2/@3" for n in names) + " |",
+        "|---|---|---|" + "---|" * len(names),
+    ]  # fmt: skip
+    for tm in maps:
+        lines.append(f"| {tm.label} | {100 * clipped_share[tm.label]:.1f} | {int(np.sum(~tm.clipped))} "
+                     f"| {_cells(names, unclipped[tm.label])} |")  # fmt: skip
+    for cond in CONDITIONS:
+        lines.append(f"| **median, {cond}** | | | {_cells(names, median_unclipped[cond])} |")
+    return lines
+
+
+def _headline(ctx: EvalContext, median: dict[int, dict], median_unclipped: dict) -> list[HeadlineRow]:
+    """The share at 1 px per condition against :data:`TARGETS`, among unclipped windows, one level fewer."""
+    depth, pct = levels_text(ctx.methods), "{:.1%}".format
+    rows = [headline_row(f"trackable region @1 px, {condition_label(cond)} ({depth})",
+                         {n: v[0] for n, v in median[0][cond].items()}, pct, target)
+            for cond, target in TARGETS.items()]  # fmt: skip
+    rows.append(headline_row(f"trackable region @1 px, lighting change, windows not clipped ({depth})",
+                             {n: v[0] for n, v in median_unclipped["light"].items()}, pct))  # fmt: skip
+    fewer = f" ({levels_text(ctx.methods, 1)}: one fewer)"
+    rows += [headline_row(f"trackable region @1 px, {condition_label(cond)}{fewer}",
+                          {n: v[0] for n, v in median[1][cond].items()}, pct)
+             for cond in CONDITIONS if 1 in median]  # fmt: skip
+    return rows

@@ -118,3 +118,10 @@ def test_bad_methods_and_levels_are_clear_errors(quick_ctx):
         sq.run(ctx)
     with pytest.raises(EvaluationError, match="scale"):
         sq.SequenceSetup(duration=1.0, scale=2.0)
+
+
+def test_learned_encoder_names_the_missing_model(tmp_path):
+    missing = tmp_path / "absent.onnx"
+    with pytest.raises(EvaluationError, match=r"absent\.onnx"):
+        sq.learned_encoder(NSFLOW, str(missing), 1)
+    assert sq.learned_encoder(NSFLOW, None, 1) is not None  # the shipped model

@@ -9,7 +9,7 @@ import pytest
 from nsflow_ros.evaluation import capture, convergence, pairs, sequences, trackable
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, KLT, KLT_CLAHE, NSFLOW
-from nsflow_ros.evaluation.targets import Clause, Target
+from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 ALL = {NSFLOW: 0.9, CLASSICAL: 0.6, KLT: 0.5, KLT_CLAHE: 0.8}
 
@@ -91,3 +91,12 @@ def test_every_analysis_target_prints_what_the_report_printed_before():
 def test_row_carries_text_and_verdict():
     row = pairs.TARGETS[("viewpoint", "median")].row("m", {NSFLOW: "0.1"}, {NSFLOW: 0.1, KLT: 0.1})
     assert (row.metric, row.target, row.met) == ("m", "<= 1.2x KLT", True)
+
+
+def test_headline_row_formats_each_figure_and_takes_text_and_verdict_from_the_target():
+    figures = {NSFLOW: 0.25, KLT: 0.5}
+    row = headline_row("m", figures, "{:.1%}".format, pairs.TARGETS[("viewpoint", "median")])
+    assert row.values == {NSFLOW: "25.0%", KLT: "50.0%"}
+    assert (row.metric, row.target, row.met) == ("m", "<= 1.2x KLT", True)
+    plain = headline_row("m", figures, str)
+    assert (plain.values, plain.target, plain.met) == ({NSFLOW: "0.25", KLT: "0.5"}, "", None)
