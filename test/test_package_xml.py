@@ -21,6 +21,8 @@ ROSDEP_KEYS = {
     "diagnostic_msgs": "diagnostic_msgs",
     "rosgraph_msgs": "rosgraph_msgs",
     "builtin_interfaces": "builtin_interfaces",
+    "launch": "launch",
+    "launch_ros": "launch_ros",
     "numpy": "python3-numpy",
     "cv2": "python3-opencv",
     "onnxruntime": "python3-onnxruntime-pip",
@@ -38,6 +40,13 @@ ROSDEP_KEYS = {
 NO_ROSDEP_KEY = {"onnx", "evo"}
 # Imported only by the optional `train` extra: not a run-time dependency of the ROS package.
 OPTIONAL = {"torch"}
+# Run by the launch files as executables, not imported.
+EXECUTABLES = {"rviz2"}
+
+
+def _runtime_imports() -> dict[str, set[str]]:
+    """What the package and its launch files import."""
+    return {**_imports(ROOT / "launch"), **_imports(ROOT / "nsflow_ros")}
 
 
 def _imports(folder: Path) -> dict[str, set[str]]:
@@ -67,14 +76,14 @@ def _declared() -> tuple[set[str], set[str]]:
 
 
 def test_every_module_import_has_a_known_rosdep_key():
-    modules = set(_imports(ROOT / "nsflow_ros")) | set(_imports(ROOT / "test"))
+    modules = set(_runtime_imports()) | set(_imports(ROOT / "test"))
     unknown = modules - set(ROSDEP_KEYS) - NO_ROSDEP_KEY
     assert not unknown, f"map these imports to rosdep keys in ROSDEP_KEYS: {sorted(unknown)}"
 
 
 def test_package_xml_declares_what_the_code_imports():
     run, test = _declared()
-    package = _imports(ROOT / "nsflow_ros")
+    package = _runtime_imports()
     missing_run = {
         ROSDEP_KEYS[m]: sorted(files)[0]
         for m, files in package.items()
@@ -88,7 +97,7 @@ def test_package_xml_declares_what_the_code_imports():
 
 def test_package_xml_declares_nothing_unused():
     run, test = _declared()
-    used = {ROSDEP_KEYS[m] for m in set(_imports(ROOT / "nsflow_ros")) if m in ROSDEP_KEYS}
+    used = {ROSDEP_KEYS[m] for m in set(_runtime_imports()) if m in ROSDEP_KEYS} | EXECUTABLES
     used_by_tests = {ROSDEP_KEYS[m] for m in set(_imports(ROOT / "test")) if m in ROSDEP_KEYS}
     assert run - used == set(), f"exec_depend nothing imports: {sorted(run - used)}"
     unused = test - used - used_by_tests
