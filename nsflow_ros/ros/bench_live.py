@@ -4,8 +4,10 @@ For each method, a ``tracker`` node process runs the shipped EuRoC stereo config
 replays the sample sequence's two 752x480 image topics at ``rate`` (1.0 = the camera's 20 Hz) with
 sensor-data QoS, as a camera driver would, through the shipped Fast DDS profile. Reported per method:
 image pairs sent, received and processed by the node, dropped (the node's own count of frames it could
-not keep up with), feature messages out, and the node's image-to-features latency (p50, p90: from the
-image callback, queueing included, to the publication), from the node's summary file.
+not keep up with; superseded: given up for a newer frame), feature messages out, the node's
+image-to-features latency (p50, p90: from the image callback, queueing included, to the publication) and
+its CPU time per processed frame, from the node's summary file. A background load
+(:func:`nsflow_ros.background_load.background_load`) can share the cores, standing in for the estimator.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ def run_live_benchmark(
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
+    background_load: float = 0.0,
+    params: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Replay ``seconds`` of the stereo sample at ``rate`` into a tracker node per method.
 
@@ -42,10 +46,13 @@ def run_live_benchmark(
         seed: the sample sequence's seed.
         cache_dir: where the sample (ROS 2 bag) is rendered and reused; None = a temporary folder.
         progress: print a line per run to stderr.
+        background_load: CPU cores of synthetic load running during every replay (0 = none).
+        params: further tracker node parameters, e.g. ``{"queue_size": 1}``.
 
     Returns:
         ``{"setup": ..., method: {"frames_sent", "tracker_received", "tracker_processed",
-        "tracker_dropped", "frames" (feature messages out), "tracker_latency_ms_p50", "..._p90", ...}}``.
+        "tracker_dropped", "tracker_superseded", "frames" (feature messages out), "tracker_latency_ms_p50",
+        "..._p90", "tracker_cpu_ms_per_frame", ...}}``.
 
     Raises:
         NSFlowError: a tracker node did not come up, or bad arguments.
@@ -54,6 +61,8 @@ def run_live_benchmark(
 
     import rclpy
 
+    from nsflow_ros.background_load import background_load as load
+    from nsflow_ros.background_load import load_shares
     from nsflow_ros.data.sample import make_sample_sequence
     from nsflow_ros.resources import STEREO_CONFIG, share_file
     from nsflow_ros.ros.live import run_live
@@ -61,9 +70,11 @@ def run_live_benchmark(
 
     if not seconds > 0 or not rate > 0:
         raise NSFlowError(f"seconds and rate must be > 0, got {seconds} and {rate}")
+    load_shares(background_load)  # a bad load is an error before anything starts
     tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
     out: dict[str, Any] = {"setup": {"seconds": seconds, "rate": rate, "size": [752, 480], "stereo": True,
-                                     "config": STEREO_CONFIG}}
+                                     "config": STEREO_CONFIG, "background_load_cores": background_load,
+                                     "params": dict(params or {})}}
     try:
         root = Path(tmp.name if tmp else cache_dir)
         seq = make_sample_sequence(root / f"sample-live-seed{seed}-{seconds:g}s", seed=seed, duration=seconds,
@@ -78,8 +89,9 @@ def run_live_benchmark(
                 if progress:
                     print(f"[bench] node {method}: {seconds:g} s stereo at rate {rate:g} ...",
                           file=sys.stderr, flush=True)
-                figs, _ = run_live(ctx, seq, config, method, root / f"live_{method}.log", seed=seed,
-                                   rate=rate, topics=STEREO_TOPICS, show_track=False)
+                with load(background_load):
+                    figs, _ = run_live(ctx, seq, config, method, root / f"live_{method}.log", seed=seed,
+                                       rate=rate, topics=STEREO_TOPICS, show_track=False, params=params)
                 out[method] = figs
         finally:
             rclpy.shutdown(context=ctx)
@@ -94,10 +106,12 @@ def format_live_table(res: dict[str, Any]) -> str:
     s = res["setup"]
     lines = [
         f"tracker node, {s['seconds']:g} s stereo sample ({s['size'][0]}x{s['size'][1]}) replayed at rate "
-        f"{s['rate']:g} over DDS (shipped Fast DDS profile)",
+        f"{s['rate']:g} over DDS (shipped Fast DDS profile), background load "
+        f"{s.get('background_load_cores', 0):g} core"
+        + "".join(f", {k} {v}" for k, v in s.get("params", {}).items()),
         "",
-        f"{'method':11s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'out':>6s}{'processed':>11s}"
-        f"{'lat p50 ms':>12s}{'lat p90 ms':>12s}",
+        f"{'method':11s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'supers':>7s}{'out':>6s}"
+        f"{'processed':>11s}{'lat p50 ms':>12s}{'lat p90 ms':>12s}{'CPU ms/fr':>11s}",
     ]
     for m, f in res.items():
         if m == "setup":
@@ -110,9 +124,13 @@ def format_live_table(res: dict[str, Any]) -> str:
         sent, proc = f.get("frames_sent") or 0, f.get("tracker_processed") or 0
         lines.append(
             f"{m:11s}{num('frames_sent'):>6s}{num('tracker_received'):>6s}{num('tracker_processed'):>6s}"
-            f"{num('tracker_dropped'):>6s}{num('frames'):>6s}{(proc / sent if sent else 0):11.1%}"
+            f"{num('tracker_dropped'):>6s}{num('tracker_superseded'):>7s}{num('frames'):>6s}"
+            f"{(proc / sent if sent else 0):11.1%}"
             f"{num('tracker_latency_ms_p50', '.1f'):>12s}{num('tracker_latency_ms_p90', '.1f'):>12s}"
+            f"{num('tracker_cpu_ms_per_frame', '.1f'):>11s}"
         )
     lines.append("sent: image pairs replayed; recv / proc / drop: pairs the node received / tracked / "
-                 "dropped because it was busy; out: feature messages received back")
+                 "did not track; supers: of those dropped, superseded by a newer pair while the tracker "
+                 "was busy; out: feature messages received back; CPU ms/fr: the node process's CPU time "
+                 "per tracked pair")
     return "\n".join(lines)

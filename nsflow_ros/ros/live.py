@@ -96,6 +96,7 @@ def run_live(
     rate: float = 1.0,
     topics: tuple[str, ...] = ("/cam0/image_raw",),
     show_track: bool = True,
+    params: dict[str, Any] | None = None,
 ) -> tuple[dict[str, Any], Any]:
     """Replay ``seq`` over ROS 2 into a ``tracker`` node process started for it, and collect its output.
 
@@ -112,6 +113,7 @@ def run_live(
         rate: replay speed factor (1.0 = camera rate).
         topics: image topics to replay.
         show_track: have the tracker publish its debug image.
+        params: further tracker node parameters (``-p name:=value``).
 
     Returns:
         (track figures of camera 0 plus the tracker's own counters, the middle debug image or None).
@@ -132,6 +134,7 @@ def run_live(
         "-p", f"method:={method}",
         "-p", f"show_track:={int(show_track)}",
         "-p", f"summary_file:={summary_file}",
+        *(a for k, v in (params or {}).items() for a in ("-p", f"{k}:={v}")),
     ]
     with log.open("wb") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
@@ -170,7 +173,8 @@ def run_live(
     figures["frames_sent"] = sent // len(topics)
     # what the tracker itself saw: frames that reached it and frames it tracked (its summary file)
     counters = _read_summary(summary_file)
-    for key in ("frames_received", "frames_processed", "frames_dropped", "latency_ms_p50", "latency_ms_p90"):
+    for key in ("frames_received", "frames_processed", "frames_dropped", "frames_superseded",
+                "latency_ms_p50", "latency_ms_p90", "cpu_ms_per_frame"):
         figures[f"tracker_{key.removeprefix('frames_')}"] = counters.get(key)
     # the debug image of the sequence's middle frame (or the nearest one drawn): the same frame for every run
     target = int(seq.stamps_ns[len(seq) // 2])

@@ -273,6 +273,13 @@ SETTINGS: tuple[Setting, ...] = (
     Setting(
         "summary_file", "", Mode.READ_ONLY,
         "Write the run's counters as JSON to this file when the node stops ('' = no file)."),
+    # -- threads of the node process, beside the estimator --
+    Setting(
+        "opencv_threads", 1, Mode.READ_ONLY,
+        "OpenCV's threads in the node process (corner detection, image warps and filters); 0 = OpenCV's "
+        "default pool of all the cores. 1 leaves the other cores to the estimator: the pool costs CPU "
+        "time for little wall time.",
+        unit="threads", minimum=0),
 )
 """Every setting of the ``tracker`` node, in the order of the params file."""
 
