@@ -261,9 +261,10 @@ SETTINGS: tuple[Setting, ...] = (
         "points on its zeros are dropped and no corners are detected there. '' = fisheye_mask.jpg in the "
         "config's folder or its parent, where VINS-Mono keeps it. Unused when the config's fisheye is 0."),
     Setting(
-        "queue_size", 4, Mode.READ_ONLY,
-        "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, the oldest waiting "
-        "frame is dropped and counted; a small queue keeps the latency low.",
+        "queue_size", 1, Mode.READ_ONLY,
+        "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, a new frame "
+        "supersedes the oldest waiting one (counted as superseded on /diagnostics): with 1 the tracker "
+        "always works on the newest frame, which waits at most for the one being tracked.",
         unit="frames", minimum=1),
     Setting(
         "status_period", 5.0, Mode.LIVE,
