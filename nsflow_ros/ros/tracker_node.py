@@ -19,9 +19,8 @@ and the tracker live in :class:`nsflow_ros.vins.session.FrontEndSession`. Images
 in the subscription callbacks and handed to one worker thread through a bounded queue
 (:class:`~nsflow_ros.ros.frame_queue.LatestFrames`): when the tracker falls behind, a new frame supersedes
 the oldest waiting one, so the tracker works on the newest frames, and every superseded frame is counted,
-never silently. Parameter changes at run
-time land in the session (the settings table :data:`nsflow_ros.vins.settings.SETTINGS` says what each
-change does).
+never silently. Parameter changes at run time land in the session (the settings table
+:data:`nsflow_ros.vins.settings.SETTINGS` says what each change does).
 
 A bad frame (unsupported encoding, wrong step, truncated data, wrong size, duplicate stamp) is logged once
 per cause, then counted, and skipped. A missing or malformed config or model file, or a parameter of the
