@@ -39,6 +39,7 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.timing import make_frames, time_encoder, timing_stats
 from nsflow_ros.evaluation.timing import timed as _timed
 from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
+from nsflow_ros.vins.settings import setting
 
 __all__ = [
     "main",
@@ -403,6 +404,21 @@ def main(args: list[str] | None = None) -> int:
         "(quality 90), png; none,jpeg,png compares the compressed runs' features with the raw run's "
         "(default none)",
     )
+    parser.add_argument(
+        "--opencv-threads", type=non_negative_int, default=None,
+        help="OpenCV's threads in the whole-tracker benchmark and the node runs (0 = OpenCV's default "
+        f"pool; default: the node's opencv_threads default, {setting('opencv_threads').default})",
+    )
+    parser.add_argument(
+        "--background-load", type=non_negative_float, default=0.0, metavar="CORES",
+        help="run a synthetic CPU load of this many cores (a process busy that share of every 20 ms) during "
+        "each node run, standing in for the VINS estimator on the same cores (default 0)",
+    )
+    parser.add_argument(
+        "--queue-size", type=positive_int, default=None,
+        help="the node runs' queue_size (frames waiting for the tracker at most; default: the node's, "
+        f"{setting('queue_size').default})",
+    )
     parser.add_argument("--no-stages", action="store_true",
                         help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
     parser.add_argument(
@@ -424,16 +440,23 @@ def main(args: list[str] | None = None) -> int:
         res: dict[str, Any] = {}
         if opts.tracker_seconds > 0:
             methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
+            cv_threads = opts.opencv_threads
+            if cv_threads is None:
+                cv_threads = setting("opencv_threads").default
             res["tracker"] = run_tracker_benchmark(
                 opts.tracker_seconds, methods, model=opts.model, threads=opts.threads, progress=not opts.json,
                 providers=opts.providers,
+                opencv_threads=int(cv_threads),
             )
         if opts.node_seconds > 0:
             from nsflow_ros.ros.bench_live import run_live_benchmark
 
+            node_params = {k: v for k, v in (("opencv_threads", opts.opencv_threads),
+                                             ("queue_size", opts.queue_size)) if v is not None}
             res["node_live"] = run_live_benchmark(
                 opts.node_seconds, ("nsflow", "klt"), progress=not opts.json,
                 compress=opts.compress.split(","),
+                background_load=opts.background_load, params=node_params,
             )
         if not opts.no_stages:
             res.update(

@@ -3,9 +3,10 @@
 Every tracking method of :data:`nsflow_ros.core.methods.METHODS` runs the shipped EuRoC configs (mono and
 stereo, flow-back on, 752x480) over the same frames of the synthetic EuRoC-like sample sequence, taking
 turns frame by frame so that the drifting load of a shared machine hits them alike. Per method and mode
-it reports the tracker's per-frame wall time (median, p90, and the stages), the ratio to ``klt`` (VINS's
-own KLT front-end, measured in the same run) and the quality against the sequence's exact optical flow
-(:class:`nsflow_ros.data.scoring.FrameQuality`):
+it reports the tracker's per-frame wall time and CPU time (median, p90, and the stages; CPU time is the
+process's over all its threads, ``time.process_time``, so work spread over a thread pool counts in full),
+their ratios to ``klt`` (VINS's own KLT front-end, measured in the same run) and the quality against the
+sequence's exact optical flow (:class:`nsflow_ros.data.scoring.FrameQuality`):
 
 * carried-over share: features of camera 0 kept from one frame to the next, over those it had;
 * stereo matches: right-image features over left-image features;
@@ -23,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from nsflow_ros import threads as process_threads
 from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.methods import BASELINE, METHODS
 from nsflow_ros.core.tracker import FeatureTracker
@@ -52,27 +54,32 @@ class _Run:
     def __init__(self, tracker: FeatureTracker) -> None:
         self.tracker = tracker
         self.total: list[float] = []
+        self.cpu: list[float] = []
         self.stages: dict[str, list[float]] = {}
+        self.cpu_stages: dict[str, list[float]] = {}
         self.quality = FrameQuality()
         self.had = 0  # camera-0 features of the previous frame
 
     def step(self, seq: Any, i: int, left: np.ndarray, right: np.ndarray | None) -> None:
         before = self.had
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         frame = self.tracker.process(seq.time(i), left, right)
-        wall = (time.perf_counter() - t0) * 1e3
+        wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
         self.had = len(frame.cameras[0])
         if i == 0:
             return  # nothing to track yet
         self.total.append(wall)
-        for k, v in frame.timings.items():
-            if k != "total":
-                self.stages.setdefault(k, []).append(v)
+        self.cpu.append(cpu)
+        for timings, into in ((frame.timings, self.stages), (frame.cpu_timings, self.cpu_stages)):
+            for k, v in timings.items():
+                if k != "total":
+                    into.setdefault(k, []).append(v)
         self.quality.add_frame(seq, i, frame, before, stereo=right is not None)
 
     def figures(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"total": _stats(self.total)}
+        out: dict[str, Any] = {"total": _stats(self.total), "cpu": _stats(self.cpu)}
         out["stages"] = {k: _stats(v)["median_ms"] for k, v in self.stages.items()}
+        out["cpu_stages"] = {k: _stats(v)["median_ms"] for k, v in self.cpu_stages.items()}
         out.update(self.quality.figures())
         return out
 
@@ -85,6 +92,7 @@ def run_tracker_benchmark(
     model: str | None = None,
     threads: int | None = None,
     providers: str = "cpu",
+    opencv_threads: int | None = None,
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
@@ -98,13 +106,17 @@ def run_tracker_benchmark(
         model: ONNX encoder of the learned methods; None = the shipped one.
         threads: encoder threads; None = all usable cores.
         providers: onnxruntime execution providers of the learned encoders, best first.
+        opencv_threads: OpenCV's threads for the run (:func:`nsflow_ros.threads.opencv_threads`: 0 =
+            OpenCV's default pool), restored afterwards; None = leave OpenCV's setting alone.
         seed: the sample sequence's seed.
         cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
             folder removed afterwards.
         progress: a progress bar on stderr (:func:`~nsflow_ros.progress.progress_bar`).
 
     Returns:
-        ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}}}``.
+        ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}},
+        "cpu_ratios": ...}``: figures hold ``total`` and ``cpu`` (median / p90 ms), ``stages`` and
+        ``cpu_stages`` (median ms) and the quality; the ratios are medians over ``klt``'s, wall and CPU.
 
     Raises:
         NSFlowError: an unknown method or mode, or a model / config that cannot be loaded.
@@ -140,25 +152,28 @@ def run_tracker_benchmark(
 
             frames = progress_bar(frames, desc="tracker benchmark", unit="frame", leave=False)
         stereo = "stereo" in modes
-        for i in frames:
-            left = seq.image(i, 0)
-            right = seq.image(i, 1) if stereo else None
-            # Frame by frame, every method and mode in turn.
-            for mode, by_method in runs.items():
-                for run in by_method.values():
-                    run.step(seq, i, left, right if mode == "stereo" else None)
+        with process_threads.opencv_threads(opencv_threads) as used_cv:
+            for i in frames:
+                left = seq.image(i, 0)
+                right = seq.image(i, 1) if stereo else None
+                # Frame by frame, every method and mode in turn.
+                for mode, by_method in runs.items():
+                    for run in by_method.values():
+                        run.step(seq, i, left, right if mode == "stereo" else None)
     finally:
         if tmp is not None:
             tmp.cleanup()
     out: dict[str, Any] = {"setup": {"frames": len(seq), "size": [752, 480], "duration_s": duration,
                                      "methods": names, "modes": list(modes), "interleaved": True,
                                      "configs": {m: CONFIGS[m] for m in modes},
-                                     "encoder_provider": _provider(runs)}}
-    out["ratios"] = {}
+                                     "encoder_provider": _provider(runs),
+                                     "encoder_threads": threads, "opencv_threads": used_cv}}
+    out["ratios"], out["cpu_ratios"] = {}, {}
     for mode, by_method in runs.items():
         out[mode] = {m: run.figures() for m, run in by_method.items()}
-        base = out[mode][BASELINE]["total"]["median_ms"]
-        out["ratios"][mode] = {m: out[mode][m]["total"]["median_ms"] / base for m in names if m != BASELINE}
+        for key, kind in (("ratios", "total"), ("cpu_ratios", "cpu")):
+            base = out[mode][BASELINE][kind]["median_ms"]
+            out[key][mode] = {m: out[mode][m][kind]["median_ms"] / base for m in names if m != BASELINE}
     return out
 
 
@@ -171,23 +186,31 @@ def _provider(runs: dict[str, dict[str, _Run]]) -> str:
 def format_tracker_table(res: dict[str, Any]) -> str:
     """The whole-tracker figures as a text table, one row per mode and method."""
     s = res["setup"]
+    threads = s.get("encoder_threads")
     lines = [
         f"whole tracker (VINS-style, shipped EuRoC configs, flow-back on), {s['frames']} frames "
         f"{s['size'][0]}x{s['size'][1]} of the sample sequence, methods interleaved; encoder on "
-        f"{s.get('encoder_provider', 'none')}",
+        f"{s.get('encoder_provider', 'none')}, encoder threads "
+        f"{'all cores' if threads is None else threads}, OpenCV threads {s.get('opencv_threads', '?')}",
         "",
-        f"{'mode':7s}{'method':11s}{'median ms':>10s}{'p90 ms':>8s}{'x klt':>7s}{'carried':>9s}"
-        f"{'err px':>8s}{'>1px':>7s}{'stereo':>8s}{'s.err px':>9s}{'s.>1px':>7s}  stages (median ms)",
+        f"{'mode':7s}{'method':11s}{'median ms':>10s}{'p90 ms':>8s}{'x klt':>7s}{'CPU ms':>8s}{'x klt':>7s}"
+        f"{'carried':>9s}{'err px':>8s}{'>1px':>7s}{'stereo':>8s}{'s.err px':>9s}{'s.>1px':>7s}"
+        "  stages (median ms, wall / CPU)",
     ]
     for mode in s["modes"]:
         for m, f in res[mode].items():
             ratio = res["ratios"][mode].get(m, 1.0)
-            st = " ".join(f"{k} {v:.1f}" for k, v in f["stages"].items())
+            cpu_ratio = res.get("cpu_ratios", {}).get(mode, {}).get(m, 1.0)
+            cpu = f.get("cpu", {}).get("median_ms", float("nan"))
+            cpu_st = f.get("cpu_stages", {})
+            st = " ".join(f"{k} {v:.1f}/{cpu_st.get(k, float('nan')):.1f}" for k, v in f["stages"].items())
             stereo = (f"{f['stereo_matched_share']:8.3f}{f['stereo_error_median_px']:9.3f}"
                       f"{f['stereo_error_over_1px_share']:7.1%}" if "stereo_matched_share" in f else " " * 24)
             lines.append(
                 f"{mode:7s}{m:11s}{f['total']['median_ms']:10.2f}{f['total']['p90_ms']:8.2f}{ratio:6.2f}x"
+                f"{cpu:8.2f}{cpu_ratio:6.2f}x"
                 f"{f['carried_share']:9.3f}{f['error_median_px']:8.3f}{f['error_over_1px_share']:7.1%}"
                 f"{stereo}  {st}"
             )
+    lines.append("CPU ms: the process's CPU time per frame over all its threads; x klt: median over klt's")
     return "\n".join(lines)

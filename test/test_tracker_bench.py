@@ -14,7 +14,8 @@ from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
     cache = tmp_path_factory.mktemp("bench")
-    return run_tracker_benchmark(0.3, ["classical", "nsflow_lk"], cache_dir=cache, threads=1)
+    return run_tracker_benchmark(0.3, ["classical", "nsflow_lk"], cache_dir=cache, threads=1,
+                                 opencv_threads=1)
 
 
 def test_every_method_and_mode_is_timed_beside_klt(result):
@@ -25,10 +26,18 @@ def test_every_method_and_mode_is_timed_beside_klt(result):
             fig = result[mode][method]
             assert 0 < fig["total"]["median_ms"] <= fig["total"]["p90_ms"]
             assert fig["stages"]["encode"] >= 0 and fig["stages"]["track"] > 0
+            # CPU time beside wall time: one OpenCV and one encoder thread, so about the wall time at most
+            # (a shared machine only lowers it; the 2 ms slack is process_time's granularity)
+            assert 0 < fig["cpu"]["median_ms"] <= fig["cpu"]["p90_ms"]
+            assert fig["cpu"]["median_ms"] <= 1.5 * fig["total"]["median_ms"] + 2
+            assert set(fig["cpu_stages"]) == set(fig["stages"])
+            assert sum(fig["cpu_stages"].values()) <= fig["cpu"]["p90_ms"] * 1.5 + 2
             # the sample's motion is small and textured: real trackers keep most points, accurately
             assert 0.5 < fig["carried_share"] <= 1.0
             assert fig["error_median_px"] < 0.5
-        assert set(result["ratios"][mode]) == {"classical", "nsflow_lk"}
+        assert set(result["ratios"][mode]) == set(result["cpu_ratios"][mode]) == {"classical", "nsflow_lk"}
+        assert all(r > 0 for r in result["cpu_ratios"][mode].values())
+    assert result["setup"]["opencv_threads"] == 1 and result["setup"]["encoder_threads"] == 1
     assert "stereo_matched_share" not in result["mono"]["klt"]
     assert 0.5 < result["stereo"]["klt"]["stereo_matched_share"] <= 1.0
     assert result["stereo"]["classical"]["stereo_error_median_px"] < 0.5
@@ -40,7 +49,7 @@ def test_table_has_a_row_per_mode_and_method(result):
     table = format_tracker_table(result)
     rows = [line for line in table.splitlines() if line.startswith(("mono", "stereo"))]
     assert len(rows) == 6
-    assert "x klt" in table
+    assert "x klt" in table and "CPU ms" in table
 
 
 def test_bad_method_or_duration_is_an_error(tmp_path):
@@ -55,5 +64,9 @@ def test_cli_runs_only_the_tracker_part_as_json(capsys):
     assert main([*args, "--methods", "klt", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["tracker"]["mono"]) == {"klt"} and "setup" not in out
+    assert out["tracker"]["mono"]["klt"]["cpu"]["median_ms"] > 0
+    assert out["tracker"]["setup"]["opencv_threads"] == 1  # the node's default
+    assert main([*args, "--methods", "klt", "--opencv-threads", "2", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["tracker"]["setup"]["opencv_threads"] == 2
     assert main([*args, "--methods", "nope"]) == 1
     assert "unknown method" in capsys.readouterr().err

@@ -194,12 +194,15 @@ class FrameFeatures:
         cameras: camera 0, then camera 1 for stereo.
         image_size: (width, height) of the images.
         timings: wall time of the stages in milliseconds (encode, track, detect, stereo, total).
+        cpu_timings: CPU time of the same stages in milliseconds: the process's, over all its threads
+            (``time.process_time``), so other threads' work in the same window counts too.
     """
 
     stamp: float
     cameras: tuple[CameraFeatures, ...]
     image_size: tuple[int, int]
     timings: dict[str, float] = field(default_factory=dict)
+    cpu_timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def num_cameras(self) -> int:
@@ -335,11 +338,12 @@ class _Tracks:
 
 
 @contextlib.contextmanager
-def _timed(timings: dict[str, float], stage: str) -> Iterator[None]:
-    """Record the wall time of the block in ``timings[stage]`` (ms)."""
-    t0 = time.perf_counter()
+def _timed(timings: dict[str, float], cpu: dict[str, float], stage: str) -> Iterator[None]:
+    """Record the block's wall time in ``timings[stage]`` and its process CPU time in ``cpu[stage]`` (ms)."""
+    t0, c0 = time.perf_counter(), time.process_time()
     yield
     timings[stage] = (time.perf_counter() - t0) * 1e3
+    cpu[stage] = (time.process_time() - c0) * 1e3
 
 
 class FeatureTracker:
@@ -661,25 +665,27 @@ class FeatureTracker:
         Shape:
             gyro: (M, 4).
         """
-        t_start = time.perf_counter()
+        t_start, c_start = time.perf_counter(), time.process_time()
         self._check_stamp(stamp)
         size = self._check_images(image0, image1)
         timings: dict[str, float] = {}
+        cpu: dict[str, float] = {}
         predicted = self._predict(gyro, stamp)  # before any state changes: may raise on bad samples
-        with _timed(timings, "encode"):
+        with _timed(timings, cpu, "encode"):
             gray0, frame0 = self._prepare(image0, "image0")
-        with _timed(timings, "track"):
+        with _timed(timings, cpu, "track"):
             tracks, prev_un = self._track_previous(frame0, size, predicted)
-        with _timed(timings, "detect"):
+        with _timed(timings, cpu, "detect"):
             if detect:
                 tracks = self._reject_mask_detect(gray0, tracks, prev_un, size)
         dt = stamp - self._stamp if self._stamp is not None else 0.0
         left, _ = self._lift(0, tracks, self._left, dt)
         right = None
         if self.settings.stereo:
-            with _timed(timings, "stereo"):
+            with _timed(timings, cpu, "stereo"):
                 right = self._stereo(image1, frame0, tracks, size, dt)  # type: ignore[arg-type]
         self._commit(stamp, frame0, left, right)
         timings["total"] = (time.perf_counter() - t_start) * 1e3
+        cpu["total"] = (time.process_time() - c_start) * 1e3
         cams = (left,) if right is None else (left, right)
-        return FrameFeatures(float(stamp), cams, size, timings)
+        return FrameFeatures(float(stamp), cams, size, timings, cpu)

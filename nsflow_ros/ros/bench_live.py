@@ -4,11 +4,13 @@ For each method, a ``tracker`` node process runs the shipped EuRoC stereo config
 replays the sample sequence's two 752x480 image topics at ``rate`` (1.0 = the camera's 20 Hz) with
 sensor-data QoS, as a camera driver would, through the shipped Fast DDS profile. Reported per method:
 image pairs sent, received and processed by the node, dropped (the node's own count of frames it could
-not keep up with), feature messages out, and the node's image-to-features latency (p50, p90: from the
-image callback, queueing included, to the publication), from the node's summary file. With ``compress``
-the images also go out as CompressedImage (JPEG or PNG) into a node with ``image_transport:=compressed``
-(decoding then counts in the latency), and each such run's camera-0 features are compared with the raw
-run's of the same method, frame by frame.
+not keep up with; superseded: given up for a newer frame), feature messages out, the node's
+image-to-features latency (p50, p90: from the image callback, queueing included, to the publication) and
+its CPU time per processed frame, from the node's summary file. A background load
+(:func:`nsflow_ros.background_load.background_load`) can share the cores, standing in for the estimator.
+With ``compress`` the images also go out as CompressedImage (JPEG or PNG) into a node with
+``image_transport:=compressed`` (decoding then counts in the latency), and each such run's camera-0
+features are compared with the raw run's of the same method, frame by frame.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ def run_live_benchmark(
     progress: bool = False,
     compress: Sequence[str] = ("none",),
     jpeg_quality: int = 90,
+    background_load: float = 0.0,
+    params: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Replay ``seconds`` of the stereo sample at ``rate`` into a tracker node per method.
 
@@ -51,12 +55,15 @@ def run_live_benchmark(
         progress: print a line per run to stderr.
         compress: image transports, one node run each per method: ``none`` (raw), ``jpeg``, ``png``.
         jpeg_quality: JPEG quality of the ``jpeg`` runs.
+        background_load: CPU cores of synthetic load running during every replay (0 = none).
+        params: further tracker node parameters, e.g. ``{"queue_size": 1}``.
 
     Returns:
         ``{"setup": ..., run: {"frames_sent", "tracker_received", "tracker_processed",
-        "tracker_dropped", "frames" (feature messages out), "tracker_latency_ms_p50", "..._p90", ...}}``
-        where a run is the method's name, or ``<method>/jpeg<quality>`` / ``<method>/png`` for a compressed
-        run, which also has ``"agreement"`` (:func:`feature_agreement` against the method's raw run).
+        "tracker_dropped", "tracker_superseded", "frames" (feature messages out), "tracker_latency_ms_p50",
+        "..._p90", "tracker_cpu_ms_per_frame", ...}}`` where a run is the method's name, or
+        ``<method>/jpeg<quality>`` / ``<method>/png`` for a compressed run, which also has ``"agreement"``
+        (:func:`feature_agreement` against the method's raw run).
 
     Raises:
         NSFlowError: a tracker node did not come up, or bad arguments.
@@ -65,6 +72,8 @@ def run_live_benchmark(
 
     import rclpy
 
+    from nsflow_ros.background_load import background_load as load
+    from nsflow_ros.background_load import load_shares
     from nsflow_ros.data.sample import make_sample_sequence
     from nsflow_ros.resources import STEREO_CONFIG, share_file
     from nsflow_ros.ros.live import run_live
@@ -75,10 +84,12 @@ def run_live_benchmark(
     bad = [c for c in compress if c not in ("none", "jpeg", "png")]
     if bad or not compress:
         raise NSFlowError(f"compress takes none, jpeg and png, got {', '.join(compress) or 'nothing'}")
+    load_shares(background_load)  # a bad load is an error before anything starts
     tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
     out: dict[str, Any] = {"setup": {"seconds": seconds, "rate": rate, "size": [752, 480], "stereo": True,
                                      "config": STEREO_CONFIG, "compress": list(compress),
-                                     "jpeg_quality": jpeg_quality}}
+                                     "jpeg_quality": jpeg_quality, "background_load_cores": background_load,
+                                     "params": dict(params or {})}}
     try:
         root = Path(tmp.name if tmp else cache_dir)
         seq = make_sample_sequence(root / f"sample-live-seed{seed}-{seconds:g}s", seed=seed, duration=seconds,
@@ -98,9 +109,12 @@ def run_live_benchmark(
                         print(f"[bench] node {name}: {seconds:g} s stereo at rate {rate:g} ...",
                               file=sys.stderr, flush=True)
                     frames: dict[int, dict[int, np.ndarray]] = {}
-                    figs, _ = run_live(ctx, seq, config, method, root / f"live_{name.replace('/', '_')}.log",
-                                       seed=seed, rate=rate, topics=STEREO_TOPICS, show_track=False,
-                                       compress=codec, jpeg_quality=jpeg_quality, frames_out=frames)
+                    with load(background_load):
+                        figs, _ = run_live(
+                            ctx, seq, config, method, root / f"live_{name.replace('/', '_')}.log", seed=seed,
+                            rate=rate, topics=STEREO_TOPICS, show_track=False, compress=codec,
+                            jpeg_quality=jpeg_quality, frames_out=frames, params=params,
+                        )
                     if codec == "none":
                         raw = frames
                     elif raw is not None:
@@ -157,10 +171,12 @@ def format_live_table(res: dict[str, Any]) -> str:
     s = res["setup"]
     lines = [
         f"tracker node, {s['seconds']:g} s stereo sample ({s['size'][0]}x{s['size'][1]}) replayed at rate "
-        f"{s['rate']:g} over DDS (shipped Fast DDS profile)",
+        f"{s['rate']:g} over DDS (shipped Fast DDS profile), background load "
+        f"{s.get('background_load_cores', 0):g} core"
+        + "".join(f", {k} {v}" for k, v in s.get("params", {}).items()),
         "",
-        f"{'method':14s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'out':>6s}{'processed':>11s}"
-        f"{'lat p50 ms':>12s}{'lat p90 ms':>12s}{'same feat':>11s}",
+        f"{'method':14s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'supers':>7s}{'out':>6s}"
+        f"{'processed':>11s}{'lat p50 ms':>12s}{'lat p90 ms':>12s}{'CPU ms/fr':>11s}{'same feat':>11s}",
     ]
     for m, f in res.items():
         if m == "setup":
@@ -174,12 +190,16 @@ def format_live_table(res: dict[str, Any]) -> str:
         share = (f.get("agreement") or {}).get("same_share")
         lines.append(
             f"{m:14s}{num('frames_sent'):>6s}{num('tracker_received'):>6s}{num('tracker_processed'):>6s}"
-            f"{num('tracker_dropped'):>6s}{num('frames'):>6s}{(proc / sent if sent else 0):11.1%}"
+            f"{num('tracker_dropped'):>6s}{num('tracker_superseded'):>7s}{num('frames'):>6s}"
+            f"{(proc / sent if sent else 0):11.1%}"
             f"{num('tracker_latency_ms_p50', '.1f'):>12s}{num('tracker_latency_ms_p90', '.1f'):>12s}"
+            f"{num('tracker_cpu_ms_per_frame', '.1f'):>11s}"
             f"{'' if share is None else format(share, '.1%'):>11s}"
         )
     lines.append("sent: image pairs replayed; recv / proc / drop: pairs the node received / tracked / "
-                 "dropped because it was busy; out: feature messages received back")
+                 "did not track; supers: of those dropped, superseded by a newer pair while the tracker "
+                 "was busy; out: feature messages received back; CPU ms/fr: the node process's CPU time "
+                 "per tracked pair")
     if any("agreement" in f for m, f in res.items() if m != "setup"):
         lines.append("method/jpegN, method/png: images as CompressedImage (decoding in the latency); same "
                      "feat: share of the raw run's camera-0 features within 0.1 px in the same frame")

@@ -20,7 +20,9 @@ class NodeCounters:
         frames_received: frames (image pairs for stereo) queued for the tracker.
         frames_processed: frames the tracker ran on.
         frames_published: feature messages published.
-        frames_dropped_busy: frames dropped because the tracker was behind (or waiting at shutdown).
+        frames_superseded: frames given up unprocessed because a newer frame arrived while they waited
+            (the tracker was behind; see :class:`~nsflow_ros.ros.frame_queue.LatestFrames`).
+        frames_left_at_stop: frames still waiting when the node stopped.
         frames_refused: frames the session refused (duplicate stamp, tracker error).
         frames_missing_upstream: frames lost before the node, inferred from stamp gaps.
         bad: undecodable images and refused frames by cause (logged once per cause).
@@ -32,15 +34,16 @@ class NodeCounters:
     frames_received: int = 0
     frames_processed: int = 0
     frames_published: int = 0
-    frames_dropped_busy: int = 0
+    frames_superseded: int = 0
+    frames_left_at_stop: int = 0
     frames_refused: int = 0
     frames_missing_upstream: int = 0
     bad: Counter[str] = field(default_factory=Counter)
 
     @property
     def frames_dropped(self) -> int:
-        """Frames received but not tracked: the tracker was busy, or the session refused them."""
-        return self.frames_dropped_busy + self.frames_refused
+        """Frames received but not tracked: superseded, left at the stop, or refused by the session."""
+        return self.frames_superseded + self.frames_left_at_stop + self.frames_refused
 
     @property
     def bad_frames(self) -> int:
@@ -60,6 +63,7 @@ class NodeCounters:
 
 
 WINDOWED = (
-    "frames_received", "frames_processed", "frames_dropped", "images_unpaired", "frames_missing_upstream"
+    "frames_received", "frames_processed", "frames_dropped", "frames_superseded", "images_unpaired",
+    "frames_missing_upstream",
 )
 """The counts the status line reports per period."""

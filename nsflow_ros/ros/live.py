@@ -99,6 +99,7 @@ def run_live(
     compress: str = "none",
     jpeg_quality: int = 90,
     frames_out: dict[int, dict[int, np.ndarray]] | None = None,
+    params: dict[str, Any] | None = None,
 ) -> tuple[dict[str, Any], Any]:
     """Replay ``seq`` over ROS 2 into a ``tracker`` node process started for it, and collect its output.
 
@@ -119,6 +120,7 @@ def run_live(
             ``<topic>/compressed`` into a tracker with ``image_transport:=compressed``.
         jpeg_quality: JPEG quality with ``compress="jpeg"``.
         frames_out: filled with the camera-0 features received, stamp -> {id: (u, v)}.
+        params: further tracker node parameters (``-p name:=value``).
 
     Returns:
         (track figures of camera 0 plus the tracker's own counters, the middle debug image or None).
@@ -139,6 +141,7 @@ def run_live(
         "-p", f"method:={method}",
         "-p", f"show_track:={int(show_track)}",
         "-p", f"summary_file:={summary_file}",
+        *(a for k, v in (params or {}).items() for a in ("-p", f"{k}:={v}")),
     ]
     if compress != "none":
         cmd += ["-p", "image_transport:=compressed"]
@@ -185,7 +188,8 @@ def run_live(
     figures["frames_sent"] = sent // len(topics)
     # what the tracker itself saw: frames that reached it and frames it tracked (its summary file)
     counters = _read_summary(summary_file)
-    for key in ("frames_received", "frames_processed", "frames_dropped", "latency_ms_p50", "latency_ms_p90"):
+    for key in ("frames_received", "frames_processed", "frames_dropped", "frames_superseded",
+                "latency_ms_p50", "latency_ms_p90", "cpu_ms_per_frame"):
         figures[f"tracker_{key.removeprefix('frames_')}"] = counters.get(key)
     # the debug image of the sequence's middle frame (or the nearest one drawn): the same frame for every run
     target = int(seq.stamps_ns[len(seq) // 2])

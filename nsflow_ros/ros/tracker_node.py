@@ -19,10 +19,11 @@ publishes
 
 The node is a thin shell: the frame policy (VINS-Mono's first-frame drop, ``freq`` throttling, restarts)
 and the tracker live in :class:`nsflow_ros.vins.session.FrontEndSession`. Images are decoded and paired
-in the subscription callbacks and handed to one worker thread through a bounded queue: when the tracker
-falls behind, the oldest waiting frame is dropped and counted, never silently. Parameter changes at run
-time land in the session (the settings table :data:`nsflow_ros.vins.settings.SETTINGS` says what each
-change does).
+in the subscription callbacks and handed to one worker thread through a bounded queue
+(:class:`~nsflow_ros.ros.frame_queue.LatestFrames`): when the tracker falls behind, a new frame supersedes
+the oldest waiting one, so the tracker works on the newest frames, and every superseded frame is counted,
+never silently. Parameter changes at run time land in the session (the settings table
+:data:`nsflow_ros.vins.settings.SETTINGS` says what each change does).
 
 A bad frame (unsupported encoding or compressed format, corrupt compressed data, wrong step, truncated data,
 wrong size, duplicate stamp) is logged once per cause, then counted, and skipped. A missing or malformed
@@ -62,11 +63,13 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.ros.counters import WINDOWED, NodeCounters
 from nsflow_ros.ros.errors import ParameterError
+from nsflow_ros.ros.frame_queue import LatestFrames
 from nsflow_ros.ros.image_conv import numpy_to_image_fields
 from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
 from nsflow_ros.ros.tracker_params import NODE_NAME, PARAMETERS, coerce, spec, usage
 from nsflow_ros.ros.transport import use_large_image_transport
 from nsflow_ros.stamps import stamp_to_ns, stamp_to_s
+from nsflow_ros.threads import set_opencv_threads
 from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.draw import draw_tracks
 from nsflow_ros.vins.errors import ConfigError
@@ -134,6 +137,12 @@ def _percentile(values: list[float], q: float) -> float | None:
     return float(np.percentile(values, q)) if values else None
 
 
+def _cpu_per_frame(cpu_s: float, frames: int) -> float | None:
+    """The node process's CPU time since start-up (all threads: decoding, tracking, publishing) per
+    processed frame, in ms."""
+    return cpu_s * 1e3 / frames if frames else None
+
+
 class TrackerNode(Node):
     """The nsflow_tracker node.
 
@@ -159,6 +168,7 @@ class TrackerNode(Node):
             )
             p[ps.name] = coerce(ps, self.declare_parameter(ps.name, ps.default, desc).value)
         self._params = p
+        set_opencv_threads(int(p["opencv_threads"]))  # process-wide, before the tracker's first call
 
         cfg = load_vins_config(resolve_config_path(str(p["config_file"])))
         use_imu = bool(p["use_imu_prediction"])
@@ -190,10 +200,10 @@ class TrackerNode(Node):
         self._track_last = -np.inf  # monotonic time of the last debug image
         self.track_images_published = 0
         self._lock = threading.Lock()  # the session and the publishers: worker vs. parameter updates
-        self._queue: deque[_Frame] = deque()
-        self._queue_size = int(p["queue_size"])
-        self._wake = threading.Condition()
+        self._queue: LatestFrames[_Frame] = LatestFrames(int(p["queue_size"]))
+        self._stop_lock = threading.Lock()
         self._stopping = False
+        self._cpu_start = time.process_time()
         self._status = _StatusWindow()
         self._gaps = _StampGaps()
 
@@ -331,24 +341,16 @@ class TrackerNode(Node):
 
     def _enqueue(self, frame: _Frame) -> None:
         self.stats.frames_missing_upstream += self._gaps.add(stamp_to_s(frame.header.stamp))
-        with self._wake:
-            self.stats.frames_received += 1
-            if len(self._queue) >= self._queue_size:  # the tracker is behind: drop the oldest frame
-                self._queue.popleft()
-                self.stats.frames_dropped_busy += 1
-            self._queue.append(frame)
-            self._wake.notify()
+        self.stats.frames_received += 1
+        self.stats.frames_superseded += self._queue.put(frame)
 
     # -- the worker --------------------------------------------------------------------------------------
 
     def _work(self) -> None:
         while True:
-            with self._wake:
-                while not self._queue and not self._stopping:
-                    self._wake.wait()
-                if self._stopping:
-                    return
-                frame = self._queue.popleft()
+            frame = self._queue.take()
+            if frame is None:  # stopped
+                return
             try:
                 with self._lock:
                     self._frame(frame)
@@ -434,7 +436,9 @@ class TrackerNode(Node):
             "stereo": bool(settings.stereo),
             **s.totals(),
             "frames_skipped_by_policy": self.session.counters.skipped_by_policy,
-            "dropped": {"busy": s.frames_dropped_busy, "refused": s.frames_refused},
+            "dropped": {"superseded": s.frames_superseded, "left_at_stop": s.frames_left_at_stop,
+                        "refused": s.frames_refused},
+            "cpu_ms_per_frame": _cpu_per_frame(time.process_time() - self._cpu_start, s.frames_processed),
             "track_images_published": self.track_images_published,
             "restarts": self.session.counters.restarts,
             "latency_ms_p50": _percentile(lat, 50),
@@ -454,7 +458,8 @@ class TrackerNode(Node):
         )
         return (
             f"frames received {c['frames_received']}, processed {c['frames_processed']}, published "
-            f"{c['frames_published']}, dropped {c['frames_dropped']} (tracker busy {d['busy']}, refused "
+            f"{c['frames_published']}, dropped {c['frames_dropped']} (superseded by newer frames while the "
+            f"tracker was busy {d['superseded']}, waiting at the stop {d['left_at_stop']}, refused "
             f"{d['refused']}); images unpaired {c['images_unpaired']}, undecodable "
             f"{c['images_undecodable']}; frames missing before the node (stamp gaps) "
             f"{c['frames_missing_upstream']}{lat}"
@@ -472,7 +477,8 @@ class TrackerNode(Node):
             problems = []
             if window["frames_dropped"]:
                 dropped, received = window["frames_dropped"], window["frames_received"]
-                problems.append(f"falling behind: dropped {dropped} of {received} frames")
+                problems.append(f"falling behind: dropped {dropped} of {received} frames "
+                                f"({window['frames_superseded']} superseded by newer ones)")
             if window["images_unpaired"]:
                 problems.append(f"{window['images_unpaired']} images without their stereo partner")
             if window["frames_missing_upstream"]:
@@ -482,7 +488,8 @@ class TrackerNode(Node):
             message = "; ".join(problems)
         else:
             message = "tracking"
-        totals = ("frames_received", "frames_processed", "frames_dropped", "frames_published")
+        totals = ("frames_received", "frames_processed", "frames_dropped", "frames_superseded",
+                  "frames_published")
         values = {
             **{_label(k): c[k] for k in totals},
             **{f"{_label(k)} (period)": window[k] for k in WINDOWED},
@@ -491,6 +498,7 @@ class TrackerNode(Node):
             "latency p90 ms (period)": window["latency_p90"],
             "method": c["method"],
             "encoder provider": encoder_provider(self.session.tracker.encoder),
+            "CPU ms per frame": c["cpu_ms_per_frame"],
         }
         array_msg = DiagnosticArray()
         array_msg.header.stamp = self.get_clock().now().to_msg()
@@ -527,15 +535,13 @@ class TrackerNode(Node):
     # -- shutdown --------------------------------------------------------------------------------------
 
     def stop_worker(self, timeout: float = 5.0) -> None:
-        """Stop the frame worker (frames still waiting are counted as dropped)."""
-        with self._wake:
+        """Stop the frame worker (frames still waiting are counted as left at the stop)."""
+        with self._stop_lock:
             if not self._stopping:  # frames and images still waiting were not processed
-                self.stats.frames_dropped_busy += len(self._queue)
+                self.stats.frames_left_at_stop += self._queue.close()
                 self._pairer.flush()
                 self.stats.images_unpaired = self._pairer.unpaired
             self._stopping = True
-            self._queue.clear()
-            self._wake.notify_all()
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout)
 

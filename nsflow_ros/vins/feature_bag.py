@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from nsflow_ros import threads as process_threads
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
 from nsflow_ros.data.writers import BagWriter, temp_sibling
@@ -30,6 +31,7 @@ from nsflow_ros.vins.config import VinsConfig
 from nsflow_ros.vins.messages import encode_fusion
 from nsflow_ros.vins.pairing import StereoPairer
 from nsflow_ros.vins.session import FrontEndSession, Skip
+from nsflow_ros.vins.settings import setting
 
 __all__ = [
     "FEATURE_TOPIC",
@@ -104,6 +106,7 @@ def write_feature_bag(
     fmt: str | None = None,
     overrides: dict[str, Any] | None = None,
     progress: bool = True,
+    opencv_threads: int | None = None,
 ) -> FeatureBagSummary:
     """Track every image of a stream and write the features and IMU as a new bag.
 
@@ -116,6 +119,8 @@ def write_feature_bag(
         fmt: ``ros1`` or ``ros2``; None = from the suffix of ``out``.
         overrides: further TrackerSettings fields, fixed for the run.
         progress: show a progress bar.
+        opencv_threads: OpenCV's threads while tracking (:func:`nsflow_ros.threads.opencv_threads`),
+            restored afterwards; None = the node's ``opencv_threads`` default.
 
     Returns:
         what was written.
@@ -144,7 +149,8 @@ def write_feature_bag(
     error: NSFlowError | None = None
     bar = progress_bar(desc=f"feature bag {method}", unit="frame", enabled=progress)
     try:
-        with BagWriter(tmp / path.name, ros1=kind == "ros1") as bag:
+        cv = int(setting("opencv_threads").default) if opencv_threads is None else opencv_threads
+        with BagWriter(tmp / path.name, ros1=kind == "ros1") as bag, process_threads.opencv_threads(cv):
             try:
                 for rec in records:
                     if isinstance(rec, ImuRecord):

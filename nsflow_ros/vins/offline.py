@@ -28,8 +28,10 @@ from nsflow_ros.data.replay import ReplayOptions, replay_records
 from nsflow_ros.data.scoring import TrackStats
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
+from nsflow_ros.threads import set_opencv_threads
 from nsflow_ros.vins.draw import draw_tracks
 from nsflow_ros.vins.session import FrontEndSession, Skip
+from nsflow_ros.vins.settings import setting
 from nsflow_ros.vins.sheet import contact_sheet, write_png
 
 __all__ = ["CSV_HEADER", "OfflineSummary", "run_offline"]
@@ -61,6 +63,11 @@ class OfflineSummary:
         )
 
 
+def _opencv_threads(threads: int | None) -> int:
+    """OpenCV's threads for a run: ``threads``, or the node's ``opencv_threads`` default."""
+    return int(setting("opencv_threads").default) if threads is None else threads
+
+
 def _sample_of(path: Path) -> Any:
     """The SampleSequence a path belongs to, or None."""
     from nsflow_ros.data.errors import DataError
@@ -84,6 +91,7 @@ def run_offline(
     overrides: dict[str, Any] | None = None,
     sheet_frames: int = 6,
     progress: bool = True,
+    opencv_threads: int | None = None,
 ) -> OfflineSummary:
     """Track a recorded sequence with the core tracker and write features, a contact sheet and a summary.
 
@@ -95,6 +103,8 @@ def run_offline(
         overrides: further tracker settings.
         sheet_frames: debug images in the contact sheet, spread over the sequence.
         progress: show a progress bar.
+        opencv_threads: OpenCV's threads during the run (:func:`nsflow_ros.threads.set_opencv_threads`),
+            restored afterwards; None = the node's ``opencv_threads`` default.
 
     Returns:
         the summary (also written as summary.json).
@@ -118,6 +128,7 @@ def run_offline(
     sheet: list[tuple[int, np.ndarray]] = []
     error: NSFlowError | None = None
     bar = progress_bar(desc=f"offline {method}", unit="frame", enabled=progress)
+    cv_before = set_opencv_threads(_opencv_threads(opencv_threads))
     try:
         for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
             if not isinstance(rec, ImageRecord):
@@ -143,6 +154,7 @@ def run_offline(
         error = err  # keep what was processed; report after writing
     finally:
         bar.close()
+        set_opencv_threads(cv_before)
     atomic_write(out / "features.csv", lambda p: p.write_text(CSV_HEADER + "\n" + "\n".join(rows) + "\n"))
     if sheet:
         pick = [sheet[round(i)] for i in np.linspace(0, len(sheet) - 1, min(sheet_frames, len(sheet)))]

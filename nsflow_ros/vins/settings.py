@@ -262,9 +262,10 @@ SETTINGS: tuple[Setting, ...] = (
         "points on its zeros are dropped and no corners are detected there. '' = fisheye_mask.jpg in the "
         "config's folder or its parent, where VINS-Mono keeps it. Unused when the config's fisheye is 0."),
     Setting(
-        "queue_size", 4, Mode.READ_ONLY,
-        "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, the oldest waiting "
-        "frame is dropped and counted; a small queue keeps the latency low.",
+        "queue_size", 1, Mode.READ_ONLY,
+        "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, a new frame "
+        "supersedes the oldest waiting one (counted as superseded on /diagnostics): with 1 the tracker "
+        "always works on the newest frame, which waits at most for the one being tracked.",
         unit="frames", minimum=1),
     Setting(
         "status_period", 5.0, Mode.LIVE,
@@ -310,6 +311,13 @@ SETTINGS: tuple[Setting, ...] = (
         "Most image_track debug images per second (wall time), drawn only while something subscribes to "
         "it; 0 = every tracked frame.",
         unit="Hz", minimum=0),
+    # -- threads of the node process, beside the estimator --
+    Setting(
+        "opencv_threads", 1, Mode.READ_ONLY,
+        "OpenCV's threads in the node process (corner detection, image warps and filters); 0 = OpenCV's "
+        "default pool of all the cores. 1 leaves the other cores to the estimator: the pool costs CPU "
+        "time for little wall time.",
+        unit="threads", minimum=0),
 )
 """Every setting of the ``tracker`` node, in the order of the params file."""
 

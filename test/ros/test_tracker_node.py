@@ -430,7 +430,9 @@ def test_status_on_diagnostics_and_dropped_frames_are_counted(tmp_path, prefix, 
         assert h.spin_until(lambda: h.tracker.stats.frames_received == 8 and not h.tracker._queue, 10.0)
         h.spin_until(lambda: False, 0.3)  # the last frame leaves the tracker
         c = h.tracker.counters()
-        assert c["frames_received"] == 8 and c["dropped"]["busy"] >= 3
+        # queue of one: the tracker always takes the newest frame, the ones it skipped are superseded
+        assert c["frames_received"] == 8 and c["dropped"]["superseded"] == c["frames_superseded"] >= 3
+        assert c["dropped"]["left_at_stop"] == 0 and c["cpu_ms_per_frame"] > 0
         assert c["frames_processed"] + c["frames_dropped"] == 8 and c["frames_published"] == len(h.clouds)
 
         def reported() -> bool:
@@ -444,7 +446,10 @@ def test_status_on_diagnostics_and_dropped_frames_are_counted(tmp_path, prefix, 
         assert h.spin_until(reported, 5.0)
         warned = [s for msg in diags for s in msg.status if s.hardware_id == name and s.level == s.WARN]
         assert warned and "falling behind" in warned[0].message
-        assert "dropped" in h.tracker.summary() and "received 8" in h.tracker.summary()
+        assert "superseded" in h.tracker.summary() and "received 8" in h.tracker.summary()
+        assert h.spin_until(lambda: any(v.key == "frames superseded" and int(v.value) >= 3
+                                        for msg in diags for s in msg.status if s.hardware_id == name
+                                        for v in s.values), 5.0)
     finally:
         h.close()
 

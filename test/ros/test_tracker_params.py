@@ -65,3 +65,12 @@ def test_the_node_parameters_are_the_settings_table():
     text = render_params_yaml()
     for p in PARAMETERS:  # the mode reaches the params file's comments
         assert " ".join(p.full_description.split()) in " ".join(text.replace("#", " ").split())
+
+
+def test_opencv_threads_is_a_read_only_node_setting_checked_at_start_up():
+    p = spec("opencv_threads")
+    assert p.default == 1 and p.mode is Mode.READ_ONLY and not p.session and not p.tracker
+    assert coerce(p, 0) == 0 and coerce(p, 4) == 4  # 0 = OpenCV's default pool
+    with pytest.raises(ParameterError, match=r"parameter opencv_threads: got -1, expected an integer >= 0"):
+        coerce(p, -1)
+    assert SETTINGS[-1] is p  # the last row of the table, as in the params file
