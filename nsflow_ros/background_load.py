@@ -49,7 +49,9 @@ def load_shares(cores: float) -> list[float]:
     return shares
 
 
-def _spin(share: float, period: float, max_seconds: float, parent: int) -> None:
+def _spin(share: float, period: float, max_seconds: float, parent: int, nice: int) -> None:
+    if nice:
+        os.nice(nice)
     end = time.monotonic() + max_seconds
     busy = share * period
     nxt = time.monotonic()
@@ -67,7 +69,7 @@ def _spin(share: float, period: float, max_seconds: float, parent: int) -> None:
 
 @contextmanager
 def background_load(
-    cores: float, *, period: float = PERIOD_S, max_seconds: float = 3600.0
+    cores: float, *, period: float = PERIOD_S, max_seconds: float = 3600.0, nice: int = 0
 ) -> Iterator[list[mp.Process]]:
     """Run a load of ``cores`` CPU cores in other processes while the ``with`` block runs.
 
@@ -75,19 +77,25 @@ def background_load(
         cores: total load in cores (0 = none).
         period: seconds of one busy-then-idle cycle.
         max_seconds: each process stops by itself after this long.
+        nice: the load's niceness increment (0-19): > 0 runs it at a lower priority than the tracker, as
+            an estimator started with ``nice -n`` would.
 
     Yields:
         the load processes (empty for 0 cores).
 
     Raises:
-        LoadError: ``cores`` out of range or ``period`` not positive.
+        LoadError: ``cores`` out of range, ``period`` not positive or ``nice`` outside 0-19.
     """
     shares = load_shares(cores)
     if not period > 0:
         raise LoadError(f"load period must be > 0 s, got {period}")
+    if not 0 <= nice <= 19:
+        raise LoadError(f"load niceness must be 0-19, got {nice}")
     ctx = mp.get_context("spawn")  # no copy of the tracker's threads or onnxruntime sessions
     procs = [
-        ctx.Process(target=_spin, args=(s, period, max_seconds, os.getpid()), daemon=True, name=f"load{i}")
+        ctx.Process(
+            target=_spin, args=(s, period, max_seconds, os.getpid(), nice), daemon=True, name=f"load{i}"
+        )
         for i, s in enumerate(shares)
     ]
     for p in procs:

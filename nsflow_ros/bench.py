@@ -415,6 +415,11 @@ def main(args: list[str] | None = None) -> int:
         "each node run, standing in for the VINS estimator on the same cores (default 0)",
     )
     parser.add_argument(
+        "--load-nice", type=non_negative_int, default=0, metavar="N",
+        help="niceness of the background load (0-19; > 0 runs it below the tracker's priority, as an "
+        "estimator started with nice -n N; default 0)",
+    )
+    parser.add_argument(
         "--queue-size", type=positive_int, default=None,
         help="the node runs' queue_size (frames waiting for the tracker at most; default: the node's, "
         f"{setting('queue_size').default})",
@@ -456,7 +461,7 @@ def main(args: list[str] | None = None) -> int:
             res["node_live"] = run_live_benchmark(
                 opts.node_seconds, ("nsflow", "klt"), progress=not opts.json,
                 compress=opts.compress.split(","),
-                background_load=opts.background_load, params=node_params,
+                background_load=opts.background_load, load_nice=opts.load_nice, params=node_params,
             )
         if not opts.no_stages:
             res.update(

@@ -44,3 +44,15 @@ def test_load_uses_its_share_and_stops() -> None:
     # 50 % asked; a busy 2-core machine may slow the spinner down, never speed it up past 100 %
     assert 0.25 < share < 0.8, share
     assert not procs[0].is_alive()
+
+
+def test_bad_niceness_is_refused() -> None:
+    with pytest.raises(LoadError, match="niceness must be 0-19, got 20"), background_load(0.5, nice=20):
+        pass
+
+
+def test_a_niced_load_runs_below_this_process() -> None:
+    with background_load(0.3, nice=7) as procs:
+        time.sleep(0.5)
+        fields = Path(f"/proc/{procs[0].pid}/stat").read_text().rsplit(")", 1)[1].split()
+        assert int(fields[16]) == os.nice(0) + 7  # field 19 of stat: the niceness

@@ -42,6 +42,7 @@ def run_live_benchmark(
     compress: Sequence[str] = ("none",),
     jpeg_quality: int = 90,
     background_load: float = 0.0,
+    load_nice: int = 0,
     params: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Replay ``seconds`` of the stereo sample at ``rate`` into a tracker node per method.
@@ -56,6 +57,7 @@ def run_live_benchmark(
         compress: image transports, one node run each per method: ``none`` (raw), ``jpeg``, ``png``.
         jpeg_quality: JPEG quality of the ``jpeg`` runs.
         background_load: CPU cores of synthetic load running during every replay (0 = none).
+        load_nice: the load's niceness (> 0: below the tracker's priority).
         params: further tracker node parameters, e.g. ``{"queue_size": 1}``.
 
     Returns:
@@ -85,10 +87,13 @@ def run_live_benchmark(
     if bad or not compress:
         raise NSFlowError(f"compress takes none, jpeg and png, got {', '.join(compress) or 'nothing'}")
     load_shares(background_load)  # a bad load is an error before anything starts
+    if not 0 <= load_nice <= 19:
+        raise NSFlowError(f"load niceness must be 0-19, got {load_nice}")
     tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
     out: dict[str, Any] = {"setup": {"seconds": seconds, "rate": rate, "size": [752, 480], "stereo": True,
                                      "config": STEREO_CONFIG, "compress": list(compress),
                                      "jpeg_quality": jpeg_quality, "background_load_cores": background_load,
+                                     "background_load_nice": load_nice,
                                      "params": dict(params or {})}}
     try:
         root = Path(tmp.name if tmp else cache_dir)
@@ -109,7 +114,7 @@ def run_live_benchmark(
                         print(f"[bench] node {name}: {seconds:g} s stereo at rate {rate:g} ...",
                               file=sys.stderr, flush=True)
                     frames: dict[int, dict[int, np.ndarray]] = {}
-                    with load(background_load):
+                    with load(background_load, nice=load_nice):
                         figs, _ = run_live(
                             ctx, seq, config, method, root / f"live_{name.replace('/', '_')}.log", seed=seed,
                             rate=rate, topics=STEREO_TOPICS, show_track=False, compress=codec,
@@ -173,6 +178,7 @@ def format_live_table(res: dict[str, Any]) -> str:
         f"tracker node, {s['seconds']:g} s stereo sample ({s['size'][0]}x{s['size'][1]}) replayed at rate "
         f"{s['rate']:g} over DDS (shipped Fast DDS profile), background load "
         f"{s.get('background_load_cores', 0):g} core"
+        + (f" at nice {s['background_load_nice']}" if s.get("background_load_nice") else "")
         + "".join(f", {k} {v}" for k, v in s.get("params", {}).items()),
         "",
         f"{'method':14s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'supers':>7s}{'out':>6s}"
