@@ -14,10 +14,12 @@ from onnx_models import conv_encoder
 from nsflow_ros.core.encoder import IntensityEncoder, load_encoder, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.methods import (
+    CHECK_LEVELS,
     CLAHE,
     DEPLOYED_LM,
     METHODS,
     PAPER_LM,
+    PREDICTED_LEVELS,
     DescriptorKLTMethod,
     EncoderSource,
     KLTConfig,
@@ -373,3 +375,26 @@ def test_no_module_but_the_registry_names_a_method():
         if path != registry:
             found += _names_a_method(path.read_text(), str(path.relative_to(PACKAGE)))
     assert found == []
+
+
+def test_the_registry_deploys_what_the_tracker_deployed_before_the_registry_existed():
+    """The settings the tracker ran before they moved into the registry, spelled out as they were then
+    (``TrackerSettings.lm``'s default, ``LMMethod``'s keyword defaults, the tracker's VINS constants):
+    the move kept the tracker's output bit for bit only if each of them is still what runs."""
+    from nsflow_ros.core import tracker as tr
+
+    spec = METHODS["nsflow"]
+    assert spec.lm == LMConfig(
+        levels=4, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05, zero_mean=True,
+        coarse_window=21, coarse_from=2,
+    )
+    assert METHODS["classical"].lm == spec.lm
+    assert spec.policy == SolvePolicy(prior_levels=2, fill_levels=3, max_residual=0.5,
+                                      check_jacobian=Jacobian.FORWARD, check_eps=0.01)
+    assert (CHECK_LEVELS, PREDICTED_LEVELS) == (2, 1)
+    vins = (tr.GFTT_QUALITY, tr.FLOW_BACK_THRESHOLD_PX, tr.BORDER_PX, tr.PREDICTION_MIN_TRACKED)
+    assert vins == (0.01, 0.5, 1, 10)
+    assert (LMConfig().lambda_init, LMConfig().nu) == (1e-2, 10.0)
+    klt = METHODS["klt"].klt
+    assert (klt.window, klt.max_iterations, klt.eps) == (21, 30, 0.01)
+    assert (CLAHE.clip, CLAHE.tiles) == (3.0, (8, 8))
