@@ -1,15 +1,8 @@
 """glibc malloc settings for a per-frame vision pipeline (a process-wide choice, made by the entry points).
 
-Every frame allocates the same few large buffers: the 752x480 d=4 descriptor map (5.8 MB), its pyramid,
-OpenCV's GFTT eigenvalue and dilation images (1.4 MB each). glibc serves requests above its mmap
-threshold (128 KiB at start, adapting up to 32 MiB) with fresh ``mmap`` pages and returns them with
-``munmap`` on free, so each frame page-faults its buffers in again, and in a virtual machine a fault is
-expensive. Raising the mmap and trim thresholds keeps those buffers on the heap, where the next frame
-reuses them. Measured with ``nsflow-bench`` methods interleaved (752x480, 150 points, 2-core VM), two
-runs each way: NSFlow frame 15.4-16.3 -> 14.4-14.7 ms, mostly GFTT (2.3-3.1 -> 1.6 ms); classical frame
-5.6-6.4 -> 4.7-4.9 ms. The price is memory the process keeps instead of returning: after the 752x480
-benchmark of three methods, the node benchmark's process held 277 MB instead of 182 MB (flat over 10,000
-further frames: +0.08 MB, so nothing leaks); a 64 or 256 MiB trim threshold made no difference there.
+Every frame allocates the same few large buffers (descriptor map, pyramid, GFTT images), which glibc
+would ``mmap`` and ``munmap`` anew each frame, page-faulting them in again; raising the mmap and trim
+thresholds keeps them on the heap for the next frame to reuse, at the price of memory the process keeps.
 
 The library never calls this on import; ``tracker``, ``nsflow-bench`` and the offline tools do.
 """

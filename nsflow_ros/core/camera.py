@@ -20,8 +20,8 @@ Undistortion follows camodocal step for step, so a tracker built on these models
 as the stock one: PINHOLE and MEI remove the distortion with 8 fixed-point iterations (no analytic inverse,
 no convergence test); KANNALA_BRANDT solves r(theta) = |p| for the smallest non-negative real root through
 the eigenvalues of the polynomial's companion matrix. Eight iterations do not converge near the corners of
-a strongly distorted lens (EuRoC cam0: up to 0.2 px re-projection error in the top corners); that is what
-VINS computes, and ``undistort_iterations`` can raise the count where exactness matters more than fidelity.
+a strongly distorted lens; that is what VINS computes, and ``undistort_iterations`` can raise the count
+where exactness matters more than fidelity.
 
 Files are camodocal's OpenCV FileStorage YAML (``%YAML:1.0``; keys model_type, camera_name, image_width,
 image_height and the parameter maps). VINS-Mono keeps the same keys inline in its main config, so

@@ -29,7 +29,7 @@ requested provider this onnxruntime build lacks is skipped with one warning nami
 and the one used instead; a list of which none is installed is an :class:`EncoderError`. On the CPU
 the frame is encoded in strips as above; on any other provider one session encodes the whole frame in
 one call, since per-call launch overhead, not cache locality, dominates a small net on an accelerator
-(the default until a GPU measurement says otherwise; ``tile_rows`` still overrides it).
+(``tile_rows`` overrides it).
 
 Smoothing. A model may declare, in its metadata key ``smoothing`` ("fine,coarse", Gaussian sigmas in
 pixels; :class:`~nsflow_ros.core.pyramid.Smoothing`), how its maps are smoothed before the solver
@@ -72,8 +72,7 @@ __all__ = [
 
 DEFAULT_MODEL = "models/nsflow_encoder.onnx"
 
-# Pixels per strip of a tiled run. In the tracking pipeline at 752x480 with 2 workers, 80-row strips
-# (60k px) beat 40 and 120 rows (9.0 against 10.1 and 9.5 ms, interleaved runs on a noisy 2-core VM).
+# Pixels per strip of a tiled run: large enough to amortise the halo, small enough to stay in cache.
 TILE_PIXELS = 60_000
 # Receptive-field radii from this many rows on count as "not local" (the shipped model's is 2).
 _MAX_HALO = 32
@@ -361,8 +360,7 @@ class OnnxEncoder:
         opts = ort.SessionOptions()
         # Busy-waiting workers would compete with the solver for the robot's few cores.
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        # EXTENDED beat ALL and BASIC here: the NCHWc layout rewrite of ALL costs more than it saves
-        # on this 1k-parameter net (752x480 gray, 2 threads: 8.4 ms vs 14.2 (ALL) and 9.6 (BASIC)).
+        # EXTENDED, not ALL: ALL's NCHWc layout rewrite costs more than it saves on so small a net.
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
@@ -414,7 +412,7 @@ class OnnxEncoder:
         """The (h, w) planes of an encoder output (1, d, h, w), smoothed as declared, cut to ``rows``.
 
         Plane by plane, before the planes are interleaved: the same result as filtering the interleaved
-        map, in ~0.7x its time (an 88x752 strip of 4 channels: 118 vs 163 us, one thread).
+        map, in less time.
         """
         k = self._kernel
         if k is None:

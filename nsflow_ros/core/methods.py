@@ -122,7 +122,7 @@ DEPLOYED_LM = LMConfig(
   as OpenCV's LK allows;
 * ``tail_share`` 0.4 after ``tail_passes`` 2 (paper: every point to its own stop test): a level ends when
   only stragglers are left;
-* ``jacobian`` ESM (paper: forward): a wider basin for ~2 % of the frame time;
+* ``jacobian`` ESM (paper: forward): a wider basin at a small cost;
 * ``zero_mean`` (paper: off): a lighting change's offset between descriptor windows costs nothing;
 * ``eps`` 0.05 (paper 0.01): pays back part of the zero-mean sums' cost at the same accuracy;
 * ``coarse_window`` 21 from level ``coarse_from`` 2 (paper: 11 everywhere): a wider basin for solves from

@@ -3,9 +3,8 @@
 Each level holds the descriptor map as C-contiguous float32 (H, W, K) chunks of at most 4 channels. One
 ``cv2.remap`` call per chunk fetches a window's descriptors (the solver's inner loop); the Jacobian is the
 Scharr derivative of that same sampled patch (see ``nsflow_ros.core.solver``), so no derivative maps are
-stored (storing derivative maps costs ten times the time and three times the memory: docs/benchmarks.md).
-The layout is a necessity: remap on a non-contiguous slice is ~30x slower, and OpenCV's remap
-interpolates exactly only up to 4 channels (its generic path for more quantises positions to 1/32 px).
+stored. The layout is a necessity: remap on a non-contiguous slice is much slower, and OpenCV's remap
+interpolates exactly only up to 4 channels.
 
 Coarser levels are made by ``cv2.pyrDown`` of the descriptor map (Gaussian blur + decimation), not by
 running the encoder on a smaller image: far cheaper than a second encoder pass, and the solver's coarse
@@ -15,7 +14,7 @@ Optional Gaussian smoothing (:class:`Smoothing`): level 0 is smoothed with ``fin
 levels are made from it, and each coarser level is then smoothed with ``coarse`` (in its own pixels; the
 next level is made from the unsmoothed one). A learned descriptor map is much sharper than image
 intensity, and its narrow autocorrelation leaves the solver a narrow basin; smoothing widens it for
-one separable filter per level (models/README.md has the measurements). The ONNX encoder applies the
+one separable filter per level. The ONNX encoder applies the
 ``fine`` part itself when its model declares one (``nsflow_ros.core.encoder``), so the LM methods pass
 only the ``coarse`` part here.
 

@@ -363,9 +363,7 @@ _SUM = "imjk,imjk->m"  # per point: sum over window rows, columns and channels
 def _window_sums(a: np.ndarray) -> np.ndarray:
     """Per point and channel, the sum over the window of (window, M, window, K) values: (M, K).
 
-    Rows first (contiguous slabs), then einsum over the columns: ~6x faster than ``einsum("imjk->mk")``
-    or a sum over axes (0, 2) on this layout, whose strided middle-axis sums NumPy does slowly (150
-    points, 11x11 windows, 4 channels: 17 vs 106 us).
+    Rows first (contiguous slabs), then einsum over the columns: NumPy does strided middle-axis sums slowly.
     """
     return np.einsum("mjk->mk", a.sum(axis=0))
 
@@ -394,8 +392,7 @@ def _patch_sums(patches: np.ndarray) -> np.ndarray:
     Each sum is a fixed weighting of the patch that factors into row weights times column weights (the
     window's indicator; Scharr's [3 10 3] smoothing summed over the window; its central difference summed
     over the window, which telescopes to the two outer rows or columns on each side). So two small matrix
-    products give all three, ~6x faster than three reductions over the window (150 points, 11x11, 4
-    channels: 17 vs 102 us), and no derivative needs computing.
+    products give all three, cheaper than three reductions over the window, and no derivative needs computing.
 
     Shape:
         patches: (window + 2, M, window + 2, K). Returns (3, M, K).
@@ -449,8 +446,7 @@ def _normal_equations(
     applied to a bilinearly sampled (window + 2)^2 patch equals sampling the Scharr derivative maps (to
     float rounding) wherever the window lies inside the image, border pixels included (remap and the
     filter both replicate). Beyond the image it is the derivative of the replicated map, 0 across the
-    edge; such points end with status False anyway. One remap per 4 channels thus gives D2 and J together,
-    and the pyramid needs no derivative maps. The patches lie side by side in one image, so one
+    edge; such points end with status False anyway. The patches lie side by side in one image, so one
     ``cv2.Scharr`` call per direction differentiates all of them; only window pixels are kept, whose 3x3
     neighbourhoods never cross into the next patch. Sums are additive over channels, so chunks are reduced
     one at a time.
@@ -609,10 +605,8 @@ def window_centres(points: np.ndarray, shape: tuple[int, int], window: int) -> n
     """Where a coarse level's windows go: each point, moved inward until its window fits in the level.
 
     The flow is a translation, so a window only has to move with its point, not be centred on it. A
-    window reaching past the border compares replicated border pixels instead: tracked from zero flow on
-    4 levels, a third of the sample sequence's stereo keypoints within 20 px of the border went astray
-    (capture share within 1 px 96.2 % overall; with the windows moved inward 98.6 %, OpenCV KLT 98.4 %).
-    A level smaller than the window centres it on the level.
+    window reaching past the border would compare replicated border pixels, and points near the border
+    tracked from zero flow go astray. A level smaller than the window centres it on the level.
 
     Args:
         points: positions in the level's pixels.

@@ -170,7 +170,7 @@ def render_pair(
     m1 = np.array([[scale, 0, x0], [0, scale, y0], [0, 0, 1]])  # frame-1 pixel -> photo pixel
     if scale > 1.0:
         # anti-aliasing before the bilinear downsampling: otherwise aliasing differs between the two
-        # views and puts a floor of ~0.1 px under every method's error
+        # views and puts a floor under every method's error
         photo = cv2.GaussianBlur(photo, (0, 0), 0.5 * np.sqrt(scale**2 - 1.0))
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     f1 = cv2.warpPerspective(photo, m1, (width, height), flags=flags, borderMode=cv2.BORDER_REFLECT_101)

@@ -1,5 +1,4 @@
-"""The registry of analyses the evaluation command runs, in report order (the issue's headline target,
-the sequences, first).
+"""The registry of analyses the evaluation command runs, in report order (the sequences first).
 
 An :class:`Analysis` names a function ``run(ctx: EvalContext) -> Section``; ``nsflow-evaluate --only`` /
 ``--skip`` select them by key. To add one: write the module with its ``run``, import it here and append

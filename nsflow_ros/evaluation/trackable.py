@@ -15,8 +15,8 @@ basin per level, at one level fewer. The heat map (deployed depth) colours each 
 it was recovered within (red = easy, blue = not recovered), one column per method, as the paper's
 figure does.
 
-A lighting change at full strength saturates parts of some photos (a third of one pair's keypoints sit
-in windows that are more than a fifth clipped); no descriptor keeps what clipping erased. So the report
+A lighting change at full strength saturates parts of some photos, and no descriptor keeps what
+clipping erased. So the report
 also gives each method's share among the keypoints whose solver window is not clipped
 (:func:`clipped_windows`), next to the share of keypoints that are.
 """
@@ -91,9 +91,8 @@ class TrackableConfig:
         stride: keypoint grid step (1 = every pixel, as the paper).
         photos: held-out photos, one pair per photo and condition.
         perturbation: length of the initial-flow error in pixels (the paper: 15).
-        chunk: points per solver call (the result does not depend on it). It bounds memory: the solver
-            holds a (window + 2)^2 x d float32 patch per point, ~170 MB for the 65,000 pixels of one
-            320x240 image at d = 4.
+        chunk: points per solver call (the result does not depend on it); it bounds memory, since the
+            solver holds a (window + 2)^2 x d float32 patch per point.
     """
 
     width: int = 320
