@@ -1,14 +1,6 @@
 """Sensor data for nsflow_ros: the built-in synthetic sample sequence and the data I/O layer.
 
 Pure Python (NumPy, OpenCV, rosbags): no rclpy, no torch.
-
-* :mod:`.camera` - EuRoC's pinhole-radtan cameras and extrinsics.
-* :mod:`.scene` - a textured room rendered by ray casting, with exact depth and optical flow.
-* :mod:`.motion` - a smooth 6-DoF trajectory and the IMU readings it produces.
-* :mod:`.perturb` - illumination perturbation (evaluation streams, training pairs).
-* :mod:`.sample` - the sample sequence generator (ASL folder, ROS 2 bag, ROS 1 bag, ground truth).
-* :mod:`.sources` - one streaming reader for ROS 1 / ROS 2 bags and ASL folders.
-* :mod:`.writers` - ASL and bag writers, incl. writing a (perturbed) stream to a new ROS 2 bag.
 """
 
 from __future__ import annotations

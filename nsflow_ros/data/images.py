@@ -1,14 +1,9 @@
 """sensor_msgs/Image -> NumPy: the one decoder of the node, the replayer, the offline run and the feature bag.
 
-:func:`decode_image` returns the pixels as the encoding stores them (what a record keeps, so it can be
-re-serialised); :func:`tracker_image` turns them into what the tracker is given: mono8 (H, W) for mono
-encodings, BGR (H, W, 3) for colour ones, 16-bit shifted to its 8 most significant bits. The tracker gets
-the image as received rather than a gray copy so that a colour encoder sees colour and the debug image
-stays in colour; for a gray encoder (the shipped models) both give the same features.
-
-:func:`decode_compressed` does the same for a sensor_msgs/CompressedImage (JPEG or PNG, the ``format`` field
-as image_transport's ``compressed`` plugin writes it), so :func:`compressed_for_tracker` gives the array the
-raw path gives; :func:`encode_compressed` writes such a message's ``format`` and bytes.
+Records keep the pixels as the encoding stores them (:func:`decode_image`), so they can be re-serialised;
+the tracker gets the image as received rather than a gray copy (:func:`tracker_image`) so that a colour
+encoder sees colour and the debug image stays in colour. CompressedImage (JPEG, PNG) decodes to the same
+arrays as the raw path.
 
 Works on any object with the message fields (the header is not used), so no ROS import is needed.
 """

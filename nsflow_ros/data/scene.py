@@ -449,7 +449,7 @@ class Scene:
         """
         f32 = np.float32
         tb = self._tables
-        surf = surf.astype(np.intp, copy=False)  # gathers with native indices are about twice as fast
+        surf = surf.astype(np.intp, copy=False)  # gathers with native indices are faster
         px, py, pz = points[0], points[1], points[2]
         # Texture coordinates in tiles: P . axis + constant, per surface (see _build_tables).
         tu = px * tb["ux"][surf] + py * tb["uy"][surf] + pz * tb["uz"][surf] + tb["u0"][surf]

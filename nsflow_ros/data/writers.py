@@ -1,8 +1,6 @@
 """Writers for the three on-disk forms of a sequence: EuRoC ASL folders, ROS 2 bags and ROS 1 bags.
 
 Every writer creates its output from scratch (an existing path is an error) and refuses to overwrite.
-:func:`write_ros2_bag` additionally writes under a temporary name and renames at the end, so an
-interrupted run leaves no bag that looks complete.
 """
 
 from __future__ import annotations
@@ -82,8 +80,7 @@ class AslWriter:
 
     Args:
         root: the ``mav0`` folder to create; it must not exist yet (or be empty).
-        png_compression: zlib level of the PNG files (0-9; all are lossless). With the Huffman-only
-            strategy used here, level 1 encodes a 752x480 frame in about 5 ms and to ~190 kB.
+        png_compression: zlib level of the PNG files (0-9; all are lossless).
 
     Raises:
         DataError: when ``root`` exists and is not empty.

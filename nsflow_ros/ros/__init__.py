@@ -1,5 +1,4 @@
-"""ROS 2 side of nsflow_ros: the ``tracker`` node and its parameter table, the replay node, image decoding,
-clean shutdown on signals, the DDS transport profile and the node benchmark.
+"""ROS 2 side of nsflow_ros: the ``tracker`` and replay nodes and what they share.
 
 Importing this package imports no rclpy; the node modules do.
 """

@@ -2,15 +2,9 @@
 
 For each method, a ``tracker`` node process runs the shipped EuRoC stereo config while this process
 replays the sample sequence's two 752x480 image topics at ``rate`` (1.0 = the camera's 20 Hz) with
-sensor-data QoS, as a camera driver would, through the shipped Fast DDS profile. Reported per method:
-image pairs sent, received and processed by the node, dropped (the node's own count of frames it could
-not keep up with; superseded: given up for a newer frame), feature messages out, the node's
-image-to-features latency (p50, p90: from the image callback, queueing included, to the publication) and
-its CPU time per processed frame, from the node's summary file. A background load
-(:func:`nsflow_ros.background_load.background_load`) can share the cores, standing in for the estimator.
-With ``compress`` the images also go out as CompressedImage (JPEG or PNG) into a node with
-``image_transport:=compressed`` (decoding then counts in the latency), and each such run's camera-0
-features are compared with the raw run's of the same method, frame by frame.
+sensor-data QoS, as a camera driver would, through the shipped Fast DDS profile. The node's own counters
+and latency (from the image callback, queueing and any decoding included, to the publication) come from
+its summary file; a background load can share the cores, standing in for the estimator.
 """
 
 from __future__ import annotations

@@ -7,12 +7,8 @@ features have arrived), so the latency is the node's own, not queueing.
 
 Latency is measured inside the node, from the moment the image callback starts (for stereo: the callback
 of the image that completes the pair) to the return of ``publish``; the round trip publisher -> receiver
-is reported too. Memory is the process's resident set size after 1,000 and 10,000 frames. Images are
-320x240 by default so 10,000 frames take a few minutes on two cores; the soak of a robot's stream is
-
-    python -m nsflow_ros.ros.bench_node --frames 10000 --stereo --method nsflow --width 752 --height 480
-
-which also reports the frames the node dropped or could not pair (both must stay 0 when fed lock-step).
+is reported too. Memory is the process's resident set size after 1,000 and 10,000 frames. The frames
+the node dropped or could not pair must stay 0 when fed lock-step.
 """
 
 from __future__ import annotations

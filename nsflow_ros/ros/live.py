@@ -103,9 +103,6 @@ def run_live(
 ) -> tuple[dict[str, Any], Any]:
     """Replay ``seq`` over ROS 2 into a ``tracker`` node process started for it, and collect its output.
 
-    The replay publishes from this process (context ``ctx``) at ``rate`` with sensor-data QoS, as a
-    camera driver would; the tracker runs as its own process with the VINS config ``config``.
-
     Args:
         ctx: an initialised rclpy context.
         seq: a :class:`~nsflow_ros.data.sample.SampleSequence` with its ROS 2 bag.

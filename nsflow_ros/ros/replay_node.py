@@ -1,17 +1,9 @@
 """``nsflow-replay``: play a bag or ASL folder over ROS 2 topics, optionally perturbed.
 
-``ros2 run nsflow_ros replay`` from a colcon workspace. Reads ROS 1 bags, ROS 2 bags (sqlite3, mcap)
-and EuRoC / UMA-VI ASL folders through rosbags (no ROS installation needed to read), streams them (never
-loads a whole bag), and publishes the images and IMU as serialised messages with ``/clock``, paced on
-wall time by ``--rate``. Images go out with sensor-data QoS, everything else reliable. Before the first
-message it waits (bounded by ``--wait-timeout``) until ``--wait-subscribers`` subscribers listen to a
-camera topic, so a tracker started just before or after the replay still gets the first frame.
-``--perturb`` applies the paper's illumination perturbation on the fly; ``--compress jpeg|png`` publishes
-the images as sensor_msgs/CompressedImage on ``<topic>/compressed``, as image_transport's ``compressed``
-plugin does (``--remap`` renames the image topic before the suffix); ``--write-bag`` writes the
-(perturbed) stream to a new ROS 2 bag instead of publishing; ``--offline`` runs the tracker core straight
-over the data without middleware (see :mod:`nsflow_ros.vins.offline`); ``--features-bag`` tracks every frame
-offline and writes a VINS feature bag (see :mod:`nsflow_ros.vins.feature_bag`).
+The stream itself is :func:`nsflow_ros.data.replay.replay_stream`; this module paces it on wall time and
+publishes it (images with sensor-data QoS, everything else reliable, plus ``/clock``). Before the first
+message it waits for a camera topic's subscribers, so a tracker started just before or after the replay
+still gets the first frame.
 """
 
 from __future__ import annotations

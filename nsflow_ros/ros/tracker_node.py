@@ -17,13 +17,10 @@ publishes
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) with the status that is also logged every
   ``status_period`` seconds: frames received / processed / dropped, features, latency.
 
-The node is a thin shell: the frame policy (VINS-Mono's first-frame drop, ``freq`` throttling, restarts)
-and the tracker live in :class:`nsflow_ros.vins.session.FrontEndSession`. Images are decoded and paired
-in the subscription callbacks and handed to one worker thread through a bounded queue
-(:class:`~nsflow_ros.ros.frame_queue.LatestFrames`): when the tracker falls behind, a new frame supersedes
-the oldest waiting one, so the tracker works on the newest frames, and every superseded frame is counted,
-never silently. Parameter changes at run time land in the session (the settings table
-:data:`nsflow_ros.vins.settings.SETTINGS` says what each change does).
+The node is a thin shell: the frame policy, the tracker and run-time parameter changes live in
+:class:`nsflow_ros.vins.session.FrontEndSession`. Images are decoded and paired in the subscription
+callbacks and handed to one worker thread through :class:`~nsflow_ros.ros.frame_queue.LatestFrames`, so
+the tracker works on the newest frames and every superseded frame is counted.
 
 A bad frame (unsupported encoding or compressed format, corrupt compressed data, wrong step, truncated data,
 wrong size, duplicate stamp) is logged once per cause, then counted, and skipped. A missing or malformed

@@ -10,9 +10,7 @@ Both estimators keep their settings in one OpenCV FileStorage YAML file (``%YAML
   ...) sit inline in the config; extrinsics as ``extrinsicRotation`` (3x3) and ``extrinsicTranslation``
   (3x1); always with an IMU; ``freq``, ``equalize`` and ``fisheye`` tracker switches.
 
-:func:`load_vins_config` detects the dialect, checks every key the front-end needs and returns one frozen
-:class:`VinsConfig`; :func:`apply_overrides` replaces the tracker settings with values from elsewhere (ROS
-parameters). Optional keys take the value VINS gives a missing key (0 / false), except the tracker settings
+Optional keys take the value VINS gives a missing key (0 / false), except the tracker settings
 with documented defaults (max_cnt 150, min_dist 30, F_threshold 1.0, freq 0 -> 100). Unlike VINS, a missing
 required key or a value of the wrong type is an error, naming the file and the key.
 """

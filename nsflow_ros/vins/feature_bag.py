@@ -1,9 +1,8 @@
 """A VINS feature bag from a recorded stream: features plus IMU, no images.
 
-The bag holds ``/feature_tracker/feature`` (sensor_msgs/PointCloud in the VINS-Fusion layout of
-:func:`nsflow_ros.vins.messages.encode_fusion`: points (x, y, 1) undistorted, channels id, camera_id, u, v,
-velocity_x, velocity_y, 0, 0, 0; header stamp = image stamp) and the IMU messages, so ``rosbag play`` (ROS 1)
-or ``ros2 bag play`` feeds a stock VINS-Fusion estimator without running any front-end live.
+The bag holds ``/feature_tracker/feature`` (the VINS-Fusion layout of
+:func:`nsflow_ros.vins.messages.encode_fusion`, header stamp = image stamp) and the IMU messages, so
+``rosbag play`` (ROS 1) or ``ros2 bag play`` feeds a stock VINS-Fusion estimator without a live front-end.
 
 Frames go through the node's frame policy (:class:`~nsflow_ros.vins.session.FrontEndSession` in the
 VINS-Fusion layout: a repeated stamp is skipped, time going backwards restarts the tracks) and the node's

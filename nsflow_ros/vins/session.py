@@ -13,10 +13,7 @@ and tested once. Per frame (:meth:`FrontEndSession.process`) it
 * predicts the flow from the gyro samples given to :meth:`FrontEndSession.add_gyro` when that is on;
 * counts what it did (:attr:`FrontEndSession.counters`).
 
-:meth:`FrontEndSession.update` is where settings changed at run time land; the settings table
-(:data:`nsflow_ros.vins.settings.SETTINGS`) says what each change does: a live one applies to the running
-tracker, a rebuild one (``method``, ``model_path``, ``num_threads``, ``equalize``) builds a new tracker
-(the tracks restart; ids keep counting up, so an id is never reused), a read-only one is refused.
+:meth:`FrontEndSession.update` is where settings changed at run time land.
 
 Imports neither rclpy nor torch.
 """
