@@ -320,24 +320,12 @@ class OnnxEncoder:
             raise EncoderError(f"tile_rows must be >= 0 or None, got {tile_rows}")
         self.threads = threads or _usable_cores()
         self.providers = ExecutionProviders.parse(providers)
-        usable = self.providers.available()
-        self._session_providers: list[Any] = [CPU_PROVIDER]
-        if usable[0] != CPU_PROVIDER:
-            self._session_providers = self.providers.session_providers(usable)
-            session = self._new_session(self.threads)
-            used = session.get_providers()[0]
-            if used != usable[0]:  # installed but could not start (no GPU, driver): onnxruntime fell back
-                _log.warning("execution provider %s could not start; using %s", usable[0], used)
-            if used == CPU_PROVIDER:
-                self._session_providers = [CPU_PROVIDER]
-            else:
-                tile_rows = 0 if tile_rows is None else tile_rows  # whole frame (module docstring)
-                self._sessions = [session]
-        self._tile_rows = tile_rows
-        if self._session_providers == [CPU_PROVIDER]:
-            self._sessions = [self._new_session(1)]
+        self._sessions = [self._start_session(self.providers.available())]
         self.provider: str = self._sessions[0].get_providers()[0]
         """The execution provider in use."""
+        if self.provider != CPU_PROVIDER and tile_rows is None:
+            tile_rows = 0  # whole frame on an accelerator (module docstring)
+        self._tile_rows = tile_rows
         self._pool: ThreadPoolExecutor | None = None
         self._check_signature()
         if smoothing is not None and not isinstance(smoothing, Smoothing):
@@ -353,6 +341,22 @@ class OnnxEncoder:
                 self._sessions += [self._new_session(1) for _ in range(self.threads - 1)]
                 # the calling thread encodes its own share of strips; the pool runs the others
                 self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="nsflow-encoder")
+
+    def _start_session(self, usable: Sequence[str]) -> Any:
+        """The first session: one CPU thread on the CPU (strip sessions come later), else on the best
+        usable provider with ``threads`` intra-op threads, back to the CPU when it cannot start."""
+        self._session_providers: list[Any] = [CPU_PROVIDER]
+        if usable[0] == CPU_PROVIDER:
+            return self._new_session(1)
+        self._session_providers = self.providers.session_providers(usable)
+        session = self._new_session(self.threads)
+        used = session.get_providers()[0]
+        if used != usable[0]:  # installed but could not start (no GPU, driver): onnxruntime fell back
+            _log.warning("execution provider %s could not start; using %s", usable[0], used)
+        if used == CPU_PROVIDER:
+            self._session_providers = [CPU_PROVIDER]
+            return self._new_session(1)
+        return session
 
     def _new_session(self, threads: int) -> Any:
         import onnxruntime as ort  # heavy import; only when an ONNX model is used

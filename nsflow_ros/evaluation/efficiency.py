@@ -300,17 +300,15 @@ def run(ctx: EvalContext) -> Section:
 
 
 def _nsflow_encoder(ctx: EvalContext) -> Encoder:
-    """NSFlow's encoder: the run's loaded model, or loaded here."""
-    from nsflow_ros.core.encoder import load_encoder
+    """NSFlow's encoder: the run's loaded model, or loaded here as the registry loads it."""
+    from nsflow_ros.evaluation import sequences  # imported late, as run and _time_trackers do
 
     found = (getattr(m, "encoder", None) for m in ctx.methods if m.name == NSFLOW)
     encoder: Encoder | None = next(found, None)
-    if encoder is not None:
-        return encoder
-    try:
-        return load_encoder(ctx.model, threads=ctx.threads, providers=ctx.providers)
-    except CoreError as err:
-        raise EvaluationError(str(err)) from err
+    if encoder is None:
+        encoder = sequences.learned_encoder(NSFLOW, ctx.model, ctx.threads, ctx.providers)
+    assert encoder is not None  # NSFlow is a learned method
+    return encoder
 
 
 def _time_encoders(ctx: EvalContext, encoders: dict[str, Encoder], repeats: int,
