@@ -235,21 +235,30 @@ def _in_border(pts: np.ndarray, size: tuple[int, int], border: int) -> np.ndarra
         return (r[:, 0] >= border) & (r[:, 0] < w - border) & (r[:, 1] >= border) & (r[:, 1] < h - border)
 
 
-def _velocities(
-    ids: np.ndarray, pts: np.ndarray, prev_ids: np.ndarray, prev_pts: np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity per id from the previous frame's points (0 for unseen ids) and the matched index (-1)."""
-    vel = np.zeros_like(pts)
+def _match(ids: np.ndarray, table_ids: np.ndarray) -> np.ndarray:
+    """The index of each of ``ids`` in ``table_ids``; -1 where it is not there."""
     match = np.full(ids.shape[0], -1, np.int64)
-    if ids.size == 0 or prev_ids.size == 0 or not dt > 0:
-        return vel, match
-    order = np.argsort(prev_ids, kind="stable")
-    sorted_ids = prev_ids[order]
+    if ids.size == 0 or table_ids.size == 0:
+        return match
+    order = np.argsort(table_ids, kind="stable")
+    sorted_ids = table_ids[order]
     pos = np.clip(np.searchsorted(sorted_ids, ids), 0, sorted_ids.size - 1)
     found = sorted_ids[pos] == ids
     match[found] = order[pos[found]]
+    return match
+
+
+def _velocities(
+    ids: np.ndarray, pts: np.ndarray, prev_ids: np.ndarray, prev_pts: np.ndarray, dt: float
+) -> np.ndarray:
+    """Velocity per id from the previous frame's points; 0 for unseen ids."""
+    vel = np.zeros_like(pts)
+    if not dt > 0:
+        return vel
+    match = _match(ids, prev_ids)
+    found = match >= 0
     vel[found] = (pts[found] - prev_pts[match[found]]) / dt
-    return vel, match
+    return vel
 
 
 def _check_mask(mask: np.ndarray, camera: CameraModel) -> np.ndarray:
@@ -279,12 +288,9 @@ def _empty_state() -> _CameraState:
 def _lookup(ids: np.ndarray, table_ids: np.ndarray, values: np.ndarray) -> np.ndarray:
     """``values`` of ``table_ids`` for each of ``ids``; NaN where an id is not in the table."""
     out = np.full((ids.shape[0], values.shape[1]), np.nan)
-    if ids.size == 0 or table_ids.size == 0:
-        return out
-    order = np.argsort(table_ids, kind="stable")
-    pos = np.clip(np.searchsorted(table_ids[order], ids), 0, table_ids.size - 1)
-    found = table_ids[order][pos] == ids
-    out[found] = values[order[pos[found]]]
+    match = _match(ids, table_ids)
+    found = match >= 0
+    out[found] = values[match[found]]
     return out
 
 
@@ -550,14 +556,12 @@ class FeatureTracker:
         self._next_id += k
         return tracks.append(_Tracks(ids, np.ones(k, np.int64), new, np.full((k, 2), np.nan)))
 
-    def _lift(
-        self, camera: int, tracks: _Tracks, before: _CameraState, dt: float
-    ) -> tuple[CameraFeatures, np.ndarray]:
-        """Step 6: undistorted points and velocities against ``before``; also the matched indices (-1)."""
+    def _lift(self, camera: int, tracks: _Tracks, before: _CameraState, dt: float) -> CameraFeatures:
+        """Step 6: undistorted points and velocities against ``before``."""
         pts = tracks.pixels
         un = self.cameras[camera].lift(pts) if pts.size else np.zeros((0, 2))
-        vel, match = _velocities(tracks.ids, un, before.ids, before.undistorted, dt)
-        return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous), match
+        vel = _velocities(tracks.ids, un, before.ids, before.undistorted, dt)
+        return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous)
 
     def _stereo(
         self, image1: np.ndarray, frame0: Any, left: _Tracks, size: tuple[int, int], dt: float
@@ -572,11 +576,9 @@ class FeatureTracker:
             rpts, st = self._track(
                 SolveKind.STEREO, SolveKind.STEREO_BACK, frame0, frame1, left.pixels, size, None, prior
             )
-            right = _Tracks(left.ids[st], left.counts[st], rpts[st], np.zeros((int(st.sum()), 2)))
-        cam, match = self._lift(1, right, self._right, dt)
-        previous = np.full_like(cam.pixels, np.nan)
-        previous[match >= 0] = self._right.pixels[match[match >= 0]]
-        return replace(cam, previous=previous)
+            ids = left.ids[st]
+            right = _Tracks(ids, left.counts[st], rpts[st], _lookup(ids, r.ids, r.pixels))
+        return self._lift(1, right, self._right, dt)
 
     def _commit(self, stamp: float, frame0: Any, left: CameraFeatures, right: CameraFeatures | None) -> None:
         """Keep this frame as the next one's previous (only after every step succeeded)."""
@@ -639,7 +641,7 @@ class FeatureTracker:
             if detect:
                 tracks = self._reject_mask_detect(gray0, tracks, prev_un, size)
         dt = stamp - self._stamp if self._stamp is not None else 0.0
-        left, _ = self._lift(0, tracks, self._left, dt)
+        left = self._lift(0, tracks, self._left, dt)
         right = None
         if self.settings.stereo:
             with _timed(timings, cpu, "stereo"):
