@@ -273,16 +273,9 @@ def _check_mask(mask: np.ndarray, camera: CameraModel) -> np.ndarray:
     return np.where(mask > 127, 255, 0).astype(np.uint8)
 
 
-@dataclass
-class _CameraState:
-    ids: np.ndarray
-    pixels: np.ndarray
-    undistorted: np.ndarray
-    flow: np.ndarray  # pixel motion since the id's previous frame on this camera, NaN for new ids
-
-
-def _empty_state() -> _CameraState:
-    return _CameraState(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
+def _no_features(camera_id: int) -> CameraFeatures:
+    ids, points = np.zeros(0, np.int64), np.zeros((0, 2))
+    return CameraFeatures(camera_id, ids, points, points, points, ids, points)
 
 
 def _lookup(ids: np.ndarray, table_ids: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -413,9 +406,8 @@ class FeatureTracker:
         """Forget all tracks (ids keep counting up, so an id is never reused)."""
         self._stamp: float | None = None
         self._frame: Any = None  # the previous camera-0 frame's representation
-        self._left = _empty_state()
-        self._counts = np.zeros(0, np.int64)
-        self._right = _empty_state()
+        self._left = _no_features(0)  # the previous frame's features
+        self._right = _no_features(1)
 
     @property
     def last_stamp(self) -> float | None:
@@ -530,11 +522,12 @@ class FeatureTracker:
         prev = self._left
         if self._frame is None or not prev.ids.size:
             return _Tracks.empty(), np.zeros((0, 2))
-        prior = prev.pixels + prev.flow  # constant velocity: each id moves as it did into the previous frame
+        # constant velocity: each id moves as it did into the previous frame
+        prior = prev.pixels + (prev.pixels - prev.previous)
         pts, status = self._track(
             SolveKind.FORWARD, SolveKind.FLOW_BACK, self._frame, frame0, prev.pixels, size, predicted, prior
         )
-        tracks = _Tracks(prev.ids[status], self._counts[status] + 1, pts[status], prev.pixels[status])
+        tracks = _Tracks(prev.ids[status], prev.track_counts[status] + 1, pts[status], prev.pixels[status])
         return tracks, prev.undistorted[status]
 
     def _reject_mask_detect(
@@ -556,7 +549,7 @@ class FeatureTracker:
         self._next_id += k
         return tracks.append(_Tracks(ids, np.ones(k, np.int64), new, np.full((k, 2), np.nan)))
 
-    def _lift(self, camera: int, tracks: _Tracks, before: _CameraState, dt: float) -> CameraFeatures:
+    def _lift(self, camera: int, tracks: _Tracks, before: CameraFeatures, dt: float) -> CameraFeatures:
         """Step 6: undistorted points and velocities against ``before``."""
         pts = tracks.pixels
         un = self.cameras[camera].lift(pts) if pts.size else np.zeros((0, 2))
@@ -584,12 +577,8 @@ class FeatureTracker:
         """Keep this frame as the next one's previous (only after every step succeeded)."""
         self._stamp = float(stamp)
         self._frame = frame0
-        self._left = _CameraState(left.ids, left.pixels, left.undistorted, left.pixels - left.previous)
-        self._counts = left.track_counts
-        self._right = (
-            _empty_state() if right is None
-            else _CameraState(right.ids, right.pixels, right.undistorted, right.pixels - right.previous)
-        )
+        self._left = left
+        self._right = _no_features(1) if right is None else right
 
     def _check_stamp(self, stamp: float) -> None:
         if not math.isfinite(stamp):
