@@ -242,9 +242,8 @@ class OnnxEncoder:
             ``provider`` is the one in use.
 
     Raises:
-        EncoderError: when the file is missing, is not a loadable model, its signature is not
-            (1, 1|3, H, W) float32 -> (1, d, H, W) float32, its ``smoothing`` metadata is malformed, or
-            none of the providers is installed.
+        EncoderError: a missing or unloadable file, a wrong signature, malformed ``smoothing`` metadata,
+            or none of the providers installed.
     """
 
     def __init__(

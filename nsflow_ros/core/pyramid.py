@@ -148,10 +148,7 @@ def build_pyramid(desc: np.ndarray, levels: int = 3, smoothing: Smoothing | None
         float32 ``desc`` of at most 4 channels.
 
     Raises:
-        CoreError: on a wrong shape or dtype, or ``levels < 1``.
-
-    Shape:
-        desc: (H, W, C) or (H, W), floating point.
+        CoreError: on a wrong shape or dtype (floating (H, W, C) or (H, W)), or ``levels < 1``.
     """
     if levels < 1:
         raise CoreError(f"levels must be >= 1, got {levels}")

@@ -45,9 +45,8 @@ class Jacobian(enum.Enum):
 
 @dataclass(frozen=True)
 class LMConfig:
-    """Settings of the LM solver; the defaults are the paper's Algorithm 1 (``PAPER_LM``).
-
-    docs/benchmarks.md ("Why the settings are what they are") has the measurement behind each default.
+    """Settings of the LM solver; the defaults are the paper's Algorithm 1 (docs/benchmarks.md, "Why the
+    settings are what they are", has the measurement behind each).
 
     Attributes:
         window: side of the square window in pixels (odd).
@@ -59,21 +58,19 @@ class LMConfig:
         max_iterations: K_max, the iteration limit per level.
         eps: tolerance of both stop tests.
         min_eigen: smallest eigenvalue of J^T J per window element (window^2 * C) below which a point's
-            window counts as degenerate and its status is False.
+            window is degenerate (status False).
         lambda_scale: tau of the per-point initial damping max(``lambda_init``, tau max(diag J^T J)) at
             each level's start (Madsen, Nielsen and Tingleff), so a rejected step bites at once; 0 =
             ``lambda_init`` for every point.
         margin: how far (px) a point must stay from the image edge in both frames for status True;
             None = half the window.
         tail_share: a level's loop ends once at most this share of its points still iterate after
-            ``tail_passes`` passes (they keep their current flow), so that stragglers do not set every
-            level's time; 0 = Algorithm 1 as written.
+            ``tail_passes`` passes, so that stragglers do not set its time; 0 = Algorithm 1 as written.
         tail_passes: the passes a level runs before ``tail_share`` may end it.
         zero_mean: compare windows up to a constant per channel, so a lighting change's offset costs
             nothing (not the paper's cost).
 
-    Class attributes (Algorithm 1's): ``lambda_init`` = 1e-2, the initial damping, reset at each level;
-    ``nu`` = 10, the factor lambda shrinks by after an accepted step and grows by after a rejected one.
+    Class attributes (Algorithm 1's): ``lambda_init``, the initial damping, and ``nu``, lambda's factor.
 
     Raises:
         CoreError: a value out of range (named in the message).
@@ -256,16 +253,9 @@ def _sample_chunk(
 def sample_windows(
     level: np.ndarray | tuple[np.ndarray, ...], centers: np.ndarray, window: int
 ) -> np.ndarray:
-    """Sample square windows of a multi-channel map with exact bilinear interpolation.
+    """Sample square windows (rows, columns, channels) of a map, bilinear, replicated beyond its border.
 
-    Args:
-        level: map to sample, replicated beyond its border: one (H, W, K) array, or a pyramid level's
-            tuple of contiguous chunks of at most 4 channels (the fast path).
-        centers: window centres (x, y) in pixels of ``level``.
-        window: odd window side.
-
-    Returns:
-        the windows, rows then columns then channels.
+    ``level`` is one (H, W, K) array or a pyramid level's tuple of chunks of at most 4 channels (faster).
 
     Shape:
         level: (H, W, K) float32. centers: (M, 2). Returns (M, window, window, K).

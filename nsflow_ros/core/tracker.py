@@ -332,9 +332,8 @@ class FeatureTracker:
             on 0 are dropped and no corner is detected there (VINS-Mono ``setMask``). None = everywhere.
 
     Raises:
-        CoreError: on inconsistent settings (stereo without a second camera, a mask of the wrong size, a
-            method that is not ``settings.method`` or given with an encoder, ...).
-        EncoderError: when the "nsflow" model cannot be loaded.
+        CoreError: on inconsistent settings, cameras, mask or method.
+        EncoderError: when the model cannot be loaded.
     """
 
     def __init__(
@@ -606,15 +605,12 @@ class FeatureTracker:
             stamp: the frame's time in seconds; must increase from frame to frame.
             image0: camera-0 image, uint8 (H, W) mono or (H, W, 3) BGR.
             image1: camera-1 image of the same stamp (stereo only).
-            gyro: gyro samples (t, wx, wy, wz) in the IMU frame since the previous frame, for the prediction.
+            gyro: (M, 4) gyro samples (t, wx, wy, wz) in the IMU frame since the previous frame.
             detect: top the features up with new corners (VINS-Mono skips this on throttled frames).
 
         Raises:
             CoreError: on a stamp that does not increase, a wrong image size or type, or a missing
-                stereo image. The tracker's state is unchanged when it raises.
-
-        Shape:
-            gyro: (M, 4).
+                stereo image; the tracker's state is then unchanged.
         """
         t_start, c_start = time.perf_counter(), time.process_time()
         self._check_stamp(stamp)
