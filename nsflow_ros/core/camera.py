@@ -151,7 +151,11 @@ def _check_int(owner: str, key: str, value: Any, minimum: int) -> int:
 @dataclass(frozen=True, kw_only=True)
 class CameraModel(ABC):
     """Base of the camodocal camera models: image ``width`` and ``height`` in pixels, ``name``, and the
-    class attribute ``model_type`` ("PINHOLE", "KANNALA_BRANDT" or "MEI")."""
+    class attribute ``model_type`` ("PINHOLE", "KANNALA_BRANDT" or "MEI").
+
+    The geometry methods take (N, 2) pixels or (N, 3) points of any real dtype and raise
+    :class:`CameraError` on other input.
+    """
 
     width: int
     height: int
@@ -249,39 +253,20 @@ class CameraModel(ABC):
 
     @abstractmethod
     def lift_rays(self, pixels: ArrayLike) -> Float64Array:
-        """Lift distorted pixels (u, v) to rays in the camera frame, scaled as camodocal's ``liftProjective``.
-
-        Shape:
-            pixels: (N, 2) -> (N, 3) float64.
-
-        Raises:
-            CameraError: ``pixels`` is not (N, 2) or not real-valued.
-        """
+        """Lift distorted pixels (u, v) to (N, 3) camera-frame rays, as camodocal's ``liftProjective``."""
 
     @abstractmethod
     def project(self, points: ArrayLike) -> Float64Array:
-        """Project points (X, Y, Z) in the camera frame to distorted pixels (camodocal ``spaceToPlane``).
+        """Project points (X, Y, Z) in the camera frame to (N, 2) distorted pixels (``spaceToPlane``).
 
         As in camodocal there is no visibility test: a point with no valid projection gives inf / nan or a
         mirrored pixel.
-
-        Shape:
-            points: (N, 3) -> (N, 2) float64.
-
-        Raises:
-            CameraError: ``points`` is not (N, 3) or not real-valued.
         """
 
     def lift(self, pixels: ArrayLike) -> Float64Array:
         """Lift distorted pixels (u, v) to the undistorted normalised plane (x/z, y/z) that VINS publishes.
 
         Pixels whose ray has z <= 0 give inf or mirrored values, as in VINS.
-
-        Shape:
-            pixels: (N, 2) -> (N, 2) float64.
-
-        Raises:
-            CameraError: ``pixels`` is not (N, 2) or not real-valued.
         """
         rays = self.lift_rays(pixels)
         with np.errstate(divide="ignore", invalid="ignore"):
