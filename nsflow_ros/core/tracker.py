@@ -304,9 +304,8 @@ class _Tracks:
         return _Tracks(self.ids[sel], self.counts[sel], self.pixels[sel], self.previous[sel])
 
     def append(self, other: _Tracks) -> _Tracks:
-        return _Tracks(*(np.concatenate([a, b]) for a, b in
-                         zip((self.ids, self.counts, self.pixels, self.previous),
-                             (other.ids, other.counts, other.pixels, other.previous), strict=True)))
+        pairs = zip(vars(self).values(), vars(other).values(), strict=True)
+        return _Tracks(*(np.concatenate(pair) for pair in pairs))
 
 
 @contextlib.contextmanager
