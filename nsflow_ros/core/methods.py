@@ -217,13 +217,9 @@ def klt_track(
     """One ``cv2.calcOpticalFlowPyrLK`` call (VINS-Fusion's arguments by default): the project's only one.
 
     Args:
-        image1: uint8 image (1-4 channels) the points lie in.
-        image2: image to track them into.
-        pts: points in image 1.
+        image1, image2: uint8 images (1-4 channels); ``pts`` lie in image 1.
         start: initial positions in image 2 (``OPTFLOW_USE_INITIAL_FLOW``); None starts from ``pts``.
-        max_level: OpenCV ``maxLevel``.
-        window: window size.
-        criteria: OpenCV stop criteria.
+        max_level, window, criteria: OpenCV's ``maxLevel``, ``winSize`` and ``criteria``.
 
     Returns:
         (positions in image 2, OpenCV's status); lost points keep their start position.
