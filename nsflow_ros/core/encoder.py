@@ -136,16 +136,15 @@ class ExecutionProviders:
                 names.append(name)
         return cls(tuple(names), tensorrt_fp16=bool(tensorrt_fp16), tensorrt_cache=tensorrt_cache or None)
 
-    def available(self, installed: Sequence[str] | None = None) -> tuple[str, ...]:
-        """The requested providers in ``installed`` (None: this onnxruntime's), in order; warns of the others.
+    def available(self) -> tuple[str, ...]:
+        """The requested providers this onnxruntime has, in order; warns of the others.
 
         Raises:
             EncoderError: none of them is installed (one line naming the installed ones).
         """
-        if installed is None:
-            import onnxruntime as ort
+        import onnxruntime as ort
 
-            installed = ort.get_available_providers()
+        installed = ort.get_available_providers()
         usable = tuple(n for n in self.names if n in installed)
         if not usable:
             raise EncoderError(
