@@ -260,7 +260,6 @@ class OnnxEncoder:
         self.providers = ExecutionProviders.parse(providers)
         self._sessions = [self._start_session(self.providers.available())]
         self.provider: str = self._sessions[0].get_providers()[0]
-        """The execution provider in use."""
         if self.provider != CPU_PROVIDER and tile_rows is None:
             tile_rows = 0  # whole frame on an accelerator (module docstring)
         self._tile_rows = tile_rows
