@@ -1,32 +1,14 @@
 """Camera models of camodocal, the library VINS-Fusion and VINS-Mono load their cameras with.
 
-Three models, with camodocal's parameter names and file layout:
+``PINHOLE`` (radial-tangential distortion), ``KANNALA_BRANDT`` (equidistant fisheye, ``cv2.fisheye``'s
+model) and ``MEI`` (unified omnidirectional, radial-tangential distortion), with camodocal's parameter
+names and file layout, vectorised over N points in float64: ``lift_rays`` is camodocal's
+``liftProjective``, ``lift`` divides its ray by z (the undistorted point the VINS trackers publish) and
+``project`` is ``spaceToPlane``.
 
-* ``PINHOLE``: radial-tangential distortion (k1 k2 p1 p2) and projection (fx fy cx cy).
-* ``KANNALA_BRANDT``: equidistant fisheye, r(theta) = theta + k2 theta^3 + k3 theta^5 + k4 theta^7
-  + k5 theta^9, projection (mu mv u0 v0). Same model as OpenCV's ``cv2.fisheye`` with (k1..k4) = (k2..k5).
-* ``MEI``: unified omnidirectional model, mirror parameter xi, radial-tangential distortion (k1 k2 p1 p2)
-  and generalised projection (gamma1 gamma2 u0 v0).
-
-Two operations, vectorised over N points, in float64:
-
-* ``lift_rays`` is camodocal's ``liftProjective``: distorted pixel -> projective ray, scaled exactly as
-  camodocal scales it (z = 1 for PINHOLE, a unit vector for KANNALA_BRANDT, the MEI ray unnormalised).
-* ``lift`` divides that ray by its z: the undistorted normalised-plane point (x/z, y/z) that the VINS
-  feature trackers publish.
-* ``project`` is camodocal's ``spaceToPlane``: 3D point in the camera frame -> distorted pixel.
-
-Undistortion follows camodocal step for step, so a tracker built on these models publishes the same numbers
-as the stock one: PINHOLE and MEI remove the distortion with 8 fixed-point iterations (no analytic inverse,
-no convergence test); KANNALA_BRANDT solves r(theta) = |p| for the smallest non-negative real root through
-the eigenvalues of the polynomial's companion matrix. Eight iterations do not converge near the corners of
-a strongly distorted lens; that is what VINS computes, and ``undistort_iterations`` can raise the count
-where exactness matters more than fidelity.
-
-Files are camodocal's OpenCV FileStorage YAML (``%YAML:1.0``; keys model_type, camera_name, image_width,
-image_height and the parameter maps). VINS-Mono keeps the same keys inline in its main config, so
-:func:`load_camera` reads a VINS-Mono config as a camera file, and :func:`camera_from_dict` builds a camera
-from the same layout held in a dict.
+Undistortion follows camodocal step for step, so a tracker built on these models publishes the stock
+tracker's numbers: PINHOLE and MEI run 8 fixed-point iterations (``undistort_iterations``), which do not
+converge near the corners of a strongly distorted lens, as in VINS.
 """
 
 from __future__ import annotations
@@ -123,14 +105,7 @@ def _radtan_apply(
 
 
 def radtan_distort(points: ArrayLike, coeffs: ArrayLike) -> Float64Array:
-    """Apply radial-tangential distortion (OpenCV / camodocal order k1, k2, p1, p2) on the normalised plane.
-
-    Args:
-        points: undistorted normalised coordinates (x/z, y/z).
-        coeffs: (k1, k2, p1, p2).
-
-    Returns:
-        the distorted normalised coordinates.
+    """Apply radial-tangential distortion ``coeffs`` (k1, k2, p1, p2) to normalised points (x/z, y/z).
 
     Shape:
         points: (N, 2) -> (N, 2) float64.
@@ -175,13 +150,11 @@ def _check_int(owner: str, key: str, value: Any, minimum: int) -> int:
 
 @dataclass(frozen=True, kw_only=True)
 class CameraModel(ABC):
-    """Base of the camodocal camera models.
+    """Base of the camodocal camera models: image ``width`` and ``height`` in pixels, ``name``, and the
+    class attribute ``model_type`` ("PINHOLE", "KANNALA_BRANDT" or "MEI").
 
-    Attributes:
-        width: image width in pixels (camodocal ``image_width``).
-        height: image height in pixels (camodocal ``image_height``).
-        name: camodocal ``camera_name``.
-        model_type: camodocal model name, "PINHOLE", "KANNALA_BRANDT" or "MEI" (class attribute).
+    The geometry methods take (N, 2) pixels or (N, 3) points of any real dtype and raise
+    :class:`CameraError` on other input.
     """
 
     width: int
@@ -228,7 +201,7 @@ class CameraModel(ABC):
         return {key: getattr(self, key) for key in self.parameter_names()}
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the camodocal file layout as a dict (the inverse of :func:`camera_from_dict`)."""
+        """The camodocal file layout as a dict (the inverse of :func:`camera_from_dict`)."""
         out: dict[str, Any] = {
             "model_type": self.model_type,
             "camera_name": self.name,
@@ -266,9 +239,7 @@ class CameraModel(ABC):
 
     @classmethod
     def from_yaml(cls, path: str | os.PathLike[str]) -> CameraModel:
-        """Read a camodocal camera file (or a VINS-Mono config, which carries the same keys inline).
-
-        On a subclass (``PinholeCamera.from_yaml``) the file's model_type must be that subclass's.
+        """Read a camodocal camera file (:func:`load_camera`); on a subclass, of that subclass's model_type.
 
         Raises:
             CameraError: naming the file and the key at fault.
@@ -282,57 +253,20 @@ class CameraModel(ABC):
 
     @abstractmethod
     def lift_rays(self, pixels: ArrayLike) -> Float64Array:
-        """Lift distorted pixels to projective rays (camodocal ``liftProjective``).
-
-        Args:
-            pixels: distorted pixel coordinates (u, v), integer or floating dtype.
-
-        Returns:
-            Rays in the camera frame, scaled as camodocal scales them (see the model's docstring).
-
-        Shape:
-            pixels: (N, 2) -> (N, 3) float64.
-
-        Raises:
-            CameraError: ``pixels`` is not (N, 2) or not real-valued.
-        """
+        """Lift distorted pixels (u, v) to (N, 3) camera-frame rays, as camodocal's ``liftProjective``."""
 
     @abstractmethod
     def project(self, points: ArrayLike) -> Float64Array:
-        """Project 3D points in the camera frame to distorted pixels (camodocal ``spaceToPlane``).
+        """Project points (X, Y, Z) in the camera frame to (N, 2) distorted pixels (``spaceToPlane``).
 
-        Args:
-            points: (X, Y, Z) in the camera frame, integer or floating dtype.
-
-        Returns:
-            Distorted pixel coordinates (u, v). Like camodocal there is no visibility test: a point with no
-            valid projection (PINHOLE z <= 0, a point at the origin) gives inf / nan or a mirrored pixel.
-
-        Shape:
-            points: (N, 3) -> (N, 2) float64.
-
-        Raises:
-            CameraError: ``points`` is not (N, 3) or not real-valued.
+        As in camodocal there is no visibility test: a point with no valid projection gives inf / nan or a
+        mirrored pixel.
         """
 
     def lift(self, pixels: ArrayLike) -> Float64Array:
-        """Lift distorted pixels to undistorted normalised-plane coordinates (x/z, y/z).
+        """Lift distorted pixels (u, v) to the undistorted normalised plane (x/z, y/z) that VINS publishes.
 
-        This is what the VINS trackers publish: ``liftProjective`` followed by a division by z. Pixels whose
-        ray has z <= 0 (beyond 90 degrees on a fisheye or omnidirectional camera) give inf or mirrored values,
-        as in VINS.
-
-        Args:
-            pixels: distorted pixel coordinates (u, v), integer or floating dtype.
-
-        Returns:
-            Normalised-plane coordinates (x/z, y/z).
-
-        Shape:
-            pixels: (N, 2) -> (N, 2) float64.
-
-        Raises:
-            CameraError: ``pixels`` is not (N, 2) or not real-valued.
+        Pixels whose ray has z <= 0 give inf or mirrored values, as in VINS.
         """
         rays = self.lift_rays(pixels)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -406,9 +340,8 @@ class KannalaBrandtCamera(CameraModel):
     cos theta), theta being the smallest non-negative real root of r(theta) = |p| (theta = |p| when there
     is none). Valid beyond 90 degrees: ``project`` uses acos, not atan.
 
-    camodocal trims the polynomial by counting zero coefficients, which divides by zero when a zero
-    coefficient precedes a non-zero one (e.g. k2 = 0, k3 != 0); here the degree is set by the highest
-    non-zero coefficient, which agrees with camodocal in every case it handles.
+    The polynomial's degree is set by its highest non-zero coefficient: camodocal's count of zeros
+    divides by zero when a zero precedes a non-zero one, and agrees otherwise.
 
     Attributes:
         k2, k3, k4, k5: polynomial coefficients (default 0).
@@ -441,11 +374,7 @@ class KannalaBrandtCamera(CameraModel):
         return np.array([self.k2, self.k3, self.k4, self.k5])
 
     def radius(self, theta: ArrayLike) -> Float64Array:
-        """Return r(theta) = theta + k2 theta^3 + k3 theta^5 + k4 theta^7 + k5 theta^9 (normalised units).
-
-        Shape:
-            theta: any shape -> same shape, float64.
-        """
+        """r(theta) = theta + k2 theta^3 + k3 theta^5 + k4 theta^7 + k5 theta^9 (elementwise)."""
         t = np.asarray(theta, dtype=np.float64)
         t2 = t * t
         t3 = t2 * t
@@ -473,11 +402,10 @@ class KannalaBrandtCamera(CameraModel):
         return float(np.sqrt(positive.min())) if positive.size else math.inf
 
     def _theta(self, rho: Float64Array) -> Float64Array:
-        """Smallest non-negative real root of r(theta) = rho (rho itself when there is none).
+        """Smallest non-negative real root of r(theta) = rho (rho itself if there is none), camodocal's pick.
 
-        The root camodocal's backprojectSymmetric picks. Where r is increasing on [0, limit] and
-        rho <= r(limit) that root is the only one in [0, limit], found by safeguarded Newton (a few
-        microseconds for hundreds of points); elsewhere camodocal's companion-matrix eigenvalues decide.
+        Where r increases on [0, limit] and rho <= r(limit) that root is unique and safeguarded Newton finds
+        it fast; elsewhere camodocal's companion-matrix eigenvalues decide.
         """
         if not any((self.k2, self.k3, self.k4, self.k5)) or rho.size == 0:
             return rho.copy()
@@ -636,19 +564,13 @@ CAMERA_MODELS: dict[str, type[CameraModel]] = {
 
 
 def camera_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> CameraModel:
-    """Build a camera from camodocal's file layout held in a dict.
+    """Build a camera from camodocal's file layout in a dict (other keys, as a VINS-Mono config's, ignored).
 
-    ``data`` holds model_type, image_width, image_height, optionally camera_name (default "camera"), and
-    the model's parameter maps (e.g. PINHOLE: distortion_parameters {k1 k2 p1 p2} and
-    projection_parameters {fx fy cx cy}); other keys are ignored, so a whole VINS-Mono config can be
-    passed. Unlike camodocal, a missing model_type or parameter is an error rather than MEI / zero.
+    Unlike camodocal, a missing model_type or parameter is an error rather than MEI / zero.
 
     Args:
-        data: the mapping, e.g. from :func:`nsflow_ros.core.opencv_yaml.read_opencv_yaml`.
+        data: model_type, image_width, image_height, optionally camera_name and the model's parameter maps.
         source: what to name in error messages (the file the dict came from).
-
-    Returns:
-        A :class:`PinholeCamera`, :class:`KannalaBrandtCamera` or :class:`MeiCamera`.
 
     Raises:
         CameraError: naming ``source`` and the key missing, of the wrong type or out of range.
@@ -697,16 +619,7 @@ def camera_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> CameraM
 
 
 def load_camera(path: str | os.PathLike[str]) -> CameraModel:
-    """Read a camodocal camera file (PINHOLE, KANNALA_BRANDT or MEI).
-
-    A VINS-Mono config, which carries the same keys inline, is read the same way (VINS-Mono itself hands
-    its config file to camodocal).
-
-    Args:
-        path: the YAML file (OpenCV FileStorage, ``%YAML:1.0`` first line).
-
-    Returns:
-        The camera model the file describes.
+    """Read a camodocal camera file (OpenCV FileStorage YAML) or a VINS-Mono config (the same keys inline).
 
     Raises:
         CameraError: the file is missing or malformed, or a key is missing or invalid; the message names

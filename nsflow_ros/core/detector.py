@@ -18,17 +18,12 @@ def detect_corners(
     min_distance: float = 30.0,
     mask: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Detect up to ``max_corners`` GFTT corners on a gray image.
+    """Detect up to ``max_corners`` GFTT corners (x, y) on a gray image, strongest first.
 
     Args:
-        gray: uint8 gray image.
-        max_corners: how many corners at most; 0 or less returns none.
         quality: GFTT quality level relative to the best corner.
         min_distance: minimum distance between corners in pixels.
-        mask: optional uint8 mask; corners only where it is non-zero.
-
-    Returns:
-        (x, y) corner positions, strongest first.
+        mask: uint8; corners only where it is non-zero.
 
     Raises:
         CoreError: on a wrong image or mask shape/dtype.

@@ -1,43 +1,16 @@
 """Encoders: uint8 image in, (H, W, d) float32 descriptor map out.
 
-Two kinds share one interface (callable on an image, with ``channels`` and ``name``):
+:class:`OnnxEncoder` runs the exported NSFlow encoder with onnxruntime; :class:`IntensityEncoder` is the
+classical mode, the gray image scaled to [0, 1]. ONNX contract, checked at load time: one float32 input
+(1, 1|3, H, W) in [0, 1] and one float32 output (1, d, H, W); H and W may be dynamic.
 
-* :class:`OnnxEncoder` runs the project's exported NSFlow encoder with onnxruntime;
-* :class:`IntensityEncoder` is the classical mode: the gray image scaled to [0, 1] as a 1-channel map.
-  It runs through the same solver and is the baseline of every accuracy figure.
-
-ONNX contract (checked at load time): one float32 input of shape (1, c_in, H, W) with c_in 1 (gray) or
-3 (RGB), values in [0, 1]; one float32 output of shape (1, d, H, W). Height and width may be dynamic.
-
-Speed (docs/benchmarks.md, "Why the settings are what they are", has the figures):
-
-* Strips. A fully convolutional encoder is run on horizontal strips of about ``TILE_PIXELS`` pixels,
-  each with ``halo`` extra rows above and below (its receptive-field radius), and only the strip's own
-  rows are kept: every kept pixel sees exactly the inputs of a whole-frame run, so the result is the
-  same, while one strip's intermediate maps stay in cache. The halo is measured at load time: flip one
-  row of a random image and see which output rows change. A model whose output depends on far-away rows
-  (pooling, normalisation, attention), or whose tiled and whole runs disagree, is run whole-frame.
-* One single-threaded session per thread, each taking every n-th strip, instead of one session with n
-  intra-op threads: onnxruntime's pool wakes for every operator and sleeps between frames. Sessions
-  never spin: busy-waiting workers steal the cores from the solver that runs next.
-* The (1, d, H, W) output becomes (H, W, d) with ``cv2.merge`` inside each strip's worker, written
-  straight into the frame's map (cheaper than a NumPy transpose copy).
-
-Accelerators. The session runs on the first usable of an ordered list of onnxruntime execution
-providers (:class:`ExecutionProviders`, e.g. ``tensorrt,cuda,cpu``; the default is the CPU alone). A
-requested provider this onnxruntime build lacks is skipped with one warning naming the installed ones
-and the one used instead; a list of which none is installed is an :class:`EncoderError`. On the CPU
-the frame is encoded in strips as above; on any other provider one session encodes the whole frame in
-one call, since per-call launch overhead, not cache locality, dominates a small net on an accelerator
-(``tile_rows`` overrides it).
-
-Smoothing. A model may declare, in its metadata key ``smoothing`` ("fine,coarse", Gaussian sigmas in
-pixels; :class:`~nsflow_ros.core.pyramid.Smoothing`), how its maps are smoothed before the solver
-reads them: the encoder applies the ``fine`` part to its own output (in each strip's worker, with the
-kernel's radius added to the halo, so tiled and whole runs stay identical, while the strip is still
-in cache, one plane at a time), and the LM methods
-apply the ``coarse`` part to the pyramid's coarser levels. The shipped model declares "1.0,1.0"
-(models/README.md says why); a model without the key is not smoothed.
+On the CPU a local model runs on horizontal strips with a halo of its receptive-field radius (measured at
+load time), one single-threaded, non-spinning session per thread: the whole-frame result, faster because
+a strip stays in cache and idle sessions leave the cores to the solver. On an accelerator
+(:class:`ExecutionProviders`) one session encodes the whole frame, launch overhead dominating there. A
+model may declare in its metadata key ``smoothing`` ("fine,coarse" sigmas,
+:class:`~nsflow_ros.core.pyramid.Smoothing`) how its maps are smoothed: the encoder applies ``fine`` to
+its output, the LM methods ``coarse`` to the pyramid's coarser levels.
 """
 
 from __future__ import annotations
@@ -105,10 +78,9 @@ class ExecutionProviders:
     """Where the encoder runs: onnxruntime execution providers in order of preference, and their options.
 
     Attributes:
-        names: onnxruntime provider names, best first (``parse`` takes short names too).
+        names: onnxruntime provider names, best first.
         tensorrt_fp16: let TensorRT build half-precision engines.
-        tensorrt_cache: folder where TensorRT keeps its built engines between runs (building one takes
-            minutes on a Jetson); None = no cache.
+        tensorrt_cache: folder where TensorRT keeps its engines between runs; None = no cache.
 
     Raises:
         EncoderError: an empty list or a name that is not an onnxruntime provider name.
@@ -136,13 +108,8 @@ class ExecutionProviders:
         """Read a provider list: ``"tensorrt,cuda,cpu"``, ``["cuda", "CPUExecutionProvider"]``.
 
         Args:
-            providers: comma-separated text or a sequence of short names (:data:`PROVIDER_NAMES`, any
-                case) or onnxruntime names; an :class:`ExecutionProviders` is returned as it is; None or
-                "" = the CPU alone.
-            tensorrt_fp16, tensorrt_cache: the TensorRT options (class attributes).
-
-        Returns:
-            the providers, duplicates removed.
+            providers: short names (:data:`PROVIDER_NAMES`, any case) or onnxruntime names, as
+                comma-separated text or a sequence; returned as it is if parsed already; None or "" = CPU.
 
         Raises:
             EncoderError: an unknown short name (the known ones are listed) or an empty list.
@@ -169,23 +136,15 @@ class ExecutionProviders:
                 names.append(name)
         return cls(tuple(names), tensorrt_fp16=bool(tensorrt_fp16), tensorrt_cache=tensorrt_cache or None)
 
-    def available(self, installed: Sequence[str] | None = None) -> tuple[str, ...]:
-        """The requested providers this onnxruntime has, in order; warns once about the others.
-
-        Args:
-            installed: the providers of this onnxruntime build; None = what it reports
-                (``onnxruntime.get_available_providers()``).
-
-        Returns:
-            the usable providers, best first (never empty).
+    def available(self) -> tuple[str, ...]:
+        """The requested providers this onnxruntime has, in order; warns of the others.
 
         Raises:
             EncoderError: none of them is installed (one line naming the installed ones).
         """
-        if installed is None:
-            import onnxruntime as ort
+        import onnxruntime as ort
 
-            installed = ort.get_available_providers()
+        installed = ort.get_available_providers()
         usable = tuple(n for n in self.names if n in installed)
         if not usable:
             raise EncoderError(
@@ -247,7 +206,7 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 class IntensityEncoder:
-    """The classical mode: image intensity / 255 as a 1-channel descriptor map."""
+    """The classical mode: image intensity / 255 as a (H, W, 1) float32 descriptor map."""
 
     name = "classical"
     channels = 1
@@ -256,22 +215,8 @@ class IntensityEncoder:
     provider = "none"  # NumPy, no onnxruntime session
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        """Encode an image.
-
-        Args:
-            image: uint8, (H, W) mono or (H, W, 3) BGR.
-
-        Returns:
-            (H, W, 1) float32 in [0, 1].
-        """
         gray = to_gray(image)
         return (gray.astype(np.float32) * (1.0 / 255.0))[..., None]
-
-
-def _to_hwc(planes: np.ndarray) -> np.ndarray:
-    """(d, h, w) -> C-contiguous (h, w, d); cv2.merge interleaves in one pass but drops a lone channel."""
-    out = cv2.merge(list(planes))
-    return out if out.ndim == 3 else out[..., None]
 
 
 def _merge_into(planes: list[np.ndarray], dst: np.ndarray) -> None:
@@ -287,24 +232,17 @@ class OnnxEncoder:
 
     Args:
         path: the .onnx file.
-        threads: CPU threads (None = the cores this process may use). A model that tiles (see the
-            module docstring) runs one single-threaded onnxruntime session per thread, each encoding
-            every ``threads``-th strip; any other model runs one session with that many intra-op
-            threads.
-        tile_rows: rows per strip of a tiled run; None = about ``TILE_PIXELS`` pixels per strip,
-            0 = always run the whole frame at once. Tiling applies only to models that pass the
-            locality check at load time (``tiled`` says whether this one does).
-        smoothing: the map smoothing (module docstring); None = what the model's metadata declares
-            (none when it declares nothing). ``Smoothing()`` turns it off.
-        providers: execution providers in order of preference (:meth:`ExecutionProviders.parse` takes
-            ``"tensorrt,cuda,cpu"``); None = the CPU. On a provider other than the CPU one session with
-            ``threads`` intra-op threads runs the whole frame (module docstring). ``provider`` is the
-            one in use.
+        threads: CPU threads (None = the cores this process may use): one session per thread for a
+            tiled model, else one session with that many intra-op threads.
+        tile_rows: rows per strip; None = about ``TILE_PIXELS`` pixels, 0 = the whole frame at once.
+            Only models that pass the locality check at load time are tiled (``tiled``).
+        smoothing: None = what the model's metadata declares; ``Smoothing()`` turns it off.
+        providers: execution providers, best first (:meth:`ExecutionProviders.parse`); None = the CPU.
+            ``provider`` is the one in use.
 
     Raises:
-        EncoderError: when the file is missing, is not a loadable model, its signature is not
-            (1, 1|3, H, W) float32 -> (1, d, H, W) float32, its ``smoothing`` metadata is malformed, or
-            none of the providers is installed.
+        EncoderError: a missing or unloadable file, a wrong signature, malformed ``smoothing`` metadata,
+            or none of the providers installed.
     """
 
     def __init__(
@@ -322,7 +260,6 @@ class OnnxEncoder:
         self.providers = ExecutionProviders.parse(providers)
         self._sessions = [self._start_session(self.providers.available())]
         self.provider: str = self._sessions[0].get_providers()[0]
-        """The execution provider in use."""
         if self.provider != CPU_PROVIDER and tile_rows is None:
             tile_rows = 0  # whole frame on an accelerator (module docstring)
         self._tile_rows = tile_rows
@@ -343,8 +280,8 @@ class OnnxEncoder:
                 self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="nsflow-encoder")
 
     def _start_session(self, usable: Sequence[str]) -> Any:
-        """The first session: one CPU thread on the CPU (strip sessions come later), else on the best
-        usable provider with ``threads`` intra-op threads, back to the CPU when it cannot start."""
+        """The first session: one CPU thread on the CPU, else the best usable provider with ``threads``
+        threads, back to the CPU when it cannot start."""
         self._session_providers: list[Any] = [CPU_PROVIDER]
         if usable[0] == CPU_PROVIDER:
             return self._new_session(1)
@@ -413,11 +350,7 @@ class OnnxEncoder:
             raise EncoderError(msg) from err
 
     def _planes(self, out: np.ndarray, rows: slice) -> list[np.ndarray]:
-        """The (h, w) planes of an encoder output (1, d, h, w), smoothed as declared, cut to ``rows``.
-
-        Plane by plane, before the planes are interleaved: the same result as filtering the interleaved
-        map, in less time.
-        """
+        """The (h, w) planes of an encoder output (1, d, h, w), smoothed as declared, cut to ``rows``."""
         k = self._kernel
         if k is None:
             return [p[rows] for p in out[0]]
@@ -425,7 +358,7 @@ class OnnxEncoder:
 
     @property
     def tiled(self) -> bool:
-        """Whether frames are encoded in strips (identical results, faster; module docstring)."""
+        """Whether frames are encoded in strips."""
         return self.halo is not None
 
     def _local_halo(self) -> int | None:
@@ -448,7 +381,7 @@ class OnnxEncoder:
         # Cross-check on another random image cut into strips of a few rows.
         rows = 2 * halo + 3
         x = rng.random((1, self.input_channels, 3 * rows + 1, 16), dtype=np.float32)
-        whole = _to_hwc(self._run(x)[0])
+        whole = self._run(x)[0].transpose(1, 2, 0)
         if not np.allclose(whole, self._run_tiled(x, halo, rows), rtol=0.0, atol=1e-5):
             return None
         return halo
@@ -460,8 +393,7 @@ class OnnxEncoder:
     def _run_tiled(self, x: np.ndarray, halo: int, rows: int, smooth: bool = False) -> np.ndarray:
         """Encode (1, c, H, W) in strips of ``rows`` rows with ``halo`` rows of context: (H, W, d).
 
-        With ``smooth`` each strip is smoothed before it is cut out; ``halo`` must then include the
-        kernel's radius (the strip's replicated border only touches rows that are cut away).
+        With ``smooth`` each strip is smoothed before it is cut; ``halo`` must include the kernel's radius.
         """
         h, w = x.shape[2:]
         out = np.empty((h, w, self.channels), np.float32)
@@ -485,14 +417,9 @@ class OnnxEncoder:
         return out
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        """Encode an image.
+        """Encode a uint8 (H, W) mono or (H, W, 3) BGR image into a C-contiguous (H, W, d) float32 map.
 
-        Args:
-            image: uint8, (H, W) mono or (H, W, 3) BGR. Mono input to an RGB model is replicated to
-                three channels; colour input to a gray model is converted to gray.
-
-        Returns:
-            (H, W, d) float32 descriptor map, C-contiguous.
+        Mono input to an RGB model is replicated to three channels; colour input to a gray model is grayed.
         """
         image = _check_image(image)
         if self.input_channels == 1:
@@ -532,17 +459,7 @@ def load_encoder(
     path: str | os.PathLike[str] | None = None, threads: int | None = None, tile_rows: int | None = None,
     smoothing: Smoothing | None = None, providers: ExecutionProviders | str | Sequence[str] | None = None,
 ) -> OnnxEncoder:
-    """Load an ONNX encoder; ``path=None`` means the shipped model in models/.
-
-    Args:
-        path: an .onnx file, or None for ``models/nsflow_encoder.onnx`` of the install or checkout.
-        threads: CPU threads (None = all usable cores); see :class:`OnnxEncoder`.
-        tile_rows: rows per strip (None = automatic, 0 = whole frame); see :class:`OnnxEncoder`.
-        smoothing: None = the model's declared smoothing; see :class:`OnnxEncoder`.
-        providers: execution providers, best first (None = the CPU); see :class:`OnnxEncoder`.
-
-    Returns:
-        the encoder.
+    """Load an ONNX encoder (:class:`OnnxEncoder`); ``path=None`` means the shipped model in models/.
 
     Raises:
         EncoderError: naming the path when the model is missing or has the wrong signature, or naming

@@ -1,13 +1,8 @@
 """IMU-aided prediction: integrate the gyro between two frames and predict where each point moves.
 
-The prediction is rotation only (points at infinity): a point seen along the undistorted ray p in the
-previous camera frame is expected along R_{c1 c0} p in the current one, projected with the camera model.
-Translation parallax is left to the solver, which starts from this prediction instead of zero flow. Under
-fast rotation the rotational flow dominates (tens of pixels per frame), so the solver's basin of
-convergence only has to cover the small translational remainder.
-
-Conventions: gyro samples are (t, wx, wy, wz), t in seconds, angular rate in rad/s in the IMU (body)
-frame. ``body_R_cam`` rotates camera-frame vectors into the body frame (VINS ``body_T_cam0[:3, :3]``).
+The prediction is rotation only (points at infinity), projected with the camera model; the solver starts
+from it and only has to cover the translational remainder. Gyro samples are (t, wx, wy, wz), t in seconds,
+rad/s in the IMU (body) frame; ``body_R_cam`` rotates camera-frame vectors into the body frame.
 """
 
 from __future__ import annotations
@@ -29,17 +24,7 @@ __all__ = [
 
 
 def so3_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues' formula).
-
-    Args:
-        rotvec: axis * angle in radians.
-
-    Returns:
-        the rotation matrix.
-
-    Shape:
-        rotvec: (3,). Returns (3, 3).
-    """
+    """The (3, 3) rotation matrix of a rotation vector (3,), axis * angle in radians (Rodrigues)."""
     w = np.asarray(rotvec, dtype=np.float64).reshape(3)
     theta = float(np.linalg.norm(w))
     k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
@@ -64,19 +49,10 @@ def _check_samples(samples: np.ndarray) -> np.ndarray:
 
 
 def integrate_gyro(samples: np.ndarray, t0: float, t1: float) -> np.ndarray:
-    """Integrate gyro samples from t0 to t1 into the body rotation R_{b(t0) b(t1)}.
+    """Integrate gyro samples from t0 to t1 into the body rotation R_{b(t0) b(t1)} (v_b(t0) = R v_b(t1)).
 
-    Midpoint integration over the sample intervals, with the rate interpolated linearly at t0 and t1. Rates
-    outside the samples' time span are held constant (an IMU message that arrives a little late must not
-    disable the prediction).
-
-    Args:
-        samples: gyro samples (t, wx, wy, wz), sorted by t; may extend beyond [t0, t1].
-        t0: start time in seconds.
-        t1: end time in seconds (>= t0).
-
-    Returns:
-        R with v_{b(t0)} = R v_{b(t1)}.
+    Midpoint integration, the rate interpolated linearly at t0 and t1 and held constant outside the
+    samples' span, so that an IMU message arriving a little late does not disable the prediction.
 
     Raises:
         CoreError: on a wrong shape, unsorted or non-finite samples, or t1 < t0.
@@ -102,18 +78,7 @@ def integrate_gyro(samples: np.ndarray, t0: float, t1: float) -> np.ndarray:
 
 
 def body_to_camera_rotation(body_rot: np.ndarray, body_R_cam: np.ndarray | None) -> np.ndarray:
-    """Express a body rotation R_{b0 b1} in the camera frame: R_{c0 c1} = R_bc^T R_{b0 b1} R_bc.
-
-    Args:
-        body_rot: R_{b0 b1}.
-        body_R_cam: R_bc (camera to body); None means the camera is aligned with the body.
-
-    Returns:
-        R_{c0 c1}.
-
-    Shape:
-        body_rot, body_R_cam: (3, 3). Returns (3, 3).
-    """
+    """A (3, 3) body rotation R_{b0 b1} in the camera frame, R_bc^T R_{b0 b1} R_bc (R_bc None: identity)."""
     if body_R_cam is None:
         return np.asarray(body_rot, dtype=np.float64)
     r_bc = np.asarray(body_R_cam, dtype=np.float64)
@@ -123,15 +88,10 @@ def body_to_camera_rotation(body_rot: np.ndarray, body_R_cam: np.ndarray | None)
 
 
 def predict_pixels(camera: CameraModel, undistorted: np.ndarray, cam_rot: np.ndarray) -> np.ndarray:
-    """Predict where points at infinity appear after a camera rotation.
-
-    Args:
-        camera: the camera model (projects the rotated rays to distorted pixels).
-        undistorted: the points' undistorted normalised coordinates (x, y) in the previous frame.
-        cam_rot: R_{c0 c1}, the current camera orientation in the previous camera frame.
+    """Where points at infinity, undistorted (x, y) in the previous frame, appear after rotation R_{c0 c1}.
 
     Returns:
-        predicted distorted pixels in the current frame; NaN where the rotated ray points backwards.
+        distorted pixels in the current frame; NaN where the rotated ray points backwards.
 
     Shape:
         undistorted: (N, 2). cam_rot: (3, 3). Returns (N, 2).

@@ -1,31 +1,13 @@
 """Tracking methods: one registry, :data:`METHODS`, whose entries are each method's whole configuration.
 
-A :class:`MethodSpec` says everything the tracker deploys for a method: where its descriptors come from
-(:class:`EncoderSource`) and whether the model's declared smoothing is applied, the LM solver settings
-(:class:`~nsflow_ros.core.solver.LMConfig`), the solve policy (:class:`SolvePolicy`), OpenCV's LK
-arguments for the OpenCV methods (:class:`KLTConfig`) and the CLAHE used when equalising (:data:`CLAHE`).
-:func:`make_method` builds the method object from a spec; the tracker, the evaluation suite, the
-benchmark and the training command's final comparison all build theirs this way, so what is deployed,
-evaluated and benchmarked is the same code with the same settings.
+A :class:`MethodSpec` says where a method's descriptors come from and how it solves (LM settings and
+:class:`SolvePolicy`, or OpenCV's LK arguments); :func:`make_method` builds the method from it, so the
+tracker, the evaluation and the benchmarks run the same code with the same settings.
 
-A method object knows how it represents a frame (:meth:`TrackingMethod.prepare`) and, for each kind of
-solve the VINS tracker runs (:class:`SolveKind`), which start, levels and points it uses
-(:meth:`TrackingMethod.solve`). Each method wraps its solver in one place (:meth:`TrackingMethod.track_pair`).
-
-The methods:
-
-* ``nsflow``: the learned ONNX encoder's descriptor pyramid through the LM solver
-  (:func:`nsflow_ros.core.solver.track`);
+* ``nsflow``: the learned ONNX encoder's descriptor pyramid through the LM solver;
 * ``classical``: the same solver on image intensity;
-* ``klt``: OpenCV's ``calcOpticalFlowPyrLK`` on the gray image, called as VINS-Fusion calls it (the
-  baseline);
+* ``klt``: OpenCV's ``calcOpticalFlowPyrLK`` on the gray image, called as VINS-Fusion calls it (the baseline);
 * ``nsflow_lk``: the learned descriptors quantised to uint8 through the same OpenCV calls.
-
-Known starts (LM methods): a check (flow-back, right -> left) starts at the point it must return to; a
-forward or stereo solve may start each point from a prior (its previous flow, the id's previous
-disparity) on fewer levels, points without one from the median of the others' flows
-(:class:`SolvePolicy`). Only a solve where no point has a prior runs from zero flow on the whole
-pyramid, with the solver's coarse window. ``klt`` ignores priors, as VINS does.
 """
 
 from __future__ import annotations
@@ -83,21 +65,14 @@ KLT_GUIDED_MAX_LEVEL = 1
 KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 CHECK_LEVELS = 2
-"""Levels of an LM check solve (it starts at its answer): two levels with the residual test catch the
-occluded points a full-pyramid check catches, at half its cost (docs/benchmarks.md)."""
+"""Levels of an LM check solve: two catch the occluded points a full-pyramid check does, at half its cost."""
 PREDICTED_LEVELS = 1
-"""Levels of an LM forward solve from the IMU prediction (VINS: maxLevel 1, i.e. two levels for OpenCV;
-the LM solver's fine level suffices from a start that close)."""
+"""Levels of an LM forward solve from the IMU prediction: the fine level suffices from so close a start."""
 
 
 @dataclass(frozen=True)
 class Clahe:
-    """Contrast-limited histogram equalisation, applied to the gray image when the tracker equalises.
-
-    Attributes:
-        clip: clip limit.
-        tiles: tile grid (columns, rows).
-    """
+    """Contrast-limited histogram equalisation (clip limit, tile grid), applied when the tracker equalises."""
 
     clip: float = 3.0
     tiles: tuple[int, int] = (8, 8)
@@ -108,39 +83,35 @@ class Clahe:
 
 
 CLAHE = Clahe()
-"""VINS-Mono's equalisation (``equalize: 1``: clip 3, 8x8 tiles), used by the tracker and the evaluation."""
+"""VINS-Mono's equalisation (``equalize: 1``)."""
 
 DEPLOYED_LM = LMConfig(
     levels=4, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05, zero_mean=True,
     coarse_window=21, coarse_from=2,
 )
-"""The LM solver settings the tracker deploys. Each differs from :data:`PAPER_LM` for a measured reason
+"""The LM solver settings the tracker deploys; each difference from :data:`PAPER_LM` has a measured reason
 (docs/benchmarks.md, "Why the settings are what they are"):
 
-* ``levels`` 4 (paper 3): VINS's maxLevel 3, the capture range stereo disparity and fast motion need;
-* ``margin`` 1 (paper: half the window): a point may be tracked until its window reaches past the edge,
-  as OpenCV's LK allows;
-* ``tail_share`` 0.4 after ``tail_passes`` 2 (paper: every point to its own stop test): a level ends when
-  only stragglers are left;
-* ``jacobian`` ESM (paper: forward): a wider basin at a small cost;
-* ``zero_mean`` (paper: off): a lighting change's offset between descriptor windows costs nothing;
-* ``eps`` 0.05 (paper 0.01): pays back part of the zero-mean sums' cost at the same accuracy;
-* ``coarse_window`` 21 from level ``coarse_from`` 2 (paper: 11 everywhere): a wider basin for solves from
-  zero flow.
+* ``levels`` 4: VINS's maxLevel 3, the capture range stereo disparity and fast motion need;
+* ``margin`` 1: a point is kept until its window reaches past the edge, as OpenCV's LK allows;
+* ``tail_share`` 0.4 after ``tail_passes`` 2: a level ends when only stragglers are left;
+* ``jacobian`` ESM: a wider basin at a small cost;
+* ``zero_mean``: a lighting change's offset between descriptor windows costs nothing;
+* ``eps`` 0.05: pays back part of the zero-mean sums' cost at the same accuracy;
+* ``coarse_window`` 21 from level ``coarse_from`` 2: a wider basin for solves from zero flow.
 """
 
 PAPER_LM = LMConfig()
-"""The paper's Algorithm 1 as written (the solver's defaults): see :data:`DEPLOYED_LM` for the differences."""
+"""The paper's Algorithm 1 as written (the solver's defaults)."""
 
 
 class Solver(enum.Enum):
     """Which LM configuration :func:`make_method` gives an LM method."""
 
     DEPLOYED = "deployed"
-    """What the tracker runs: :data:`DEPLOYED_LM` and the default :class:`SolvePolicy`."""
+    """:data:`DEPLOYED_LM` and the default :class:`SolvePolicy`."""
     PAPER = "paper"
-    """Algorithm 1 as written: :data:`PAPER_LM` and :meth:`SolvePolicy.paper` (no priors, no residual
-    test); the tracker's VINS steps (checks, IMU prediction) are unchanged."""
+    """:data:`PAPER_LM` and :meth:`SolvePolicy.paper` (the tracker's checks and IMU prediction unchanged)."""
 
 
 @dataclass(frozen=True)
@@ -149,17 +120,14 @@ class SolvePolicy:
 
     Attributes:
         prior_levels: levels for points with a prior (previous flow / disparity); 0 = ignore priors.
-        fill_levels: levels for the points of a prior solve without a prior of their own (they start
-            from the median of the others' flows); 0 = the full pyramid. One level fewer than the
-            pyramid: the coarsest does more harm than good from a start that close.
-        max_residual: the residual test of forward and stereo solves: a point is lost when its final
-            residual energy exceeds this fraction of its template's contrast energy
-            (:meth:`LMMethod.residual_ratio`); inf = no test. True tracks have ratios of 0.01-0.1,
-            points tracked onto an occluder 0.3-10.
-        check_jacobian: the Jacobian of check solves, whatever the solver's: forward, because where an
-            ESM solve stalled off the answer an ESM check started there stalls too and "returns".
-        check_eps: the stop tolerance of check solves, whatever the solver's: a check starts at its
-            answer, and a loose stop test would let it stop there.
+        fill_levels: levels for the points of a prior solve without a prior of their own (started from
+            the median of the others' flows); 0 = the full pyramid.
+        max_residual: a forward or stereo solve loses a point whose :meth:`LMMethod.residual_ratio`
+            exceeds this (true tracks: 0.01-0.1, tracks onto an occluder: 0.3-10); inf = no test.
+        check_jacobian: the Jacobian of check solves: forward, because an ESM check started where an
+            ESM solve stalled stalls there too and "returns".
+        check_eps: the stop tolerance of check solves: a check starts at its answer, so a loose test
+            would stop it there.
 
     Raises:
         CoreError: a negative level count, a residual bound <= 0, a non-:class:`Jacobian` or eps <= 0.
@@ -184,13 +152,13 @@ class SolvePolicy:
 
     @classmethod
     def paper(cls) -> SolvePolicy:
-        """Every solve as Algorithm 1 runs it: no priors (zero flow on the full pyramid), no residual test."""
+        """Every solve from zero flow on the full pyramid, without the residual test (Algorithm 1)."""
         return cls(prior_levels=0, fill_levels=0, max_residual=float("inf"))
 
 
 @dataclass(frozen=True)
 class KLTConfig:
-    """OpenCV LK's window and stop criteria (the OpenCV methods; VINS-Fusion's values by default).
+    """OpenCV LK's window and stop criteria (VINS-Fusion's values by default).
 
     Raises:
         CoreError: a window that is not odd and >= 3, max_iterations < 1 or eps <= 0.
@@ -217,20 +185,13 @@ class KLTConfig:
 class EncoderSource(enum.Enum):
     """Where a method's descriptors come from."""
 
-    LEARNED = "learned"
-    """The ONNX encoder (``model_path``, or the shipped model)."""
-    INTENSITY = "intensity"
-    """Image intensity (:class:`~nsflow_ros.core.encoder.IntensityEncoder`)."""
-    NONE = "none"
-    """No encoder: OpenCV tracks the gray image."""
+    LEARNED = "learned"  # the ONNX encoder
+    INTENSITY = "intensity"  # IntensityEncoder
+    NONE = "none"  # OpenCV tracks the gray image
 
 
 class SolveKind(enum.Enum):
-    """The solves of one VINS tracker frame.
-
-    FORWARD tracks the previous frame's points into the current frame; FLOW_BACK tracks the result back
-    to check it; STEREO tracks left points into the right image; STEREO_BACK tracks those back.
-    """
+    """The solves of one VINS tracker frame: previous -> current, left -> right, and each one's check back."""
 
     FORWARD = "forward"
     FLOW_BACK = "flow_back"
@@ -253,20 +214,12 @@ def klt_track(
     window: tuple[int, int] = KLT_WINDOW,
     criteria: tuple[int, int, float] = KLT_CRITERIA,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One ``cv2.calcOpticalFlowPyrLK`` call (VINS-Fusion's window and criteria by default).
-
-    The project's only call of OpenCV's LK: the ``klt`` and ``nsflow_lk`` methods, the evaluation and the
-    benchmark all go through it.
+    """One ``cv2.calcOpticalFlowPyrLK`` call (VINS-Fusion's arguments by default): the project's only one.
 
     Args:
-        image1: uint8 image (1-4 channels) the points lie in.
-        image2: image to track them into.
-        pts: points in image 1.
-        start: initial positions in image 2 (``OPTFLOW_USE_INITIAL_FLOW``, as VINS's predicted and
-            flow-back calls); None starts from ``pts``.
-        max_level: OpenCV ``maxLevel`` (VINS: 3, or 1 when starting from ``start``).
-        window: window size (VINS: 21x21).
-        criteria: stop criteria (VINS: COUNT|EPS, 30, 0.01).
+        image1, image2: uint8 images (1-4 channels); ``pts`` lie in image 1.
+        start: initial positions in image 2 (``OPTFLOW_USE_INITIAL_FLOW``); None starts from ``pts``.
+        max_level, window, criteria: OpenCV's ``maxLevel``, ``winSize`` and ``criteria``.
 
     Returns:
         (positions in image 2, OpenCV's status); lost points keep their start position.
@@ -301,13 +254,8 @@ def quantise_descriptors(desc: np.ndarray) -> np.ndarray:
     return cv2.convertScaleAbs(desc, alpha=255.0)
 
 
-
 class TrackingMethod(ABC):
-    """A tracking method: a frame representation plus a rule per :class:`SolveKind`.
-
-    Built by :func:`make_method`; ``spec`` is the registry entry (with any changes) it was built from.
-    Subclasses implement :meth:`prepare`, :meth:`track_pair` and :meth:`solve`.
-    """
+    """A frame representation plus a rule per :class:`SolveKind`; ``spec`` is what it was built from."""
 
     spec: MethodSpec
     encoder: Encoder | None = None
@@ -318,30 +266,23 @@ class TrackingMethod(ABC):
         return self.spec.name
 
     def encoder_input(self, image: np.ndarray, gray: np.ndarray) -> np.ndarray:
-        """What the encoder gets: the gray image for gray encoders (already made), else the image."""
+        """What the encoder gets: the gray image for gray encoders, else the image."""
         if self.encoder is None or getattr(self.encoder, "input_channels", 3) == 1:
             return gray
         return image
 
     @abstractmethod
     def prepare(self, image: np.ndarray, gray: np.ndarray) -> Any:
-        """The frame's representation (computed once per image, used by every solve it takes part in).
-
-        Args:
-            image: the image as received (uint8 gray or BGR); the CLAHE'd gray when equalising.
-            gray: its gray version (CLAHE'd when equalising).
-        """
+        """The frame's representation, computed once per image from it and its gray version (uint8)."""
 
     @abstractmethod
     def track_pair(
         self, frame1: Any, frame2: Any, pts: np.ndarray, start: np.ndarray | None = None,
         levels: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The method's one solver call: ``pts`` of frame 1 into frame 2.
+        """The method's one solver call: ``pts`` (N, 2) of frame 1 into frame 2.
 
         Args:
-            frame1, frame2: representations from :meth:`prepare`.
-            pts: (N, 2) points in frame 1.
             start: (N, 2) initial positions in frame 2; None = ``pts``.
             levels: pyramid levels; None = the method's full pyramid.
 
@@ -357,9 +298,6 @@ class TrackingMethod(ABC):
         """One solve of the tracker: the method picks start, levels and points for ``kind``.
 
         Args:
-            kind: which solve.
-            frame1, frame2: representations from :meth:`prepare`.
-            pts: (N, 2) points in frame 1.
             start: (N, 2) trusted start in frame 2: the IMU prediction (FORWARD) or the point the check
                 must return to (FLOW_BACK, STEREO_BACK); None = none.
             prior: (N, 2) untrusted guess in frame 2, NaN where there is none: the point moved as in
@@ -379,8 +317,7 @@ def _fill_prior(pts: np.ndarray, prior: np.ndarray, known: np.ndarray) -> np.nda
 
 
 def pyramid_smoothing(encoder: Encoder) -> Smoothing | None:
-    """What an LM method smooths in ``encoder``'s pyramid: the coarse part of the encoder's declared
-    smoothing (the encoder has applied the fine part to its map already); None when there is none."""
+    """The coarse part of ``encoder``'s declared smoothing, which an LM method applies to its pyramid."""
     coarse = encoder.smoothing.coarse
     return Smoothing(coarse=coarse) if coarse > 0 else None
 
@@ -388,11 +325,9 @@ def pyramid_smoothing(encoder: Encoder) -> Smoothing | None:
 class LMMethod(TrackingMethod):
     """An encoder's descriptor pyramid through the LM solver (``nsflow``, ``classical``).
 
-    Args:
-        spec: the method's configuration; ``spec.lm.levels`` is the full pyramid, ``spec.policy`` the
-            solve policy.
-        encoder: the descriptor encoder. The pyramid's coarser levels are smoothed as it declares
-            (``encoder.smoothing.coarse``; it has applied the ``fine`` part already).
+    A check starts at the point it must return to; a forward or stereo solve starts points with a prior
+    from it on fewer levels and the others from the median flow; only a solve without any prior runs from
+    zero flow on the whole pyramid, with the coarse window.
 
     Raises:
         CoreError: a spec without LM settings or solve policy.
@@ -409,11 +344,8 @@ class LMMethod(TrackingMethod):
 
     @staticmethod
     def residual_ratio(result: TrackResult) -> np.ndarray:
-        """Residual energy 2 S over the template's contrast energy, per point (0 = a perfect match).
-
-        A point tracked onto something else (an occluder, a repeated structure) keeps a residual of the
-        order of its template's contrast (ratio ~1); a true match leaves image noise (~0.01-0.1).
-        """
+        """Residual energy 2 S over the template's contrast energy, per point: about 1 for a point tracked
+        onto something else, image noise (0.01-0.1) for a true match."""
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(result.contrast > 0, 2.0 * result.cost / result.contrast, np.inf)
 
@@ -429,16 +361,8 @@ class LMMethod(TrackingMethod):
         flow0: np.ndarray | None = None, config: LMConfig | None = None, *, record: bool = False,
         first_level: np.ndarray | None = None,
     ) -> TrackResult:
-        """The solver call itself (:func:`~nsflow_ros.core.solver.track`) with its full result.
-
-        Args:
-            frame1, frame2: pyramids from :meth:`prepare`.
-            pts: (N, 2) points in frame 1.
-            flow0: (N, 2) initial flow; None = zero.
-            config: solver settings of this call; None = :attr:`lm`.
-            record: keep the per-iteration history.
-            first_level: (N,) the level each point starts on; None = the coarsest.
-        """
+        """The solver call itself (:func:`~nsflow_ros.core.solver.track`) with its full result; ``config``
+        None = :attr:`lm`."""
         return track(frame1, frame2, pts, flow0, config or self.lm, record=record, first_level=first_level)
 
     def track_pair(
@@ -485,8 +409,7 @@ class LMMethod(TrackingMethod):
 class KLTMethod(TrackingMethod):
     """OpenCV's pyramidal LK on the gray image, call for call as VINS-Fusion's ``trackImage`` (``klt``).
 
-    Args:
-        spec: the method's configuration (``spec.klt``: window and stop criteria); None = ``klt``'s.
+    ``spec`` None = ``klt``'s.
 
     Raises:
         CoreError: a spec without OpenCV LK settings.
@@ -526,13 +449,8 @@ class KLTMethod(TrackingMethod):
 class DescriptorKLTMethod(KLTMethod):
     """The learned descriptors as uint8, tracked by OpenCV's pyramidal LK with VINS's calls (``nsflow_lk``).
 
-    Each frame is encoded and quantised once; OpenCV builds its pyramids inside every call, as for
-    ``klt``. The maps are not smoothed: a model's declared smoothing is chosen for the LM solver's 11x11
-    window and costs more than it gives on OpenCV's 21x21 one (models/README.md).
-
-    Args:
-        spec: the method's configuration.
-        encoder: the descriptor encoder (1-4 channels in [0, 1]), without smoothing.
+    The encoder (1-4 channels in [0, 1]) must not smooth: smoothing chosen for the LM solver's 11x11
+    window costs more than it gives on OpenCV's 21x21 one (models/README.md).
 
     Raises:
         CoreError: an encoder that smooths its maps.
@@ -559,12 +477,10 @@ class MethodSpec:
         name: registry name (the tracker's ``method`` setting).
         label: name in evaluation tables and plots.
         summary: one line for help texts and the README.
-        encoder: where the descriptors come from.
-        smoothed: whether the learned model's declared smoothing is applied (the LM methods: yes).
-        lm: LM solver settings (LM methods); None for the OpenCV methods.
-        policy: the LM solve policy; None for the OpenCV methods.
-        klt: OpenCV LK's window and criteria (OpenCV methods); None for the LM methods.
-        clahe: the equalisation applied to the gray image when the tracker equalises.
+        smoothed: whether the learned model's declared smoothing is applied.
+        lm, policy: LM solver settings and solve policy (LM methods only).
+        klt: OpenCV LK's window and criteria (OpenCV methods only).
+        clahe: the equalisation applied when the tracker equalises.
 
     Raises:
         CoreError: neither or both of (lm, policy) and klt.
@@ -598,11 +514,7 @@ class MethodSpec:
         return self.lm is not None
 
     def with_solver(self, solver: Solver | str) -> MethodSpec:
-        """This spec with the LM configuration of ``solver`` (OpenCV methods: unchanged).
-
-        Raises:
-            CoreError: an unknown solver name.
-        """
+        """This spec with the LM settings of ``solver`` (OpenCV methods: unchanged); CoreError: unknown."""
         try:
             which = Solver(solver)
         except ValueError:
@@ -636,7 +548,7 @@ METHODS: Mapping[str, MethodSpec] = MappingProxyType({
         EncoderSource.NONE, klt=KLTConfig(),
     ),
 })
-"""The registry of tracking methods: name -> its whole configuration (learned methods first)."""
+"""The registry of tracking methods (learned methods first)."""
 
 BASELINE = "klt"
 """The method every other is compared with: VINS-Fusion's own front-end."""
@@ -663,18 +575,12 @@ def make_method(
     """Build a tracking method: ``make_method("nsflow")`` is exactly what the tracker runs.
 
     Args:
-        method: a key of :data:`METHODS`, or a spec (a registry entry with changes, e.g.
-            ``METHODS["nsflow"].with_levels(1)``), used as given.
-        solver: for a registry name, :attr:`Solver.PAPER` gives an LM method Algorithm 1's settings
-            instead of the deployed ones; ignored for a spec.
-        encoder: encoder to use instead of the one the spec names (tests, benchmarks, a loaded model);
-            not for a method without one.
+        method: a key of :data:`METHODS`, or a spec (``METHODS["nsflow"].with_levels(1)``), used as given.
+        solver: for a registry name, the LM settings to give an LM method; ignored for a spec.
+        encoder: encoder to use instead of the one the spec names; not for a method without one.
         model_path: ONNX encoder of the learned methods; None = the shipped model.
         threads: encoder threads; None = all usable cores.
         providers: onnxruntime execution providers of the learned encoder, best first; None = the CPU.
-
-    Returns:
-        the method; its ``spec`` is the configuration it runs.
 
     Raises:
         CoreError: unknown name or solver, or an encoder given to a method without one.
@@ -699,10 +605,7 @@ def method_encoder(
     method: str | MethodSpec, model_path: str | None = None, threads: int | None = None,
     providers: ExecutionProviders | str | None = None,
 ) -> Encoder | None:
-    """The encoder :func:`make_method` gives a method when none is passed.
-
-    The learned model (smoothed as the model declares when ``spec.smoothed``, else unsmoothed), intensity,
-    or None (OpenCV on the gray image), as the spec's :class:`EncoderSource` says.
+    """The encoder :func:`make_method` gives a method when none is passed (None: OpenCV on the gray image).
 
     Raises:
         CoreError: unknown name.

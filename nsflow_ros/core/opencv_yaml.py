@@ -1,16 +1,12 @@
 """Safe reading of OpenCV FileStorage YAML files (the format of VINS configs and camodocal camera files).
 
-VINS-Fusion, VINS-Mono and camodocal write YAML 1.0 through ``cv::FileStorage``: a ``%YAML:1.0`` first
-line and ``!!opencv-matrix`` maps. PyYAML rejects both, so the files are parsed with ``cv2.FileStorage``,
-which is what VINS itself uses. Its Python binding is fragile on bad input: a parse error surfaces as a
-``SystemError`` wrapping ``cv2.error``, a missing file prints to stderr, and some accessors assert. This
-module checks the file first (exists, is a regular file, text, ``%YAML`` header), parses the text from
-memory, converts the whole tree into plain Python values, and turns every failure into one
+PyYAML rejects their ``%YAML:1.0`` header and ``!!opencv-matrix`` maps, so they are parsed with
+``cv2.FileStorage`` as VINS does; its binding is fragile on bad input (``SystemError``, stderr output,
+asserts), so the file is checked first, parsed from memory and every failure becomes one
 :class:`OpenCVYamlError` naming the file.
 
-Conversion: integers -> ``int``, reals -> ``float``, strings -> ``str``, sequences -> ``list``, maps ->
-``dict`` (duplicate keys are an error), ``!!opencv-matrix`` maps (keys rows, cols, dt, data) -> float64
-``numpy.ndarray`` of shape (rows, cols). A file holding only the header gives an empty dict.
+Values become ``int``, ``float``, ``str``, ``list`` and ``dict`` (duplicate keys are an error), and
+``!!opencv-matrix`` maps float64 arrays of shape (rows, cols); a file holding only the header gives {}.
 """
 
 from __future__ import annotations
@@ -110,13 +106,7 @@ def _convert(node: cv2.FileNode, where: str, path: Path) -> Any:
 
 
 def read_opencv_yaml(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read an OpenCV FileStorage YAML file into plain Python values.
-
-    Args:
-        path: the file (``%YAML:1.0`` first line).
-
-    Returns:
-        The top-level mapping, converted as described in the module docstring.
+    """Read an OpenCV FileStorage YAML file's top-level mapping into plain Python values.
 
     Raises:
         OpenCVYamlError: the file is missing, not a file, unreadable, binary, lacks the ``%YAML`` header,

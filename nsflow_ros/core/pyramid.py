@@ -1,25 +1,10 @@
 """Descriptor pyramids: what the solver samples.
 
-Each level holds the descriptor map as C-contiguous float32 (H, W, K) chunks of at most 4 channels. One
-``cv2.remap`` call per chunk fetches a window's descriptors (the solver's inner loop); the Jacobian is the
-Scharr derivative of that same sampled patch (see ``nsflow_ros.core.solver``), so no derivative maps are
-stored. The layout is a necessity: remap on a non-contiguous slice is much slower, and OpenCV's remap
-interpolates exactly only up to 4 channels.
-
-Coarser levels are made by ``cv2.pyrDown`` of the descriptor map (Gaussian blur + decimation), not by
-running the encoder on a smaller image: far cheaper than a second encoder pass, and the solver's coarse
-levels only need a smooth, aliasing-free approximation.
-
-Optional Gaussian smoothing (:class:`Smoothing`): level 0 is smoothed with ``fine`` before the coarser
-levels are made from it, and each coarser level is then smoothed with ``coarse`` (in its own pixels; the
-next level is made from the unsmoothed one). A learned descriptor map is much sharper than image
-intensity, and its narrow autocorrelation leaves the solver a narrow basin; smoothing widens it for
-one separable filter per level. The ONNX encoder applies the
-``fine`` part itself when its model declares one (``nsflow_ros.core.encoder``), so the LM methods pass
-only the ``coarse`` part here.
-
-Derivatives use the normalised Scharr kernel ([-3 0 3; -10 0 10; -3 0 3] / 32) with replicated borders,
-the same filter OpenCV's pyramidal LK uses; the torch training layer mirrors this choice exactly.
+Each level holds the descriptor map as C-contiguous float32 (H, W, K) chunks of at most 4 channels, since
+``cv2.remap`` is fast only on contiguous maps and exact only up to 4 channels; no derivative maps are
+stored (the solver differentiates sampled patches). Coarser levels are ``cv2.pyrDown`` of the map, far
+cheaper than encoding a smaller image. Optional Gaussian smoothing (:class:`Smoothing`) widens the
+solver's basin on a learned map, whose narrow autocorrelation leaves it a narrow one.
 """
 
 from __future__ import annotations
@@ -45,19 +30,9 @@ _BORDER = cv2.BORDER_REPLICATE
 
 
 def descriptor_gradients(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return the x- and y-derivatives of a descriptor map (normalised Scharr, replicated border).
+    """The x- and y-derivatives (dx, dy) of a (H, W, C) float32 map: Scharr / 32, replicated border.
 
-    The reference of the derivative the solver's J equals (it takes the Scharr of sampled patches
-    instead) and that the torch training layer mirrors; not used on the tracking path.
-
-    Args:
-        desc: descriptor map.
-
-    Returns:
-        (dx, dy), each the same shape as ``desc``.
-
-    Shape:
-        desc: (H, W, C) float32.
+    The reference the solver's J equals and the torch training layer mirrors; not on the tracking path.
     """
     dx = cv2.Scharr(desc, cv2.CV_32F, 1, 0, scale=1.0 / 32.0, borderType=_BORDER)
     dy = cv2.Scharr(desc, cv2.CV_32F, 0, 1, scale=1.0 / 32.0, borderType=_BORDER)
@@ -70,14 +45,7 @@ MAX_CHUNK = 4
 
 
 def gaussian_kernel(sigma: float) -> np.ndarray:
-    """The 1-D smoothing kernel for ``sigma`` (px): taps within 2 sigma, normalised to sum 1.
-
-    Args:
-        sigma: standard deviation in pixels, > 0.
-
-    Returns:
-        float32 (2 ceil(2 sigma) + 1,) kernel, symmetric (the torch layer uses the same taps).
-    """
+    """The 1-D float32 smoothing kernel for ``sigma`` (px, > 0): taps within 2 sigma, normalised to sum 1."""
     if not (math.isfinite(sigma) and sigma > 0):
         raise CoreError(f"smoothing sigma must be a finite number > 0, got {sigma}")
     radius = math.ceil(2.0 * sigma)
@@ -119,7 +87,7 @@ def _level(desc: np.ndarray) -> tuple[np.ndarray, ...]:
 
 @dataclass(frozen=True)
 class DescriptorPyramid:
-    """A frame's descriptor maps at every pyramid level (the solver derives J from sampled patches).
+    """A frame's descriptor maps at every pyramid level.
 
     Attributes:
         levels: level 0 first (full resolution); each a tuple of C-contiguous float32 chunks
@@ -171,19 +139,16 @@ def build_pyramid(desc: np.ndarray, levels: int = 3, smoothing: Smoothing | None
 
     Args:
         desc: the descriptor map of one frame.
-        levels: number of levels (1 = single scale). Levels whose size would drop below 8 px are
-            not built, so the result may have fewer.
-        smoothing: Gaussian smoothing of each level (module docstring); None = none.
+        levels: number of levels (1 = single scale); levels smaller than 8 px are not built.
+        smoothing: ``fine`` smooths level 0 before the coarser levels are made from it, ``coarse`` each
+            coarser level afterwards; None = none.
 
     Returns:
-        the pyramid, level 0 first. Without smoothing, level 0 shares memory with ``desc`` when that
-        is already a C-contiguous float32 array of at most 4 channels (no copy on the per-frame path).
+        the pyramid, level 0 first; without smoothing, level 0 shares memory with a C-contiguous
+        float32 ``desc`` of at most 4 channels.
 
     Raises:
-        CoreError: on a wrong shape or dtype, or ``levels < 1``.
-
-    Shape:
-        desc: (H, W, C) or (H, W), floating point.
+        CoreError: on a wrong shape or dtype (floating (H, W, C) or (H, W)), or ``levels < 1``.
     """
     if levels < 1:
         raise CoreError(f"levels must be >= 1, got {levels}")

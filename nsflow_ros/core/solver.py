@@ -1,32 +1,16 @@
 """The paper's Levenberg-Marquardt Lucas-Kanade solver (Algorithm 1), batched over points, in NumPy.
 
 For each point x with flow u the solver minimises S(u) = 1/2 sum_window ||D2(x + u) - D1(x)||^2 over a
-square window and all descriptor channels. One iteration, for every still-active point at once:
+square window and all descriptor channels, coarse to fine over a pyramid (the flow doubled between
+levels). An iteration solves (J^T J + lambda I) du = -J^T f in closed form per point, accepts the step if
+S dropped (lambda /= nu) or rejects it (lambda *= nu), and stops a point when ||du|| < eps (1 + ||u||) or
+||J^T f||_inf < eps, or after K_max iterations.
 
-1. J and f at u^(k) (J = the x/y derivative maps of D2 sampled at x + u, the paper's; or with
-   :attr:`Jacobian.ESM` their mean with the template's derivatives at x; f = D2(x + u) - D1(x));
-2. solve (J^T J + lambda I) du = -J^T f in closed form (2x2 per point);
-3. evaluate S at u + du; accept (lambda /= nu) if it dropped, else reject (lambda *= nu);
-4. stop when ||du|| < eps (1 + ||u^(k)||) or ||J^T f||_inf < eps, or after K_max iterations.
-
-Each point starts a level with its own lambda^(0) = max(lambda_init, tau max(diag J^T J)) (see
-:class:`LMConfig`); the iteration itself is Algorithm 1 unchanged.
-
-Sampling is exact bilinear interpolation with replicated borders. Frame-2 quantities at a candidate are
-fetched by one ``cv2.remap`` call per 4 descriptor channels over a (window + 2)^2 patch per point, all
-patches side by side in one image; J is the Scharr derivative of that patch (equal to sampling the
-Scharr derivative maps, see :func:`_normal_equations`), one ``cv2.Scharr`` call per direction for all
-points, and J^T J, J^T f and S are reduced from it immediately, so nothing window-sized is kept
-between iterations. The per-point LM state (u, S, J^T J, J^T f) is one (N, 8) array, so accepting,
-rejecting and retiring points are a few array operations per iteration, whatever the number of points.
-Points that have stopped leave the active set, so late iterations cost only what is left.
-
-Coarse-to-fine: the solver runs on each pyramid level from the coarsest, scaling the flow by 2 between
-levels. On a coarse level a window near the border is moved inward until it fits in the level
-(:func:`window_centres`): the flow is a translation, so the window need only move with its point. A
-point ends with ``status`` False when its window (in frame 1 at x, or in frame 2 at x + u) is not
-inside the full-resolution image, when its window is degenerate (the smallest eigenvalue of J^T J per
-window element is below ``min_eigen``: flat or saturated texture), or when the result is not finite.
+Sampling is exact bilinear with replicated borders: one ``cv2.remap`` per 4 channels fetches a
+(window + 2)^2 patch per point, all patches side by side in one image, and J is their Scharr derivative,
+reduced to J^T J, J^T f and S at once, so nothing window-sized outlives an iteration. A point ends with
+``status`` False when its window leaves the image, is degenerate (flat or saturated texture) or its
+result is not finite.
 """
 
 from __future__ import annotations
@@ -50,11 +34,9 @@ __all__ = [
 class Jacobian(enum.Enum):
     """Which derivative the LM step uses for J (the accept test, the stop tests and S are the same).
 
-    * ``FORWARD`` - the paper's: the derivative of D2 at x + u (forward additive Lucas-Kanade).
-    * ``ESM`` - the mean of that and the template's derivative at x (Malis' efficient second-order
-      minimisation, Benhimane and Malis 2004): far from the answer the template's derivative still
-      describes the pattern being sought, so a step points the right way more often; at the answer both
-      derivatives agree and the step is the same (a wider basin: docs/benchmarks.md).
+    * ``FORWARD``: the paper's, the derivative of D2 at x + u.
+    * ``ESM``: the mean of that and the template's derivative at x (Benhimane and Malis 2004): far from
+      the answer the template's derivative still points the right way, so the basin is wider.
     """
 
     FORWARD = "forward"
@@ -63,44 +45,32 @@ class Jacobian(enum.Enum):
 
 @dataclass(frozen=True)
 class LMConfig:
-    """Settings of the LM solver. The defaults are the paper's Algorithm 1 (``PAPER_LM`` in
-    :mod:`nsflow_ros.core.methods`, where ``DEPLOYED_LM`` lists what the tracker changes and why);
-    docs/benchmarks.md ("Why the settings are what they are") has the measurements behind each default.
+    """Settings of the LM solver; the defaults are the paper's Algorithm 1 (docs/benchmarks.md, "Why the
+    settings are what they are", has the measurement behind each).
 
     Attributes:
-        window: side of the square window in pixels (odd). The paper uses 11.
-        coarse_window: window side from level ``coarse_from`` up; None = ``window`` on every level. A
-            wider coarse window sees more of the image while the flow is still far off; the final level
-            keeps ``window``.
+        window: side of the square window in pixels (odd).
+        coarse_window: window side from level ``coarse_from`` up, to see more of the image while the
+            flow is still far off; None = ``window`` on every level.
         coarse_from: the first pyramid level (>= 1) that uses ``coarse_window``.
-        jacobian: the derivative the step uses, :class:`Jacobian` (the paper's ``FORWARD`` by default).
+        jacobian: the derivative the step uses.
         levels: pyramid levels (1 = single scale, as in training).
-        max_iterations: K_max, the iteration limit per level (12: more leave the errors unchanged while
-            the batched loop runs until its slowest point stops).
-        eps: tolerance of both stop tests, ||du|| < eps (1 + ||u||) and ||J^T f||_inf < eps.
-        min_eigen: smallest eigenvalue of J^T J divided by the number of window elements (window^2 * C)
-            below which a point's window counts as degenerate (flat, saturated) and its status is False;
-            with descriptors in [0, 1], a mean squared gradient of 1e-5 per pixel (OpenCV's LK default
-            corresponds to about 1.6e-6 here).
-        lambda_scale: tau of the per-point initial damping lambda^(0) = max(:attr:`lambda_init`,
-            tau * max(diag J^T J)) at the start of each level (Madsen, Nielsen and Tingleff); 0 =
-            ``lambda_init`` for every point. Scaling with J^T J lets a rejected step bite at once.
-        margin: how far (px) a point must stay from the image edge, in both frames, for status True;
-            None = half the window (the whole window inside the image). A smaller margin keeps points
-            whose window reaches past the edge, as OpenCV's LK does (sampling replicates the border).
-        tail_share: a level's batched loop ends early once at most this share of its points are still
-            iterating after ``tail_passes`` passes; they keep their current flow (a start for the next
-            level, or the result at level 0). 0 = every point iterates until its own stop test or
-            K_max, Algorithm 1 as written: the few stragglers that keep taking tiny accepted steps
-            would otherwise set the time of every level.
+        max_iterations: K_max, the iteration limit per level.
+        eps: tolerance of both stop tests.
+        min_eigen: smallest eigenvalue of J^T J per window element (window^2 * C) below which a point's
+            window is degenerate (status False).
+        lambda_scale: tau of the per-point initial damping max(``lambda_init``, tau max(diag J^T J)) at
+            each level's start (Madsen, Nielsen and Tingleff), so a rejected step bites at once; 0 =
+            ``lambda_init`` for every point.
+        margin: how far (px) a point must stay from the image edge in both frames for status True;
+            None = half the window.
+        tail_share: a level's loop ends once at most this share of its points still iterate after
+            ``tail_passes`` passes, so that stragglers do not set its time; 0 = Algorithm 1 as written.
         tail_passes: the passes a level runs before ``tail_share`` may end it.
-        zero_mean: compare windows up to a constant per channel: the residual and J lose their window
-            means, so an offset between the two windows, as a lighting change leaves in descriptor maps,
-            costs nothing. Not the paper's cost.
+        zero_mean: compare windows up to a constant per channel, so a lighting change's offset costs
+            nothing (not the paper's cost).
 
-    Class attributes (fixed, Algorithm 1's): ``lambda_init`` = 1e-2, the initial damping (a floor when
-    ``lambda_scale`` > 0), reset at the start of each level; ``nu`` = 10, the factor by which lambda
-    shrinks after an accepted step and grows after a rejected one.
+    Class attributes (Algorithm 1's): ``lambda_init``, the initial damping, and ``nu``, lambda's factor.
 
     Raises:
         CoreError: a value out of range (named in the message).
@@ -170,11 +140,10 @@ class IterationRecord:
 
     Attributes:
         level: pyramid level (0 = full resolution).
-        flow: flow of every point after the iteration, in level-0 pixels, shape (N, 2).
-        lam: damping after the iteration, shape (N,).
-        cost: S after the iteration, shape (N,).
-        accepted: whether the iteration's step was accepted, shape (N,).
-        active: whether the point took part in the iteration, shape (N,).
+        flow: (N, 2) flow of every point after the iteration, in level-0 pixels.
+        lam, cost: (N,) damping and S after the iteration.
+        accepted: (N,) whether the iteration's step was accepted.
+        active: (N,) whether the point took part in the iteration.
     """
 
     level: int
@@ -190,13 +159,12 @@ class TrackResult:
     """Output of :func:`track`.
 
     Attributes:
-        flow: estimated flow u, shape (N, 2), float64; the new position is points + flow.
-        status: True where the point was tracked, shape (N,).
-        cost: final S(u) = 1/2 ||f||^2 at level 0, shape (N,).
-        iterations: LM iterations summed over levels, shape (N,).
-        contrast: the level-0 template's contrast energy, sum over window and channels of the squared
-            deviation from its window mean, shape (N,); 2 cost / contrast measures how well the match
-            explains the template (0 = perfectly).
+        flow: (N, 2) float64 flow u; the new position is points + flow.
+        status: (N,) True where the point was tracked.
+        cost: (N,) final S(u) at level 0.
+        iterations: (N,) LM iterations summed over levels.
+        contrast: (N,) the level-0 template's squared deviation from its window mean, summed over window
+            and channels (2 cost / contrast = 0: a perfect match).
         history: per-iteration records when ``record=True``, else empty.
     """
 
@@ -210,11 +178,8 @@ class TrackResult:
 
 @functools.cache
 def _remap_is_exact() -> bool:
-    """Whether cv2.remap interpolates float32 images at full precision.
-
-    OpenCV 4.x quantises the sub-pixel position to 1/32 px inside remap; 5.x does not for images of up
-    to 4 channels. With a quantising OpenCV the exact NumPy sampler is used instead (slower, same results).
-    """
+    """Whether cv2.remap interpolates float32 at full precision (OpenCV 4.x quantises to 1/32 px, 5.x does
+    not up to 4 channels); if not, the slower exact NumPy sampler is used."""
     img = np.tile(np.arange(8, dtype=np.float32), (8, 1))
     mx = np.array([[3.0 + 1.0 / 256.0]], np.float32)
     val = cv2.remap(img, mx, np.full_like(mx, 3.0), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
@@ -256,11 +221,8 @@ def _sample_numpy(level: np.ndarray, centers: np.ndarray, window: int) -> np.nda
 
 
 def _scatter_maps(centers: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """cv2.remap maps of M square grids of side ``size`` centred on ``centers``, side by side.
-
-    The patches lie in one row (maps of shape (size, M * size)): the long rows suit OpenCV's filters,
-    which then compute the Jacobian of all patches in one call.
-    """
+    """cv2.remap maps (size, M * size) of M square grids centred on ``centers``, side by side in one row,
+    so that one OpenCV filter call differentiates all patches."""
     m = centers.shape[0]
     off = _window_offsets(size)
     c = centers.astype(np.float32)
@@ -291,16 +253,9 @@ def _sample_chunk(
 def sample_windows(
     level: np.ndarray | tuple[np.ndarray, ...], centers: np.ndarray, window: int
 ) -> np.ndarray:
-    """Sample square windows of a multi-channel map with exact bilinear interpolation.
+    """Sample square windows (rows, columns, channels) of a map, bilinear, replicated beyond its border.
 
-    Args:
-        level: map to sample, replicated beyond its border: one (H, W, K) array, or a pyramid level's
-            tuple of contiguous chunks of at most 4 channels (the fast path).
-        centers: window centres (x, y) in pixels of ``level``.
-        window: odd window side.
-
-    Returns:
-        the windows, rows then columns then channels.
+    ``level`` is one (H, W, K) array or a pyramid level's tuple of chunks of at most 4 channels (faster).
 
     Shape:
         level: (H, W, K) float32. centers: (M, 2). Returns (M, window, window, K).
@@ -316,20 +271,13 @@ def sample_windows(
 
 
 def _sample_level(level: tuple[np.ndarray, ...], centers: np.ndarray, size: int) -> list[np.ndarray]:
-    """Windows of side ``size`` at ``centers`` per chunk, in the solver's layout: [(size, M, size, K)].
-
-    One set of remap maps serves every chunk. The solver uses it for the frame-1 template D1(x) and for
-    the (window + 2)^2 frame-2 patches.
-    """
+    """Windows of side ``size`` at ``centers`` per chunk, in the solver's layout: [(size, M, size, K)]."""
     maps = _scatter_maps(centers, size) if _remap_is_exact() else None
     return [_sample_chunk(chunk, centers, size, maps) for chunk in level]
 
 
 def _take(template: list[np.ndarray], keep: np.ndarray) -> list[np.ndarray]:
-    """The templates of the points where ``keep`` is True (axis 1 of the solver's layout).
-
-    np.compress / np.take along axis 1 copy about twice as fast as fancy indexing ``t[:, keep]``.
-    """
+    """The templates of the points where ``keep`` is True (np.compress: twice as fast as ``t[:, keep]``)."""
     return [np.compress(keep, t, axis=1) for t in template]
 
 
@@ -347,9 +295,7 @@ def _templates(
 ) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
     """The frame-1 templates D1(x) per chunk, and for ESM the (window + 2)^2 patches around them.
 
-    ESM's J is Scharr(D2 patch) + Scharr(D1 patch), halved; Scharr is linear, so the solver filters the
-    sum of the two patches (one filter pass, as for the forward J) and no template derivative is kept.
-    The template is the patch's inner window (the same remap positions, so the same values).
+    Scharr is linear, so ESM's J is the Scharr of the sum of the D2 and D1 patches, halved: one filter pass.
     """
     if jacobian is Jacobian.FORWARD:
         return _sample_level(level, pts, window), None
@@ -361,20 +307,14 @@ _SUM = "imjk,imjk->m"  # per point: sum over window rows, columns and channels
 
 
 def _window_sums(a: np.ndarray) -> np.ndarray:
-    """Per point and channel, the sum over the window of (window, M, window, K) values: (M, K).
-
-    Rows first (contiguous slabs), then einsum over the columns: NumPy does strided middle-axis sums slowly.
-    """
+    """Per point and channel, the window sum of (window, M, window, K) values: (M, K) (rows first: NumPy
+    sums strided middle axes slowly)."""
     return np.einsum("mjk->mk", a.sum(axis=0))
 
 
 @functools.lru_cache(maxsize=8)
 def _sum_weights(size: int, channels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Row weights (3, size) and column weights (3, size * channels, channels) of :func:`_patch_sums`.
-
-    Each sum is separable, rows x columns; the column weights act on a row's (size, channels) values
-    flattened, one weight per column for every channel alike.
-    """
+    """Row weights (3, size) and column weights (3, size * channels, channels) of :func:`_patch_sums`."""
     inner = np.zeros(size, np.float32)
     inner[1:-1] = 1.0
     smooth = np.convolve(inner, [3.0, 10.0, 3.0], mode="same").astype(np.float32)  # [3 10 3] over the window
@@ -386,13 +326,11 @@ def _sum_weights(size: int, channels: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _patch_sums(patches: np.ndarray) -> np.ndarray:
-    """Per point and channel, window sums of a (window + 2)^2 patch: of its inner window values and of
-    its unnormalised Scharr x / y derivatives over the window, as (3, M, K) [S, Sx, Sy].
+    """Per point and channel, window sums of a (window + 2)^2 patch's inner values and of its unnormalised
+    Scharr x / y derivatives, as (3, M, K) [S, Sx, Sy].
 
-    Each sum is a fixed weighting of the patch that factors into row weights times column weights (the
-    window's indicator; Scharr's [3 10 3] smoothing summed over the window; its central difference summed
-    over the window, which telescopes to the two outer rows or columns on each side). So two small matrix
-    products give all three, cheaper than three reductions over the window, and no derivative needs computing.
+    Each sum is a separable weighting of the patch, so two small matrix products give all three without
+    computing a derivative.
 
     Shape:
         patches: (window + 2, M, window + 2, K). Returns (3, M, K).
@@ -408,12 +346,8 @@ def _patch_sums(patches: np.ndarray) -> np.ndarray:
 
 
 def _template_sums(template: list[np.ndarray], template_patch: list[np.ndarray] | None) -> list[np.ndarray]:
-    """Per chunk, the template's part of the zero-mean window sums (3, M, K): [-sum t, Jx, Jy sums].
-
-    f = D2 - t, so its sum is the patch's less the template's; for ESM J's sums add the template patch's
-    Scharr sums (:func:`_patch_sums`); the forward J has no template derivative (zeros). Computed once
-    per level; :func:`_normal_equations` adds the candidate patch's sums.
-    """
+    """Per chunk, the template's part of the zero-mean window sums (3, M, K): [-sum t, Jx, Jy sums] (the
+    forward J has no template derivative: zeros); :func:`_normal_equations` adds the candidate's."""
     if template_patch is not None:
         out = [_patch_sums(tp) for tp in template_patch]
     else:
@@ -440,23 +374,13 @@ def _normal_equations(
 ) -> np.ndarray:
     """S, J^T J and J^T f per point as (M, 6) columns [S, h11, h12, h22, g1, g2], at ``centers``.
 
-    J is the normalised Scharr derivative of D2 at x + u; with ``template_patch`` (:func:`_templates`,
-    :attr:`Jacobian.ESM`) the mean of that and the template's derivative at x. Every pixel
-    of a window shares the centre's sub-pixel offset, and filtering commutes with such a shift, so Scharr
-    applied to a bilinearly sampled (window + 2)^2 patch equals sampling the Scharr derivative maps (to
-    float rounding) wherever the window lies inside the image, border pixels included (remap and the
-    filter both replicate). Beyond the image it is the derivative of the replicated map, 0 across the
-    edge; such points end with status False anyway. The patches lie side by side in one image, so one
-    ``cv2.Scharr`` call per direction differentiates all of them; only window pixels are kept, whose 3x3
-    neighbourhoods never cross into the next patch. Sums are additive over channels, so chunks are reduced
-    one at a time.
-
-    With ``below`` (the current costs), J^T J and J^T f are computed only where S < below, i.e. for the
-    candidates LM will accept, and left 0 elsewhere: the solver discards them for rejected steps, which
-    are most steps of the last iterations. With ``template_sums`` (:func:`_template_sums`, the
-    zero-mean cost of :attr:`LMConfig.zero_mean`) every sum is of window-centred factors, corrected
-    from per-channel window sums (sum (a - mean a)(b - mean b) = sum ab - sum a sum b / n) instead of
-    centred copies; the patch's sums come from :func:`_patch_sums` and the template's are fixed.
+    Every pixel of a window shares the centre's sub-pixel offset, and filtering commutes with such a
+    shift, so the Scharr of a bilinearly sampled (window + 2)^2 patch equals sampling the Scharr
+    derivative maps wherever the window lies inside the image. ``template_patch`` (ESM) adds the
+    template's derivative. With ``below`` (the current costs), J^T J and J^T f are computed only where
+    S < below (the candidates LM will accept) and left 0 elsewhere. With ``template_sums`` (zero mean)
+    every sum is of window-centred factors, corrected from window sums
+    (sum (a - mean a)(b - mean b) = sum ab - sum a sum b / n) instead of centred copies.
     """
     m = centers.shape[0]
     size = window + 2
@@ -522,11 +446,8 @@ def _solve_level(
     iterations: np.ndarray,
     history: list[IterationRecord] | None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Run Algorithm 1 on one pyramid level for all points.
-
-    Returns the final (N, 8) LM state and each template's contrast energy (sum of squared deviations
-    from its window mean, over all channels; level 0 only, zeros on coarser levels).
-    """
+    """Run Algorithm 1 on one pyramid level for all points: the final (N, 8) LM state and each template's
+    contrast energy (level 0 only, zeros on coarser levels)."""
     n = pts.shape[0]
     win = cfg.window_at(level_index)
     # The Jacobian kind is settled here, once per level: ESM carries the template's patches.
@@ -604,17 +525,14 @@ def _solve_level(
 def window_centres(points: np.ndarray, shape: tuple[int, int], window: int) -> np.ndarray:
     """Where a coarse level's windows go: each point, moved inward until its window fits in the level.
 
-    The flow is a translation, so a window only has to move with its point, not be centred on it. A
-    window reaching past the border would compare replicated border pixels, and points near the border
-    tracked from zero flow go astray. A level smaller than the window centres it on the level.
+    The flow is a translation, so a window need only move with its point; one reaching past the border
+    would compare replicated pixels, and points near it tracked from zero flow go astray. A level smaller
+    than the window centres it on the level.
 
     Args:
         points: positions in the level's pixels.
         shape: the level's (height, width).
         window: the level's window side.
-
-    Returns:
-        the window centres, ``points`` itself where the window fits.
 
     Shape:
         points: (N, 2). Returns (N, 2).
@@ -650,15 +568,11 @@ def track(
         desc1: frame-1 descriptor map, or its pyramid from :func:`build_pyramid`.
         desc2: frame-2 descriptor map or pyramid (same size and channels as ``desc1``).
         points: (x, y) pixel positions in frame 1.
-        flow0: initial flow (e.g. a prediction); zeros when None.
+        flow0: initial flow; zeros when None.
         config: solver settings; ``LMConfig()`` when None.
-        record: keep a per-iteration history (for convergence analysis; costs time).
-        first_level: per point, the coarsest pyramid level it is solved on (a trusted start needs fewer
-            levels); None = every point on all levels. Points share the passes of the levels they have
-            in common, so one call serves points with and without a good start.
-
-    Returns:
-        a :class:`TrackResult`; points[i] + flow[i] is the position in frame 2 where status[i].
+        record: keep a per-iteration history (costs time).
+        first_level: per point, the coarsest level it is solved on (a trusted start needs fewer); None =
+            all levels. Points share the passes of the levels they have in common.
 
     Raises:
         CoreError: on mismatched maps, a wrong points/flow0 shape, or non-finite input.

@@ -1,36 +1,20 @@
 """The VINS-compatible feature tracker: persistent ids, GFTT top-up, flow-back and border checks, stereo.
 
-:class:`FeatureTracker` reproduces VINS-Fusion's ``FeatureTracker::trackImage`` step by step, with the
-optical-flow calls replaced by the NSFlow descriptor LM solver (:func:`nsflow_ros.core.solver.track`):
+:class:`FeatureTracker` reproduces VINS-Fusion's ``FeatureTracker::trackImage`` step by step, the
+optical-flow calls made by a method from :data:`nsflow_ros.core.methods.METHODS` and everything else the
+same code for every method, so that differences between methods come from the flow alone:
 
-1. track the previous frame's points into the current frame (from the gyro prediction when there is one,
-   falling back to a solve without it when fewer than 10 points survive; otherwise the method may start
-   each point from its previous flow);
-2. flow-back check: track the result back, starting at the previous position as VINS does; a point is
-   kept only if it returns within 0.5 px;
+1. track the previous frame's points into this one (from the gyro prediction when there is one, again
+   without it when fewer than 10 points survive);
+2. flow-back check: track the result back from the previous position; keep points returning within 0.5 px;
 3. border check: the rounded position must lie at least 1 px inside the image;
-4. optional fundamental-matrix RANSAC on a virtual 460 px pinhole (VINS-Mono's ``rejectWithF``; VINS-Fusion
-   leaves it commented out, so it is off by default);
-5. every surviving track's count grows by 1; the mask (starting from VINS-Mono's fisheye mask when the
-   config sets ``fisheye: 1``) keeps the longest tracks first, each blocking a disc of radius
-   ``min_dist``; GFTT tops the set up to ``max_cnt`` on the raw gray image, new points get fresh ids
-   and count 1;
-6. undistorted normalised points from the camera model; velocity = change of the undistorted point over
-   dt for ids seen in the previous frame, 0 for new ids;
-7. stereo: left -> right tracking (the method may start each id from its previous disparity), the border
-   check and a right -> left back-check (0.5 px); right points reuse the left ids, velocities come from
-   the previous right points.
+4. optional fundamental-matrix RANSAC on a virtual 460 px pinhole (VINS-Mono's ``rejectWithF``);
+5. track counts grow by 1; the mask (from the fisheye mask, if any) keeps the longest tracks first, each
+   blocking a disc of radius ``min_dist``; GFTT tops the set up to ``max_cnt`` with fresh ids;
+6. undistorted points from the camera model; velocities against the previous frame, 0 for new ids;
+7. stereo: left -> right, the border check and a right -> left back-check; right points reuse the left ids.
 
-Each frame's representation (descriptor pyramid, gray image) is computed once: frame t's is frame 2 of
-the pair (t-1, t) and frame 1 of (t, t+1); the right image's serves both stereo directions.
-
-The optical-flow calls are made by a tracking method built once from the registry
-:data:`nsflow_ros.core.methods.METHODS` (``nsflow``, ``classical``, ``klt``, ``nsflow_lk``), which holds
-its whole configuration: the method decides, for each kind of solve, its start, levels and points;
-everything else (detection, the 0.5 px check, border, mask, ids) is the same code for every method, so
-differences between methods come from the flow alone.
-
-Nothing here imports rclpy or torch: the ROS node and the offline replayer/demo share this class.
+Each image's representation (descriptor pyramid, gray image) is computed once for every solve it is in.
 """
 
 from __future__ import annotations
@@ -87,25 +71,21 @@ REBUILD_FIELDS = frozenset({
 class TrackerSettings:
     """Settings of :class:`FeatureTracker` (VINS names where VINS has the setting).
 
-    The method's own configuration (solver settings, solve policy, encoder) is its registry entry,
-    :data:`nsflow_ros.core.methods.METHODS`; these are the settings of the VINS pipeline around it.
+    The method's own configuration is its registry entry; these are the VINS pipeline's around it.
 
     Attributes:
-        method: a key of :data:`~nsflow_ros.core.methods.METHODS`: "nsflow" (learned encoder, the
-            default), "classical" (intensity, same LM solver), "klt" (OpenCV ``calcOpticalFlowPyrLK``
-            with VINS-Fusion's arguments) or "nsflow_lk" (the learned descriptors through the same calls).
-        model_path: ONNX encoder of the learned methods; None = the shipped ``models/nsflow_encoder.onnx``.
+        method: a key of :data:`~nsflow_ros.core.methods.METHODS`.
+        model_path: ONNX encoder of the learned methods; None = the shipped model.
         num_threads: encoder threads; None = all usable cores.
         max_cnt: VINS ``max_cnt``, the number of features kept per frame.
         min_dist: VINS ``min_dist``, the minimum distance between features in pixels.
         F_threshold: VINS ``F_threshold``, RANSAC threshold in pixels of the virtual 460 px pinhole.
         reject_with_f: run the fundamental-matrix RANSAC (VINS-Mono does, VINS-Fusion does not).
         flow_back: VINS ``flow_back``, the reverse-tracking check.
-        equalize: apply the method's CLAHE (VINS-Mono's clip 3, 8x8 tiles) before tracking and detection.
-        stereo: track camera 0 into camera 1 (needs two cameras and an image pair per frame).
-        use_imu_prediction: use gyro samples given to :meth:`FeatureTracker.process` to predict the flow.
-        providers: onnxruntime execution providers of the learned encoder, best first, comma-separated
-            (``"tensorrt,cuda,cpu"``; :class:`~nsflow_ros.core.encoder.ExecutionProviders`).
+        equalize: apply the method's CLAHE before tracking and detection.
+        stereo: track camera 0 into camera 1.
+        use_imu_prediction: predict the flow from the gyro samples given to :meth:`FeatureTracker.process`.
+        providers: the learned encoder's onnxruntime execution providers, best first, comma-separated.
         tensorrt_fp16: let TensorRT build half-precision engines.
         tensorrt_cache: folder of TensorRT's engine cache; None = no cache.
 
@@ -194,8 +174,7 @@ class FrameFeatures:
         cameras: camera 0, then camera 1 for stereo.
         image_size: (width, height) of the images.
         timings: wall time of the stages in milliseconds (encode, track, detect, stereo, total).
-        cpu_timings: CPU time of the same stages in milliseconds: the process's, over all its threads
-            (``time.process_time``), so other threads' work in the same window counts too.
+        cpu_timings: the process's CPU time over all its threads in the same stages, in milliseconds.
     """
 
     stamp: float
@@ -218,15 +197,9 @@ def reject_with_fundamental(
 ) -> np.ndarray:
     """Fundamental-matrix RANSAC inlier mask, measured on a virtual pinhole (VINS-Mono ``rejectWithF``).
 
-    The undistorted normalised points are mapped onto a pinhole of focal length ``focal`` centred in the
-    image, so ``threshold`` means the same number of pixels for every lens model.
-
-    Args:
-        prev_undistorted: normalised points in the previous frame.
-        cur_undistorted: the same points in the current frame.
-        threshold: RANSAC threshold in virtual pixels (VINS ``F_threshold``).
-        image_size: (width, height), for the virtual principal point.
-        focal: virtual focal length (VINS: 460).
+    The undistorted points of the previous and current frame are mapped onto a pinhole of focal length
+    ``focal`` centred in the ``image_size`` (width, height) image, so that ``threshold`` means the same
+    number of pixels for every lens model.
 
     Returns:
         True for inliers; all True when fewer than 8 points (no F can be estimated).
@@ -262,21 +235,30 @@ def _in_border(pts: np.ndarray, size: tuple[int, int], border: int) -> np.ndarra
         return (r[:, 0] >= border) & (r[:, 0] < w - border) & (r[:, 1] >= border) & (r[:, 1] < h - border)
 
 
-def _velocities(
-    ids: np.ndarray, pts: np.ndarray, prev_ids: np.ndarray, prev_pts: np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity per id from the previous frame's points (0 for unseen ids) and the matched index (-1)."""
-    vel = np.zeros_like(pts)
+def _match(ids: np.ndarray, table_ids: np.ndarray) -> np.ndarray:
+    """The index of each of ``ids`` in ``table_ids``; -1 where it is not there."""
     match = np.full(ids.shape[0], -1, np.int64)
-    if ids.size == 0 or prev_ids.size == 0 or not dt > 0:
-        return vel, match
-    order = np.argsort(prev_ids, kind="stable")
-    sorted_ids = prev_ids[order]
+    if ids.size == 0 or table_ids.size == 0:
+        return match
+    order = np.argsort(table_ids, kind="stable")
+    sorted_ids = table_ids[order]
     pos = np.clip(np.searchsorted(sorted_ids, ids), 0, sorted_ids.size - 1)
     found = sorted_ids[pos] == ids
     match[found] = order[pos[found]]
+    return match
+
+
+def _velocities(
+    ids: np.ndarray, pts: np.ndarray, prev_ids: np.ndarray, prev_pts: np.ndarray, dt: float
+) -> np.ndarray:
+    """Velocity per id from the previous frame's points; 0 for unseen ids."""
+    vel = np.zeros_like(pts)
+    if not dt > 0:
+        return vel
+    match = _match(ids, prev_ids)
+    found = match >= 0
     vel[found] = (pts[found] - prev_pts[match[found]]) / dt
-    return vel, match
+    return vel
 
 
 def _check_mask(mask: np.ndarray, camera: CameraModel) -> np.ndarray:
@@ -291,27 +273,17 @@ def _check_mask(mask: np.ndarray, camera: CameraModel) -> np.ndarray:
     return np.where(mask > 127, 255, 0).astype(np.uint8)
 
 
-@dataclass
-class _CameraState:
-    ids: np.ndarray
-    pixels: np.ndarray
-    undistorted: np.ndarray
-    flow: np.ndarray  # pixel motion since the id's previous frame on this camera, NaN for new ids
-
-
-def _empty_state() -> _CameraState:
-    return _CameraState(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)))
+def _no_features(camera_id: int) -> CameraFeatures:
+    ids, points = np.zeros(0, np.int64), np.zeros((0, 2))
+    return CameraFeatures(camera_id, ids, points, points, points, ids, points)
 
 
 def _lookup(ids: np.ndarray, table_ids: np.ndarray, values: np.ndarray) -> np.ndarray:
     """``values`` of ``table_ids`` for each of ``ids``; NaN where an id is not in the table."""
     out = np.full((ids.shape[0], values.shape[1]), np.nan)
-    if ids.size == 0 or table_ids.size == 0:
-        return out
-    order = np.argsort(table_ids, kind="stable")
-    pos = np.clip(np.searchsorted(table_ids[order], ids), 0, table_ids.size - 1)
-    found = table_ids[order][pos] == ids
-    out[found] = values[order[pos[found]]]
+    match = _match(ids, table_ids)
+    found = match >= 0
+    out[found] = values[match[found]]
     return out
 
 
@@ -332,9 +304,8 @@ class _Tracks:
         return _Tracks(self.ids[sel], self.counts[sel], self.pixels[sel], self.previous[sel])
 
     def append(self, other: _Tracks) -> _Tracks:
-        return _Tracks(*(np.concatenate([a, b]) for a, b in
-                         zip((self.ids, self.counts, self.pixels, self.previous),
-                             (other.ids, other.counts, other.pixels, other.previous), strict=True)))
+        pairs = zip(vars(self).values(), vars(other).values(), strict=True)
+        return _Tracks(*(np.concatenate(pair) for pair in pairs))
 
 
 @contextlib.contextmanager
@@ -347,26 +318,21 @@ def _timed(timings: dict[str, float], cpu: dict[str, float], stage: str) -> Iter
 
 
 class FeatureTracker:
-    """VINS-Fusion's feature tracker on NSFlow descriptors (see the module docstring for the steps).
+    """VINS-Fusion's feature tracker on NSFlow descriptors (the steps of the module docstring).
 
     Args:
         cameras: camera 0, and camera 1 when ``settings.stereo``.
         settings: tracker settings.
-        encoder: descriptor encoder to use instead of the one ``settings.method`` selects (tests, benchmarks);
-            not allowed with method "klt", which tracks the gray image.
-        method: the tracking method, already built (:func:`~nsflow_ros.core.methods.make_method`, e.g.
-            from a changed registry entry); its name must be ``settings.method``. None = built here from
-            ``settings`` (and ``encoder``).
-        body_R_cam0: rotation camera 0 -> IMU body (VINS ``body_T_cam0[:3, :3]``) for the gyro prediction;
-            None = identity.
-        mask: camera 0's static mask, VINS-Mono's fisheye mask: uint8 (H, W) of the camera's size,
-            255 where features may be, 0 elsewhere. Tracked points on 0 are dropped and no corner is
-            detected there (VINS-Mono ``setMask``, on the frames that detect). None = the whole image.
+        encoder: descriptor encoder to use instead of the one ``settings.method`` selects; not with "klt".
+        method: the tracking method, already built (:func:`~nsflow_ros.core.methods.make_method`); its
+            name must be ``settings.method``. None = built here from ``settings`` (and ``encoder``).
+        body_R_cam0: rotation camera 0 -> IMU body (VINS ``body_T_cam0[:3, :3]``); None = identity.
+        mask: camera 0's static (fisheye) mask, uint8 (H, W), 255 where features may be: tracked points
+            on 0 are dropped and no corner is detected there (VINS-Mono ``setMask``). None = everywhere.
 
     Raises:
-        CoreError: on inconsistent settings (stereo without a second camera, a mask of the wrong size, a
-            method that is not ``settings.method`` or given with an encoder, ...).
-        EncoderError: when the "nsflow" model cannot be loaded.
+        CoreError: on inconsistent settings, cameras, mask or method.
+        EncoderError: when the model cannot be loaded.
     """
 
     def __init__(
@@ -423,10 +389,7 @@ class FeatureTracker:
         return self.method.encoder
 
     def update_settings(self, changes: Mapping[str, Any]) -> None:
-        """Change settings of the running tracker; its tracks go on.
-
-        Only settings that the method and the image preparation do not depend on can change here; a new
-        method, model, thread count, CLAHE or camera count needs a new tracker.
+        """Change settings of the running tracker (not :data:`REBUILD_FIELDS`); its tracks go on.
 
         Raises:
             CoreError: an unknown or invalid setting, or one of :data:`REBUILD_FIELDS`; nothing changes.
@@ -441,9 +404,8 @@ class FeatureTracker:
         """Forget all tracks (ids keep counting up, so an id is never reused)."""
         self._stamp: float | None = None
         self._frame: Any = None  # the previous camera-0 frame's representation
-        self._left = _empty_state()
-        self._counts = np.zeros(0, np.int64)
-        self._right = _empty_state()
+        self._left = _no_features(0)  # the previous frame's features
+        self._right = _no_features(1)
 
     @property
     def last_stamp(self) -> float | None:
@@ -479,10 +441,10 @@ class FeatureTracker:
         start: np.ndarray | None = None,
         prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """A solve, the border check and its reverse check, the same for every method.
+        """A solve, the border check and its reverse check: (positions in frame 2, status).
 
-        Returns (positions in frame 2, status). A trusted ``start`` (the IMU prediction) that leaves fewer
-        than :data:`PREDICTION_MIN_TRACKED` points is dropped and the solve repeated without it (VINS).
+        A ``start`` (the IMU prediction) that leaves fewer than :data:`PREDICTION_MIN_TRACKED` points is
+        dropped and the solve repeated without it, as VINS does.
         """
         m = self.method
         new, status = m.solve(kind, frame1, frame2, pts, start, prior)
@@ -508,10 +470,8 @@ class FeatureTracker:
     def _set_mask(
         self, pts: np.ndarray, counts: np.ndarray, size: tuple[int, int]
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Keep the longest tracks first, each blocking a disc of radius min_dist; returns (keep, mask).
-
-        Starts from the static (fisheye) mask, so tracks on its zeros are dropped as well.
-        """
+        """Keep the longest tracks first, each blocking a disc of radius min_dist, from the static mask
+        (tracks on its zeros are dropped); returns (keep, mask)."""
         w, h = size
         mask = np.full((h, w), 255, np.uint8) if self.mask is None else self.mask.copy()
         order = np.argsort(-counts, kind="stable")
@@ -560,11 +520,12 @@ class FeatureTracker:
         prev = self._left
         if self._frame is None or not prev.ids.size:
             return _Tracks.empty(), np.zeros((0, 2))
-        prior = prev.pixels + prev.flow  # constant velocity: each id moves as it did into the previous frame
+        # constant velocity: each id moves as it did into the previous frame
+        prior = prev.pixels + (prev.pixels - prev.previous)
         pts, status = self._track(
             SolveKind.FORWARD, SolveKind.FLOW_BACK, self._frame, frame0, prev.pixels, size, predicted, prior
         )
-        tracks = _Tracks(prev.ids[status], self._counts[status] + 1, pts[status], prev.pixels[status])
+        tracks = _Tracks(prev.ids[status], prev.track_counts[status] + 1, pts[status], prev.pixels[status])
         return tracks, prev.undistorted[status]
 
     def _reject_mask_detect(
@@ -586,14 +547,12 @@ class FeatureTracker:
         self._next_id += k
         return tracks.append(_Tracks(ids, np.ones(k, np.int64), new, np.full((k, 2), np.nan)))
 
-    def _lift(
-        self, camera: int, tracks: _Tracks, before: _CameraState, dt: float
-    ) -> tuple[CameraFeatures, np.ndarray]:
-        """Step 6: undistorted points and velocities against ``before``; also the matched indices (-1)."""
+    def _lift(self, camera: int, tracks: _Tracks, before: CameraFeatures, dt: float) -> CameraFeatures:
+        """Step 6: undistorted points and velocities against ``before``."""
         pts = tracks.pixels
         un = self.cameras[camera].lift(pts) if pts.size else np.zeros((0, 2))
-        vel, match = _velocities(tracks.ids, un, before.ids, before.undistorted, dt)
-        return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous), match
+        vel = _velocities(tracks.ids, un, before.ids, before.undistorted, dt)
+        return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous)
 
     def _stereo(
         self, image1: np.ndarray, frame0: Any, left: _Tracks, size: tuple[int, int], dt: float
@@ -608,22 +567,16 @@ class FeatureTracker:
             rpts, st = self._track(
                 SolveKind.STEREO, SolveKind.STEREO_BACK, frame0, frame1, left.pixels, size, None, prior
             )
-            right = _Tracks(left.ids[st], left.counts[st], rpts[st], np.zeros((int(st.sum()), 2)))
-        cam, match = self._lift(1, right, self._right, dt)
-        previous = np.full_like(cam.pixels, np.nan)
-        previous[match >= 0] = self._right.pixels[match[match >= 0]]
-        return replace(cam, previous=previous)
+            ids = left.ids[st]
+            right = _Tracks(ids, left.counts[st], rpts[st], _lookup(ids, r.ids, r.pixels))
+        return self._lift(1, right, self._right, dt)
 
     def _commit(self, stamp: float, frame0: Any, left: CameraFeatures, right: CameraFeatures | None) -> None:
         """Keep this frame as the next one's previous (only after every step succeeded)."""
         self._stamp = float(stamp)
         self._frame = frame0
-        self._left = _CameraState(left.ids, left.pixels, left.undistorted, left.pixels - left.previous)
-        self._counts = left.track_counts
-        self._right = (
-            _empty_state() if right is None
-            else _CameraState(right.ids, right.pixels, right.undistorted, right.pixels - right.previous)
-        )
+        self._left = left
+        self._right = _no_features(1) if right is None else right
 
     def _check_stamp(self, stamp: float) -> None:
         if not math.isfinite(stamp):
@@ -651,19 +604,12 @@ class FeatureTracker:
             stamp: the frame's time in seconds; must increase from frame to frame.
             image0: camera-0 image, uint8 (H, W) mono or (H, W, 3) BGR.
             image1: camera-1 image of the same stamp (stereo only).
-            gyro: gyro samples (t, wx, wy, wz) covering the interval since the previous frame, in the IMU
-                frame; used when ``settings.use_imu_prediction`` is on.
+            gyro: (M, 4) gyro samples (t, wx, wy, wz) in the IMU frame since the previous frame.
             detect: top the features up with new corners (VINS-Mono skips this on throttled frames).
-
-        Returns:
-            the frame's features.
 
         Raises:
             CoreError: on a stamp that does not increase, a wrong image size or type, or a missing
-                stereo image. The tracker's state is unchanged when it raises.
-
-        Shape:
-            gyro: (M, 4).
+                stereo image; the tracker's state is then unchanged.
         """
         t_start, c_start = time.perf_counter(), time.process_time()
         self._check_stamp(stamp)
@@ -679,7 +625,7 @@ class FeatureTracker:
             if detect:
                 tracks = self._reject_mask_detect(gray0, tracks, prev_un, size)
         dt = stamp - self._stamp if self._stamp is not None else 0.0
-        left, _ = self._lift(0, tracks, self._left, dt)
+        left = self._lift(0, tracks, self._left, dt)
         right = None
         if self.settings.stereo:
             with _timed(timings, cpu, "stereo"):
