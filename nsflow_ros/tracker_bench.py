@@ -30,6 +30,7 @@ from nsflow_ros.core.methods import BASELINE, METHODS
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.scoring import FrameQuality
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.evaluation.timing import timing_stats
 from nsflow_ros.resources import DEFAULT_CONFIG, STEREO_CONFIG, share_file
 
 __all__ = ["MODES", "format_tracker_table", "run_tracker_benchmark"]
@@ -39,13 +40,6 @@ CONFIGS = {
     "mono": DEFAULT_CONFIG,
     "stereo": STEREO_CONFIG,
 }
-
-
-def _stats(values: Sequence[float]) -> dict[str, float]:
-    a = np.asarray(values, dtype=np.float64)
-    if a.size == 0:
-        return {"median_ms": float("nan"), "p90_ms": float("nan")}
-    return {"median_ms": float(np.median(a)), "p90_ms": float(np.percentile(a, 90))}
 
 
 class _Run:
@@ -77,9 +71,9 @@ class _Run:
         self.quality.add_frame(seq, i, frame, before, stereo=right is not None)
 
     def figures(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"total": _stats(self.total), "cpu": _stats(self.cpu)}
-        out["stages"] = {k: _stats(v)["median_ms"] for k, v in self.stages.items()}
-        out["cpu_stages"] = {k: _stats(v)["median_ms"] for k, v in self.cpu_stages.items()}
+        out: dict[str, Any] = {"total": timing_stats(self.total), "cpu": timing_stats(self.cpu)}
+        out["stages"] = {k: timing_stats(v)["median_ms"] for k, v in self.stages.items()}
+        out["cpu_stages"] = {k: timing_stats(v)["median_ms"] for k, v in self.cpu_stages.items()}
         out.update(self.quality.figures())
         return out
 
