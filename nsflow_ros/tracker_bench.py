@@ -1,17 +1,11 @@
 """Whole-tracker benchmark: the VINS-style tracker per frame, every method interleaved, with its quality.
 
-Every tracking method of :data:`nsflow_ros.core.methods.METHODS` runs the shipped EuRoC configs (mono and
-stereo, flow-back on, 752x480) over the same frames of the synthetic EuRoC-like sample sequence, taking
-turns frame by frame so that the drifting load of a shared machine hits them alike. Per method and mode
-it reports the tracker's per-frame wall time and CPU time (median, p90, and the stages; CPU time is the
-process's over all its threads, ``time.process_time``, so work spread over a thread pool counts in full),
-their ratios to ``klt`` (VINS's own KLT front-end, measured in the same run) and the quality against the
-sequence's exact optical flow (:class:`nsflow_ros.data.scoring.FrameQuality`):
-
-* carried-over share: features of camera 0 kept from one frame to the next, over those it had;
-* stereo matches: right-image features over left-image features;
-* median error (px) of carried-over and of stereo features against ground-truth flow, and the share
-  more than 1 px off (points the ground truth marks occluded or outside the image are left out).
+Every tracking method runs the shipped EuRoC configs (mono and stereo) over the same frames of the
+sample sequence, taking turns frame by frame so that the drifting load of a shared machine hits them
+alike. Per method and mode it reports wall and CPU time per frame (CPU time is the process's over all
+its threads, so work spread over a pool counts in full), their ratios to ``klt`` (VINS's own front-end,
+measured in the same run) and the quality against the exact optical flow
+(:class:`nsflow_ros.data.scoring.FrameQuality`).
 """
 
 from __future__ import annotations
@@ -94,18 +88,18 @@ def run_tracker_benchmark(
     """Time the whole tracker per frame for each method and mode, interleaved, with its quality.
 
     Args:
-        duration: seconds of the 20 Hz sample sequence (10 s = 200 frames).
+        duration: seconds of the 20 Hz sample sequence.
         methods: registry names; ``klt`` is always added (the ratios' baseline).
-        modes: "mono" and / or "stereo" (the shipped EuRoC mono / stereo configs).
+        modes: "mono" and / or "stereo".
         model: ONNX encoder of the learned methods; None = the shipped one.
         threads: encoder threads; None = all usable cores.
         providers: onnxruntime execution providers of the learned encoders, best first.
-        opencv_threads: OpenCV's threads for the run (:func:`nsflow_ros.threads.opencv_threads`: 0 =
-            OpenCV's default pool), restored afterwards; None = leave OpenCV's setting alone.
+        opencv_threads: OpenCV's threads for the run (:func:`nsflow_ros.threads.opencv_threads`),
+            restored afterwards; None = leave OpenCV's setting alone.
         seed: the sample sequence's seed.
         cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
             folder removed afterwards.
-        progress: a progress bar on stderr (:func:`~nsflow_ros.progress.progress_bar`).
+        progress: a progress bar on stderr.
 
     Returns:
         ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}},
