@@ -20,6 +20,7 @@ import numpy as np
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import (
+    CONDITIONS,
     EvalContext,
     condition_label,
     level_reductions,
@@ -60,7 +61,6 @@ __all__ = [
 ]
 
 KEY = "capture"
-CONDITIONS = ("none", "light")
 SOURCES = ("photo shifts", "stereo")
 BIN_EDGES = (2.5, 7.5, 12.5, 17.5, 22.5, 27.5, 32.5)
 """Displacement bins (px) of the per-displacement table and plot, centred on 5, 10, ..., 30."""

@@ -17,6 +17,7 @@ from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import EvalMethod
 
 __all__ = [
+    "CONDITIONS",
     "EvalContext",
     "atomic_write",
     "axis_label",
@@ -29,6 +30,9 @@ __all__ = [
 ]
 
 T = TypeVar("T")
+
+CONDITIONS = ("none", "light")
+"""The photo-pair analyses' lighting conditions: no change, and both frames perturbed at full strength."""
 
 
 @dataclass

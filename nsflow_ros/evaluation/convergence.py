@@ -18,6 +18,7 @@ import numpy as np
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import (
+    CONDITIONS,
     EvalContext,
     condition_label,
     new_figure,
@@ -39,7 +40,6 @@ from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = ["QUICK", "TARGETS", "ConvergenceConfig", "capture_range", "convergence_curves", "run"]
 
-CONDITIONS = ("none", "light")
 # the paper's claim: faster error reduction than LK on intensity; under changing light also faster than the
 # baseline a VINS user picks then (KLT on CLAHE'd images)
 TARGETS: dict[str, Target] = {

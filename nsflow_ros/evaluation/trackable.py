@@ -19,6 +19,7 @@ from nsflow_ros.core.methods import DEPLOYED_LM
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import (
+    CONDITIONS,
     EvalContext,
     condition_label,
     level_reductions,
@@ -54,7 +55,6 @@ __all__ = [
 ]
 
 THRESHOLDS = (1.0, 2.0, 3.0)
-CONDITIONS = ("none", "light")
 CLIP_DARK, CLIP_BRIGHT = 5, 250  # gray values at or beyond which a pixel counts as clipped
 CLIP_SHARE = 0.2
 """A window is clipped when more than this share of its pixels is (:func:`clipped_windows`)."""
