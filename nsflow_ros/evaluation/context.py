@@ -74,18 +74,10 @@ class EvalContext:
 def sample_sequence(
     ctx: EvalContext, key: str, seed: int, duration: float, *, stereo: bool, images: bool, progress: bool
 ) -> Any:
-    """A :class:`~nsflow_ros.data.sample.SampleSequence`, made once under the cache folder.
+    """A :class:`~nsflow_ros.data.sample.SampleSequence`, made once under the cache folder
+    ``ctx.extra[key]["cache_dir"]`` (default ``cache/`` beside ``ctx.out_dir``).
 
-    The cache folder is ``ctx.extra[key]["cache_dir"]``, by default ``cache/`` beside ``ctx.out_dir``.
-
-    Args:
-        ctx: the evaluation context.
-        key: the analysis asking (whose ``extra`` may name the cache folder).
-        seed: the sequence's seed (scene, flight, image noise).
-        duration: seconds of sequence.
-        stereo: with the second camera.
-        images: store the images (ASL); else only the poses and scene, for frames rendered when asked.
-        progress: show the generation's progress.
+    ``images`` False stores only the poses and scene, for frames rendered when asked.
 
     Raises:
         EvaluationError: the sequence cannot be made there.

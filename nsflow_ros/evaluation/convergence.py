@@ -112,10 +112,7 @@ def convergence_curves(
     """Per-point error after each iteration k = 0..K, for every method.
 
     Args:
-        methods: the compared methods.
-        pair: frames and exact homography.
-        points: (N, 2) keypoints in frame 1.
-        flow0: (N, 2) initial flow.
+        points, flow0: (N, 2) keypoints in frame 1 and their initial flow.
         iterations: K.
         levels: pyramid levels every method uses here (at most each method's own).
         ceiling: clip errors (and non-finite flows) to this, pixels.
@@ -152,11 +149,7 @@ def capture_range(
     """Final errors (inf where lost) from initial errors of each length (px) along fixed unit directions.
 
     Args:
-        methods: the compared methods.
-        pair: frames and exact homography.
-        points: (N, 2) keypoints.
-        direction: (N, 2) unit vectors of the initial errors.
-        errors: initial error lengths in pixels.
+        points, direction: (N, 2) keypoints and the unit vectors of their initial errors.
         levels: pyramid levels every method uses (at most each method's own).
         frames: the methods' representations of the pair (:data:`Frames`); None = prepare here.
 

@@ -162,10 +162,10 @@ def time_tracker(
     """Per-frame time of the whole tracker, stage by stage, over a frame sequence.
 
     Args:
-        frames: images in order (uint8).
+        frames: uint8 images in order.
         camera: the tracker's camera model (its size must match the frames).
-        method: tracker method (a key of :data:`nsflow_ros.core.methods.METHODS`).
-        settings: tracker settings (``method`` is replaced); None = the defaults.
+        method: tracker method (a key of :data:`nsflow_ros.core.methods.METHODS`), replacing the one of
+            ``settings`` (None: the defaults).
         encoder: encoder of a method that has one (None: the tracker loads its own).
         dt: seconds between frames.
 

@@ -16,7 +16,7 @@ cached) an 8 s 752x480 sample sequence.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ import numpy as np
 
 from nsflow_ros.core.encoder import Encoder
 from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.methods import method_encoder
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
 from nsflow_ros.evaluation.context import EvalContext, new_figure, sample_sequence, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
@@ -614,8 +615,6 @@ def learned_encoder(
     Raises:
         EvaluationError: the model cannot be loaded.
     """
-    from nsflow_ros.core.methods import method_encoder
-
     try:
         return method_encoder(TRACKER_METHODS[name]["method"], model, threads, providers)
     except CoreError as err:
@@ -682,8 +681,6 @@ def run(ctx: EvalContext) -> Section:
 
 def _setup(ctx: EvalContext) -> tuple[SequenceSetup, tuple[str, ...]]:
     """The quick / full setup with ``ctx.extra["sequences"]``'s overrides, and the perturbation levels."""
-    from dataclasses import replace
-
     opts = dict(ctx.extra.get(KEY, {}))
     base = QUICK if ctx.quick else FULL
     setup = replace(
@@ -703,9 +700,8 @@ def method_encoders(ctx: EvalContext, methods: list[str]) -> dict[str, Encoder]:
     """
     encoders: dict[str, Encoder] = {}
     for m in ctx.methods:
-        enc = getattr(m, "encoder", None)
-        if m.name in (*LEARNED, CLASSICAL) and isinstance(enc, Encoder):
-            encoders[m.name] = enc  # reuse the run's loaded model instead of opening it again
+        if m.name in (*LEARNED, CLASSICAL) and m.encoder is not None:
+            encoders[m.name] = m.encoder  # reuse the run's loaded model instead of opening it again
     for name in (n for n in LEARNED if n in methods and n not in encoders):
         encoders[name] = learned_encoder(name, ctx.model, ctx.threads, ctx.providers)
     return encoders

@@ -198,8 +198,6 @@ def trackable_map(
     """Every (stride-th) pixel of frame 1 as a keypoint, recovered from a ``perturbation`` px offset.
 
     Args:
-        methods: the compared methods.
-        pair: the frames and their exact homography.
         rng: draws the direction of each keypoint's initial error (shared by all methods).
         stride: grid step in pixels (>= 1).
         perturbation: initial error length in pixels (>= 0).
