@@ -1,7 +1,8 @@
 """Conventions shared by the command-line tools: argparse value types and the program name in usage lines.
 
-Bad values are rejected by argparse itself (usage line, one error line naming the option, exit 2), so
-no tool starts work it would abandon on an argument it could have checked up front.
+Each type raises ``argparse.ArgumentTypeError`` naming the text given, so argparse itself rejects a bad
+value (usage line, one error line naming the option, exit 2) and no tool starts work it would abandon on
+an argument it could have checked up front.
 """
 
 from __future__ import annotations
@@ -22,11 +23,7 @@ __all__ = [
 
 
 def finite_float(text: str) -> float:
-    """A finite number.
-
-    Raises:
-        argparse.ArgumentTypeError: naming the text given.
-    """
+    """A finite number."""
     try:
         value = float(text)
     except ValueError:
@@ -47,29 +44,17 @@ def _integer(text: str, minimum: int) -> int:
 
 
 def positive_int(text: str) -> int:
-    """An integer >= 1.
-
-    Raises:
-        argparse.ArgumentTypeError: naming the text given.
-    """
+    """An integer >= 1."""
     return _integer(text, 1)
 
 
 def non_negative_int(text: str) -> int:
-    """An integer >= 0.
-
-    Raises:
-        argparse.ArgumentTypeError: naming the text given.
-    """
+    """An integer >= 0."""
     return _integer(text, 0)
 
 
 def positive_float(text: str) -> float:
-    """A finite number > 0.
-
-    Raises:
-        argparse.ArgumentTypeError: naming the text given.
-    """
+    """A finite number > 0."""
     value = finite_float(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text}")
@@ -77,11 +62,7 @@ def positive_float(text: str) -> float:
 
 
 def non_negative_float(text: str) -> float:
-    """A finite number >= 0.
-
-    Raises:
-        argparse.ArgumentTypeError: naming the text given.
-    """
+    """A finite number >= 0."""
     value = finite_float(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
@@ -91,12 +72,9 @@ def non_negative_float(text: str) -> float:
 def program_name(name: str) -> str:
     """The program name for usage lines: as the user typed it, ``nsflow-ate`` or ``ate`` (``ros2 run``).
 
-    Args:
-        name: the console-script name, e.g. ``nsflow-ate``.
-
     Returns:
-        the basename of ``sys.argv[0]`` when it is ``name`` or its ``ros2 run`` short name (``ate``,
-        ``make_sample``), else ``name`` (run as a module or from a test).
+        the basename of ``sys.argv[0]`` when it is the console-script ``name`` or its ``ros2 run`` short
+        name (``ate``, ``make_sample``), else ``name`` (run as a module or from a test).
     """
     typed = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
     short = name.removeprefix("nsflow-").replace("-", "_")

@@ -1,13 +1,9 @@
-"""A synthetic CPU load beside the tracker: processes busy a share of each short period.
+"""A synthetic CPU load beside the tracker, standing in for the VINS estimator on the same cores.
 
-On a robot the VINS estimator runs on the same cores as the tracker; ``nsflow-bench --background-load
-CORES`` stands it in with this load so that real-time figures are taken with the cores shared. ``CORES``
-is spread over whole-core processes: 0.7 is one process busy 70 % of every period, 1.5 one busy all the
-time and one busy half of it. Each process spins for its share of every period and sleeps the rest, so
-the load arrives in short bursts as an estimator's per-frame work does, not as one long block.
-
-Every process ends by itself when its parent goes away or after ``max_seconds``, so a crashed benchmark
-leaves nothing spinning.
+The load is spread over whole-core processes (1.5 cores: one busy all the time, one half of it), each
+spinning for its share of every short period and sleeping the rest, so that it arrives in bursts as an
+estimator's per-frame work does. Every process ends by itself when its parent goes away or after
+``max_seconds``, so a crashed benchmark leaves nothing spinning.
 """
 
 from __future__ import annotations

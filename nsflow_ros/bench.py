@@ -174,19 +174,13 @@ def solver_cost_model(
 ) -> dict[str, float]:
     """Where an LM method's solver time goes: its work per frame and the price of each unit of work.
 
-    The solver is batched: a pass (one LM iteration of every still-active point at one level, or the
+    The solver is batched, so a pass (one LM iteration of every still-active point at one level, or the
     evaluation of all points at a level's starting flow) costs a fixed amount whatever the number of
-    points (NumPy and OpenCV call overhead), plus an amount per point evaluated in it. This tracks each
-    pair of consecutive ``frames`` with the first 1, 4, 16, 64 and all corners from zero flow with the
-    method's own solver settings, counts passes P and point evaluations E, times each run (median of
-    ``repeats``) and fits t = a P + b E by least squares. With all corners, a P and b E bound what fewer
-    calls per pass, or cheaper per-point arithmetic, can save.
-
-    Args:
-        method: the LM method to model (:func:`~nsflow_ros.core.methods.make_method`).
-        frames: a sequence of at least two frames (the benchmark's).
-        points: GFTT corners per frame.
-        repeats: timed runs per sample.
+    points (call overhead) plus an amount per point evaluated in it. Each pair of consecutive ``frames``
+    is tracked from zero flow with the first 1, 4, 16, 64 and all ``points`` GFTT corners; the passes P,
+    the point evaluations E and the time (median of ``repeats``) of each run give t = a P + b E by least
+    squares, and with all corners a P and b E bound what fewer calls per pass, or cheaper per-point
+    arithmetic, can save.
 
     Returns:
         with all corners, medians per frame: ``passes``, ``point_evaluations``, ``measured_ms``; the fit:
@@ -238,7 +232,7 @@ def run_benchmark(
     progress: bool = False,
     providers: str = "cpu",
 ) -> dict[str, Any]:
-    """Run the whole benchmark and return its figures.
+    """Run the stage benchmark and return its figures as JSON data.
 
     Args:
         frames: frames of the 752x480 sequence.
@@ -248,9 +242,6 @@ def run_benchmark(
         threads: encoder threads and OpenCV threads.
         progress: print a line per stage to stderr.
         providers: onnxruntime execution providers of the encoder, best first.
-
-    Returns:
-        a JSON-serialisable dict of figures.
     """
     cv2.setNumThreads(threads)
     seq = make_frames(frames)

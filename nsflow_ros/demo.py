@@ -1,13 +1,9 @@
 """The main job (``make demo`` / ``nsflow-demo``): the whole system on built-in data, over real ROS 2 topics.
 
-1. makes (or reuses) a synthetic EuRoC-like sample sequence (ROS 2 mcap bag) with exact ground truth;
-2. for each illumination perturbation level (none / small / large) and each method (NSFlow, NSFlow
-   descriptors through OpenCV's LK, and VINS's own KLT front-end),
-   starts the ``tracker`` node as its own process, replays the sequence to it over DDS, and receives its
-   ``/feature_tracker/feature`` point clouds and ``image_track`` debug images in a collector node;
-3. prints frames, features per frame, mean track length and the tracking error of every carried-over
-   feature against the ground-truth optical flow, with the frames the tracker received and processed;
-4. writes the debug images as a PNG contact sheet and the figures as JSON.
+It makes (or reuses) a synthetic EuRoC-like sample sequence with exact ground truth; for each
+illumination perturbation level and method starts the ``tracker`` node as its own process, replays the
+sequence to it over DDS and collects its features and debug images; prints the tracking figures against
+the ground-truth flow, and writes the debug images as a contact sheet and the figures as JSON.
 """
 
 from __future__ import annotations

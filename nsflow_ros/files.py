@@ -13,12 +13,7 @@ __all__ = ["atomic_write"]
 def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], Any]) -> Path:
     """Write a file through a temporary name and rename it, so an interrupted run never leaves half a file.
 
-    Args:
-        path: the final file.
-        write: called with the temporary path; must create the file there.
-
-    Returns:
-        ``path`` as a Path.
+    ``write`` is called with the temporary path and must create the file there; returns ``path``.
 
     Raises:
         OSError: the file cannot be written or renamed (the temporary file is removed).

@@ -1,11 +1,8 @@
-"""Thread settings of a tracker process (a process-wide choice, made by the entry points).
+"""Thread settings of a tracker process (a process-wide choice, made by the entry points, never on import).
 
-OpenCV runs GFTT, remap, Scharr and the filters on a thread pool of all the cores. On a machine the
-tracker shares with the estimator that pool costs CPU time for little wall time: its workers wake for
-every call and spin before they sleep, so the tracker's node, ``nsflow-replay`` and ``nsflow-bench``
-set OpenCV's threads from the ``opencv_threads`` setting (default 1: one thread, the caller's).
-
-The library never calls this on import.
+OpenCV's pool of all the cores costs CPU time for little wall time on a machine the tracker shares with
+the estimator (its workers wake for every call and spin before they sleep), so the tracker's node,
+``nsflow-replay`` and ``nsflow-bench`` set OpenCV's threads from the ``opencv_threads`` setting.
 """
 
 from __future__ import annotations
@@ -21,14 +18,8 @@ __all__ = ["opencv_threads", "set_opencv_threads"]
 
 
 def set_opencv_threads(threads: int) -> int:
-    """Set OpenCV's threads for the whole process.
-
-    Args:
-        threads: >= 1 = that many (1 = no pool: every call on the calling thread); 0 = OpenCV's default
-            (all the cores it may use).
-
-    Returns:
-        OpenCV's thread count before the call.
+    """Set OpenCV's threads for the whole process: >= 1 that many (1: every call on the calling thread),
+    0 OpenCV's default pool; returns the thread count before the call.
 
     Raises:
         NSFlowError: ``threads`` negative.
@@ -42,13 +33,8 @@ def set_opencv_threads(threads: int) -> int:
 
 @contextmanager
 def opencv_threads(threads: int | None) -> Iterator[int]:
-    """Run the block with OpenCV's threads set (see :func:`set_opencv_threads`), then restore them.
-
-    Args:
-        threads: as :func:`set_opencv_threads`; None = leave the setting alone.
-
-    Yields:
-        OpenCV's thread count inside the block.
+    """Run the block with OpenCV's threads set as :func:`set_opencv_threads` does (None: left alone), then
+    restore them; yields OpenCV's thread count inside the block.
 
     Raises:
         NSFlowError: ``threads`` negative.

@@ -1,17 +1,11 @@
 """Whole-tracker benchmark: the VINS-style tracker per frame, every method interleaved, with its quality.
 
-Every tracking method of :data:`nsflow_ros.core.methods.METHODS` runs the shipped EuRoC configs (mono and
-stereo, flow-back on, 752x480) over the same frames of the synthetic EuRoC-like sample sequence, taking
-turns frame by frame so that the drifting load of a shared machine hits them alike. Per method and mode
-it reports the tracker's per-frame wall time and CPU time (median, p90, and the stages; CPU time is the
-process's over all its threads, ``time.process_time``, so work spread over a thread pool counts in full),
-their ratios to ``klt`` (VINS's own KLT front-end, measured in the same run) and the quality against the
-sequence's exact optical flow (:class:`nsflow_ros.data.scoring.FrameQuality`):
-
-* carried-over share: features of camera 0 kept from one frame to the next, over those it had;
-* stereo matches: right-image features over left-image features;
-* median error (px) of carried-over and of stereo features against ground-truth flow, and the share
-  more than 1 px off (points the ground truth marks occluded or outside the image are left out).
+Every tracking method runs the shipped EuRoC configs (mono and stereo) over the same frames of the
+sample sequence, taking turns frame by frame so that the drifting load of a shared machine hits them
+alike. Per method and mode it reports wall and CPU time per frame (CPU time is the process's over all
+its threads, so work spread over a pool counts in full), their ratios to ``klt`` (VINS's own front-end,
+measured in the same run) and the quality against the exact optical flow
+(:class:`nsflow_ros.data.scoring.FrameQuality`).
 """
 
 from __future__ import annotations
@@ -30,6 +24,7 @@ from nsflow_ros.core.methods import BASELINE, METHODS
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.scoring import FrameQuality
 from nsflow_ros.errors import NSFlowError
+from nsflow_ros.evaluation.timing import timing_stats
 from nsflow_ros.resources import DEFAULT_CONFIG, STEREO_CONFIG, share_file
 
 __all__ = ["MODES", "format_tracker_table", "run_tracker_benchmark"]
@@ -39,13 +34,6 @@ CONFIGS = {
     "mono": DEFAULT_CONFIG,
     "stereo": STEREO_CONFIG,
 }
-
-
-def _stats(values: Sequence[float]) -> dict[str, float]:
-    a = np.asarray(values, dtype=np.float64)
-    if a.size == 0:
-        return {"median_ms": float("nan"), "p90_ms": float("nan")}
-    return {"median_ms": float(np.median(a)), "p90_ms": float(np.percentile(a, 90))}
 
 
 class _Run:
@@ -77,9 +65,9 @@ class _Run:
         self.quality.add_frame(seq, i, frame, before, stereo=right is not None)
 
     def figures(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"total": _stats(self.total), "cpu": _stats(self.cpu)}
-        out["stages"] = {k: _stats(v)["median_ms"] for k, v in self.stages.items()}
-        out["cpu_stages"] = {k: _stats(v)["median_ms"] for k, v in self.cpu_stages.items()}
+        out: dict[str, Any] = {"total": timing_stats(self.total), "cpu": timing_stats(self.cpu)}
+        out["stages"] = {k: timing_stats(v)["median_ms"] for k, v in self.stages.items()}
+        out["cpu_stages"] = {k: timing_stats(v)["median_ms"] for k, v in self.cpu_stages.items()}
         out.update(self.quality.figures())
         return out
 
@@ -100,18 +88,18 @@ def run_tracker_benchmark(
     """Time the whole tracker per frame for each method and mode, interleaved, with its quality.
 
     Args:
-        duration: seconds of the 20 Hz sample sequence (10 s = 200 frames).
+        duration: seconds of the 20 Hz sample sequence.
         methods: registry names; ``klt`` is always added (the ratios' baseline).
-        modes: "mono" and / or "stereo" (the shipped EuRoC mono / stereo configs).
+        modes: "mono" and / or "stereo".
         model: ONNX encoder of the learned methods; None = the shipped one.
         threads: encoder threads; None = all usable cores.
         providers: onnxruntime execution providers of the learned encoders, best first.
-        opencv_threads: OpenCV's threads for the run (:func:`nsflow_ros.threads.opencv_threads`: 0 =
-            OpenCV's default pool), restored afterwards; None = leave OpenCV's setting alone.
+        opencv_threads: OpenCV's threads for the run (:func:`nsflow_ros.threads.opencv_threads`),
+            restored afterwards; None = leave OpenCV's setting alone.
         seed: the sample sequence's seed.
         cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
             folder removed afterwards.
-        progress: a progress bar on stderr (:func:`~nsflow_ros.progress.progress_bar`).
+        progress: a progress bar on stderr.
 
     Returns:
         ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}},

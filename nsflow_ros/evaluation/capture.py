@@ -1,23 +1,11 @@
 """Capture from zero flow: how far can a method bring a point it starts on, at the deployed pyramid depth.
 
-The tracker starts most solves with no knowledge of the motion (the first track of a point, stereo
-left -> right without a previous disparity), so what matters is the share of points a method brings
-within 1 px of the truth from zero initial flow, over the displacements a 20 Hz camera and a stereo rig
-produce. Two sources, each without and with a lighting change (both frames independently perturbed at
-full strength by :func:`~nsflow_ros.data.perturb.perturb_pair`):
-
-* **photo shifts**: pairs rendered from the held-out photos (:mod:`nsflow_ros.evaluation.pairs`), frame
-  2 the crop of frame 1 moved by 5-30 px in a random direction (plus a mild homography of a couple of
-  pixels), so every point has an exact displacement of about the nominal one;
-* **stereo**: left / right pairs of the sample sequence's room (:mod:`nsflow_ros.data.sample`) rendered
-  through EuRoC's two cameras (the EuRoC baseline, 11 cm, unrectified as VINS tracks them), with the
-  exact disparity of every point from the scene geometry; points the right camera does not see are left
-  out. The room's depths give disparities of about 10-16 px.
-
-Keypoints are GFTT corners of frame 1 whose true position lies 10 px inside frame 2. Every method tracks
-every keypoint from zero flow at the depth the tracker deploys (4 levels: the LM solver's, OpenCV's
-maxLevel 3 as VINS calls it) and at one level fewer; a lost point counts as not captured. The share
-within 1 px is reported per source, condition, depth and displacement (5 px bins).
+The tracker starts most solves with no knowledge of the motion (a point's first track, stereo left ->
+right), so this measures the share of GFTT keypoints a method brings within 1 px of the truth from zero
+flow, at the deployed depth and one level fewer, without and with a full-strength lighting change, on
+two sources: held-out photos shifted by 5-30 px (:mod:`nsflow_ros.evaluation.pairs`), and left / right
+pairs of the sample room rendered through EuRoC's two cameras (unrectified, as VINS tracks them) with
+the exact disparity from the scene geometry.
 """
 
 from __future__ import annotations
@@ -32,18 +20,20 @@ import numpy as np
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import (
+    CONDITIONS,
     EvalContext,
     condition_label,
+    level_reductions,
     levels_text,
     new_figure,
+    sample_sequence,
     save_figure,
 )
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import KLT, KLT_CLAHE, NSFLOW, EvalMethod, PairMethod
+from nsflow_ros.evaluation.methods import KLT, KLT_CLAHE, NSFLOW, EvalMethod, prepare_pair
 from nsflow_ros.evaluation.pairs import (
-    MARGIN,
     endpoint_errors,
-    inside,
+    keep_inside,
     keypoints,
     random_homography,
     render_pair,
@@ -56,11 +46,13 @@ __all__ = [
     "BIN_EDGES",
     "CONDITIONS",
     "KEY",
+    "QUICK",
     "SOURCES",
     "TARGETS",
     "CaptureConfig",
     "CapturePair",
     "capture_errors",
+    "load_stereo_sequence",
     "photo_pairs",
     "run",
     "shift_homography",
@@ -69,7 +61,6 @@ __all__ = [
 ]
 
 KEY = "capture"
-CONDITIONS = ("none", "light")
 SOURCES = ("photo shifts", "stereo")
 BIN_EDGES = (2.5, 7.5, 12.5, 17.5, 22.5, 27.5, 32.5)
 """Displacement bins (px) of the per-displacement table and plot, centred on 5, 10, ..., 30."""
@@ -124,13 +115,12 @@ class CaptureConfig:
     stereo_points: int = 300
     sequence_seed: int = 0
 
-    @classmethod
-    def quick(cls) -> CaptureConfig:
-        """Tiny sizes for tests and CI."""
-        return cls(
-            width=240, height=180, photos=HELDOUT_IMAGES[:1], displacements=(5.0, 15.0, 30.0),
-            max_points=80, stereo_frames=1, stereo_duration=0.6, stereo_points=80,
-        )  # fmt: skip
+
+QUICK = CaptureConfig(
+    width=240, height=180, photos=HELDOUT_IMAGES[:1], displacements=(5.0, 15.0, 30.0),
+    max_points=80, stereo_frames=1, stereo_duration=0.6, stereo_points=80,
+)  # fmt: skip
+"""Tiny sizes for tests and CI."""
 
 
 @dataclass(frozen=True)
@@ -166,21 +156,9 @@ def shift_homography(rng: np.random.Generator, width: int, height: int, shift: f
     return move @ random_homography(rng, width, height, 0.3)
 
 
-def _keep(pts: np.ndarray, flow: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    keep = inside(pts + flow, width, height, MARGIN)
-    return pts[keep], flow[keep]
-
-
 def photo_pairs(cfg: CaptureConfig, seed: int = 0) -> list[CapturePair]:
-    """The photo-shift pairs, each without and with a lighting change (same geometry and points).
-
-    Args:
-        cfg: sizes.
-        seed: base seed.
-
-    Returns:
-        ``2 * len(photos) * len(displacements) * per_displacement`` pairs.
-    """
+    """The ``2 * len(photos) * len(displacements) * per_displacement`` photo-shift pairs: each without and
+    with a lighting change (same geometry and points)."""
     out = []
     for k, name in enumerate(cfg.photos):
         photo = load_photo(name)
@@ -190,7 +168,7 @@ def photo_pairs(cfg: CaptureConfig, seed: int = 0) -> list[CapturePair]:
                 p = shift_homography(rng, cfg.width, cfg.height, shift)
                 f1, f2 = render_pair(photo, rng, cfg.width, cfg.height, p)
                 pts = keypoints(f1, cfg.max_points, cfg.min_distance)
-                pts, gt = _keep(pts, true_flow(pts, p), cfg.width, cfg.height)
+                pts, gt = keep_inside(pts, true_flow(pts, p), cfg.width, cfg.height)
                 label = f"{name}, {shift:g} px"
                 out.append(CapturePair(SOURCES[0], "none", label, f1, f2, pts, gt))
                 l1, l2 = perturb_pair(f1, f2, np.random.default_rng([seed, 22, k, di, i]), 1.0)
@@ -199,15 +177,8 @@ def photo_pairs(cfg: CaptureConfig, seed: int = 0) -> list[CapturePair]:
 
 
 def stereo_pairs(sequence: Any, cfg: CaptureConfig, seed: int = 0) -> list[CapturePair]:
-    """Left / right pairs of a stereo sample sequence with exact disparities, without and with light.
-
-    Args:
-        sequence: a stereo :class:`~nsflow_ros.data.sample.SampleSequence`.
-        cfg: how many frames and points.
-        seed: seed of the lighting change.
-
-    Returns:
-        ``2 * cfg.stereo_frames`` pairs (fewer when the sequence is shorter).
+    """``2 * cfg.stereo_frames`` left / right pairs (fewer when the sequence is shorter) of a stereo
+    :class:`~nsflow_ros.data.sample.SampleSequence` with exact disparities, without and with light.
 
     Raises:
         EvaluationError: the sequence has no second camera.
@@ -222,7 +193,7 @@ def stereo_pairs(sequence: Any, cfg: CaptureConfig, seed: int = 0) -> list[Captu
         h, w = left.shape[:2]
         pts = keypoints(left, cfg.stereo_points, cfg.min_distance)
         flow, visible = sequence.flow(i, i, pts, 0, 1)
-        pts, flow = _keep(pts[visible], flow[visible], w, h)
+        pts, flow = keep_inside(pts[visible], flow[visible], w, h)
         label = f"stereo frame {i}"
         out.append(CapturePair(SOURCES[1], "none", label, left, right, pts, flow))
         l1, l2 = perturb_pair(left, right, np.random.default_rng([seed, 23, i]), 1.0)
@@ -231,55 +202,27 @@ def stereo_pairs(sequence: Any, cfg: CaptureConfig, seed: int = 0) -> list[Captu
 
 
 def capture_errors(
-    methods: list[PairMethod], pair: CapturePair, fewer_levels: int = 0
+    methods: list[EvalMethod], pair: CapturePair, fewer_levels: int = 0
 ) -> dict[str, np.ndarray]:
-    """Each method's endpoint errors (inf where lost) tracking the pair's keypoints from zero flow.
-
-    Args:
-        methods: evaluation methods (:class:`~nsflow_ros.evaluation.methods.EvalMethod`).
-        pair: frames, keypoints and exact displacements.
-        fewer_levels: run each method on this many pyramid levels fewer than its own.
-
-    Returns:
-        method name -> (N,) errors.
+    """Each method's (N,) endpoint errors (inf where lost) tracking the pair's keypoints from zero flow,
+    ``fewer_levels`` below its own depth.
 
     Raises:
-        EvaluationError: a method that is not an evaluation method, or too few levels to remove.
+        EvaluationError: an object that is not an evaluation method, or too few levels to remove.
     """
+    frames = prepare_pair(methods, pair.image1, pair.image2)
     out = {}
     for m in methods:
-        if not isinstance(m, EvalMethod):
-            raise EvaluationError(f"capture needs an evaluation method, got {type(m).__name__} {m.name!r}")
-        if m.levels - fewer_levels < 1:
-            raise EvaluationError(f"{m.name}: {m.levels} levels cannot be reduced by {fewer_levels}")
-        f1, f2 = m.prepare(pair.image1), m.prepare(pair.image2)
-        res = m.track_frames(f1, f2, pair.points, None, m.levels - fewer_levels)
+        res = m.track(*frames[m.name], pair.points, None, m.levels_fewer(fewer_levels))
         out[m.name] = endpoint_errors(res, pair.flow)
     return out
 
 
 def load_stereo_sequence(ctx: EvalContext, cfg: CaptureConfig) -> Any:
-    """The stereo sample sequence (poses and scene only: frames are rendered when asked), made once.
-
-    The cache folder is ``ctx.extra["capture"]["cache_dir"]``, by default ``cache/`` beside
-    ``ctx.out_dir`` (shared with the sequences analysis).
-
-    Raises:
-        EvaluationError: the sequence cannot be made there.
-    """
-    from nsflow_ros.data.errors import DataError
-    from nsflow_ros.data.sample import make_sample_sequence
-
-    opts = ctx.extra.get(KEY, {})
-    cache = Path(opts.get("cache_dir", ctx.out_dir.parent / "cache"))
-    name = f"sample-seed{cfg.sequence_seed}-{cfg.stereo_duration:g}s-stereo-meta"
-    try:
-        return make_sample_sequence(
-            cache / name, seed=cfg.sequence_seed, duration=cfg.stereo_duration, stereo=True, formats=(),
-            progress=False,
-        )  # fmt: skip
-    except (DataError, OSError) as err:
-        raise EvaluationError(f"cannot make the stereo sample sequence under {cache}: {err}") from err
+    """The stereo sample sequence (poses and scene only: frames are rendered when asked), made once
+    (:func:`~nsflow_ros.evaluation.context.sample_sequence`)."""
+    return sample_sequence(ctx, KEY, cfg.sequence_seed, cfg.stereo_duration, stereo=True, images=False,
+                           progress=False)  # fmt: skip
 
 
 def _share(errors: list[np.ndarray]) -> float:
@@ -317,8 +260,7 @@ def _plot(bins: dict, names: list[str], fewer_set: tuple[int, ...], path: Path) 
                             ms=3,
                             ls="-" if f == 0 else "--", lw=1.6 if f == 0 else 1.0,
                             label=n if f == 0 else f"{n}, one level fewer")  # fmt: skip
-            ax.set_title(f"{source}, {'no lighting change' if cond == 'none' else 'lighting change'}",
-                         fontsize=9)  # fmt: skip
+            ax.set_title(f"{source}, {condition_label(cond)}", fontsize=9)
             ax.set_ylim(-3, 103)
             ax.grid(True, alpha=0.3)
     for ax in axes[-1]:
@@ -344,21 +286,14 @@ class _Shares:
 
 
 def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
-    """The ``capture`` section: share within 1 px from zero flow per method, source, condition, depth.
+    """The ``capture`` section (``capture.png``, the tables, headline rows).
 
-    ``ctx.extra["capture"]`` may hold ``cache_dir`` (where the stereo sample sequence is made).
-
-    Args:
-        ctx: the evaluation context (methods, quick, out_dir, progress, seed).
-        cfg: settings; ``CaptureConfig.quick()`` in quick mode, else ``CaptureConfig()``.
-
-    Returns:
-        the section (``capture.png``, the tables, headline rows).
+    ``cfg`` None: :data:`QUICK` in a quick run, else ``CaptureConfig()``.
 
     Raises:
         EvaluationError: no methods, or the sample sequence cannot be made.
     """
-    cfg = cfg or (CaptureConfig.quick() if ctx.quick else CaptureConfig())
+    cfg = cfg or (QUICK if ctx.quick else CaptureConfig())
     if not ctx.methods:
         raise EvaluationError("capture needs at least one method")
     pairs = photo_pairs(cfg, ctx.seed) + stereo_pairs(load_stereo_sequence(ctx, cfg), cfg, ctx.seed)
@@ -391,7 +326,7 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
 def _measure(ctx: EvalContext, pairs: list[CapturePair]) -> tuple[_Shares, dict[tuple[str, str], list]]:
     """Every method on every pair at each depth: the shares, and the true displacements per source, light."""
     names = [m.name for m in ctx.methods]
-    fewer_set = (0, 1) if min(m.levels for m in ctx.methods) > 1 else (0,)
+    fewer_set = level_reductions(ctx.methods)
     errors: dict[tuple[str, str, int], dict[str, list[np.ndarray]]] = {}
     displacement: dict[tuple[str, str], list[np.ndarray]] = {}
     for pair in ctx.bar(pairs, desc=KEY, unit="pair"):

@@ -61,14 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point; returns the exit code (0 = report written, every analysis ran; 1 = a known error).
-
-    Args:
-        args: command-line arguments (None: ``sys.argv[1:]``).
-
-    Returns:
-        the exit status.
-    """
+    """Entry point (``args`` None: ``sys.argv[1:]``); returns 0 when the report is written and every
+    analysis ran, 1 on a known error."""
     opts = build_parser().parse_args(args)
     if opts.list:
         for a in ANALYSES:

@@ -1,32 +1,38 @@
 """What every analysis of the evaluation suite receives: :class:`EvalContext`, plus small shared helpers.
 
-An analysis is a function ``run(ctx: EvalContext) -> Section``. It reads its settings from the context,
-writes its figures into ``ctx.out_dir`` (with :func:`atomic_write` / :func:`save_figure`) and returns
-the :class:`~nsflow_ros.evaluation.section.Section` that the report writer puts together.
+An analysis is a function ``run(ctx: EvalContext) -> Section``: it reads its settings from the context,
+writes its figures into ``ctx.out_dir`` (:func:`save_figure`) and returns the
+:class:`~nsflow_ros.evaluation.section.Section` that the report writer puts together.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
 from nsflow_ros import files
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import PairMethod
+from nsflow_ros.evaluation.methods import EvalMethod
 
 __all__ = [
+    "CONDITIONS",
     "EvalContext",
     "atomic_write",
     "axis_label",
     "condition_label",
+    "level_reductions",
     "levels_text",
     "new_figure",
+    "sample_sequence",
     "save_figure",
 ]
 
 T = TypeVar("T")
+
+CONDITIONS = ("none", "light")
+"""The photo-pair analyses' lighting conditions: no change, and both frames perturbed at full strength."""
 
 
 @dataclass
@@ -34,23 +40,18 @@ class EvalContext:
     """Settings and shared objects of one evaluation run.
 
     Attributes:
-        methods: the compared methods (:func:`~nsflow_ros.evaluation.methods.default_methods`: NSFlow,
-            NSFlow + OpenCV LK, LM (intensity), OpenCV KLT, OpenCV KLT + CLAHE), all at the tracker's
-            deployed pyramid depth (4 levels).
-        model: the ONNX encoder file NSFlow uses, or None for the shipped model (for sections that need
-            the file itself, e.g. parameter / FLOP counts).
-        quick: tiny sizes (tests, CI): the whole quick run must take well under a minute, so every
-            analysis shrinks its pairs / frames / grids drastically and says so in its text.
+        methods: the compared methods (:func:`~nsflow_ros.evaluation.methods.default_methods`).
+        model: the ONNX encoder file NSFlow uses, or None for the shipped model.
+        quick: tiny sizes (tests, CI): every analysis shrinks its work and says so in its text.
         out_dir: the report folder (exists); figures go directly into it, named after the section key.
         progress: show progress (use :meth:`bar`).
-        seed: base seed; analyses derive their generators from it (``np.random.default_rng([seed, k])``)
-            so a run is reproducible.
-        threads: onnxruntime / OpenCV threads the methods were built with (for timing sections).
+        seed: base seed; analyses derive their generators from it (``np.random.default_rng([seed, k])``).
+        threads: onnxruntime / OpenCV threads the methods were built with.
         providers: onnxruntime execution providers of the learned encoders, best first.
-        extra: free-form settings for an analysis, keyed by the analysis key (unused by default).
+        extra: free-form settings for an analysis, keyed by the analysis key.
     """
 
-    methods: list[PairMethod]
+    methods: list[EvalMethod]
     model: Path | None = None
     quick: bool = False
     out_dir: Path = Path("out/evaluation")
@@ -59,17 +60,6 @@ class EvalContext:
     threads: int | None = None
     providers: str = "cpu"
     extra: dict[str, Any] = field(default_factory=dict)
-
-    def method(self, name: str) -> PairMethod:
-        """The method called ``name`` (see :data:`~nsflow_ros.evaluation.methods.NSFLOW` etc.).
-
-        Raises:
-            EvaluationError: no such method in this run.
-        """
-        for m in self.methods:
-            if m.name == name:
-                return m
-        raise EvaluationError(f"no method {name!r} in this run; have {[m.name for m in self.methods]}")
 
     def bar(
         self, iterable: Iterable[T], desc: str, total: int | None = None, unit: str = "it"
@@ -81,19 +71,32 @@ class EvalContext:
         return iter(bar)
 
 
-def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
-    """Write a file through a temporary name and rename it, so a crash never leaves half a file.
+def sample_sequence(
+    ctx: EvalContext, key: str, seed: int, duration: float, *, stereo: bool, images: bool, progress: bool
+) -> Any:
+    """A :class:`~nsflow_ros.data.sample.SampleSequence`, made once under the cache folder
+    ``ctx.extra[key]["cache_dir"]`` (default ``cache/`` beside ``ctx.out_dir``).
 
-    Args:
-        path: the final file.
-        write: called with the temporary path; must create the file there.
-
-    Returns:
-        ``path``.
+    ``images`` False stores only the poses and scene, for frames rendered when asked.
 
     Raises:
-        EvaluationError: the folder is not writable.
+        EvaluationError: the sequence cannot be made there.
     """
+    from nsflow_ros.data.errors import DataError
+    from nsflow_ros.data.sample import make_sample_sequence
+
+    cache = Path(ctx.extra.get(key, {}).get("cache_dir", ctx.out_dir.parent / "cache"))
+    name = f"sample-seed{seed}-{duration:g}s" + ("-stereo" if stereo else "") + ("" if images else "-meta")
+    try:
+        return make_sample_sequence(cache / name, seed=seed, duration=duration, stereo=stereo,
+                                    formats=("asl",) if images else (), progress=progress)  # fmt: skip
+    except (DataError, OSError) as err:
+        what = "stereo sample sequence" if stereo else "sample sequence"
+        raise EvaluationError(f"cannot make the {what} under {cache}: {err}") from err
+
+
+def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
+    """:func:`nsflow_ros.files.atomic_write`, its failure as an :class:`EvaluationError` naming the file."""
     try:
         return files.atomic_write(path, write)
     except OSError as err:
@@ -101,14 +104,7 @@ def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
 
 
 def new_figure(width: float = 8.0, height: float = 4.5) -> Any:
-    """A matplotlib ``Figure`` on the Agg canvas (no pyplot state, no display needed).
-
-    Args:
-        width, height: size in inches.
-
-    Returns:
-        the figure; add axes with ``fig.subplots(...)`` and save with :func:`save_figure`.
-    """
+    """A matplotlib ``Figure`` of ``width`` x ``height`` inches on the Agg canvas (no pyplot state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -117,12 +113,17 @@ def new_figure(width: float = 8.0, height: float = 4.5) -> Any:
     return fig
 
 
+def save_figure(fig: Any, path: Path, dpi: int = 110) -> Path:
+    """Save a figure made by :func:`new_figure` as a PNG, atomically; returns ``path``."""
+    return atomic_write(Path(path), lambda p: fig.savefig(p, dpi=dpi, format="png", bbox_inches="tight"))
+
+
 def axis_label(name: str) -> str:
     """A method's label for a crowded axis: "OpenCV KLT + CLAHE" -> "OpenCV KLT\n+ CLAHE"."""
     return name.replace(" + ", "\n+ ")
 
 
-def levels_text(methods: list[PairMethod], fewer: int = 0) -> str:
+def levels_text(methods: Sequence[EvalMethod], fewer: int = 0) -> str:
     """The pyramid depth of the methods ("4 levels", or each method's when they differ), ``fewer`` less."""
     depths = sorted({m.levels - fewer for m in methods})
     if len(depths) == 1:
@@ -130,20 +131,11 @@ def levels_text(methods: list[PairMethod], fewer: int = 0) -> str:
     return ", ".join(f"{m.name} {m.levels - fewer}" for m in methods) + " levels"
 
 
+def level_reductions(methods: Sequence[EvalMethod]) -> tuple[int, ...]:
+    """Levels fewer to run at: 0 (each method's own depth) and 1 when every method has a level to spare."""
+    return (0, 1) if methods and min(m.levels for m in methods) > 1 else (0,)
+
+
 def condition_label(cond: str) -> str:
     """Words for a lighting condition key: "none" -> "no lighting change", else "lighting change"."""
     return "no lighting change" if cond == "none" else "lighting change"
-
-
-def save_figure(fig: Any, path: Path, dpi: int = 110) -> Path:
-    """Save a figure made by :func:`new_figure` as a PNG, atomically.
-
-    Args:
-        fig: a ``matplotlib.figure.Figure``.
-        path: the PNG file.
-        dpi: resolution.
-
-    Returns:
-        ``path``.
-    """
-    return atomic_write(Path(path), lambda p: fig.savefig(p, dpi=dpi, format="png", bbox_inches="tight"))

@@ -1,23 +1,11 @@
 """Convergence: mean tracking error against iteration from a 5 px initial error (the paper's figure).
 
-Pairs are rendered from the held-out photos as in :mod:`nsflow_ros.evaluation.pairs` (a mild level-1
-homography), once without and once with full-strength illumination perturbation of both frames. Up to
-1000 GFTT keypoints (minimum distance 6) on frame 1 start from the true flow plus exactly 5 px in a
-random direction (the same for every method), on a single pyramid level as in the paper:
-
-* the LM methods (NSFlow, LM on intensity) run once through the core method's ``run`` with
-  ``record=True``; the flow after iteration k is read from the solver's history (a point that has
-  stopped keeps its flow);
-* the OpenCV LK methods (KLT, KLT on CLAHE'd images, LK on the quantised NSFlow descriptors) are run
-  again for every k = 1..K with ``max_iterations = k`` on the same prepared images (their eps stop test
-  stays, as VINS runs it).
-
-The curve is the mean over all keypoints of min(error, 10 px) (a flow that is not finite counts as
-10 px), so a few diverging points cannot hide the curve; the median is drawn dashed. The table adds the
-final median with lost points as infinite and the final tracked share.
-
-The capture-range table repeats the solve from initial errors of several lengths at the curves' single
-level, at each method's deployed depth (4 levels) and at one level fewer: the basin per level.
+On held-out photo pairs (a mild homography, without and with a full-strength lighting change), GFTT
+keypoints start 5 px off their true flow on a single pyramid level, as in the paper. The LM methods'
+per-iteration flow is read from the solver's recorded history; OpenCV's LK keeps none, so it is run
+again with ``max_iterations = k`` for every k on the same prepared images. The curve is the mean of
+min(error, 10 px) so that a few diverging points cannot hide it. A capture-range table repeats the
+solve from several initial errors at that level, at each method's deployed depth and one level fewer.
 """
 
 from __future__ import annotations
@@ -30,23 +18,18 @@ import numpy as np
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import (
+    CONDITIONS,
     EvalContext,
     condition_label,
     new_figure,
     save_figure,
 )
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import (
-    CLASSICAL,
-    KLT_CLAHE,
-    EvalMethod,
-    PairMethod,
-    PairResult,
-)
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT_CLAHE, EvalMethod, prepare_pair
 from nsflow_ros.evaluation.pairs import (
     HomographyPair,
     endpoint_errors,
-    inside,
+    keep_inside,
     keypoints,
     random_homography,
     render_pair,
@@ -55,9 +38,8 @@ from nsflow_ros.evaluation.pairs import (
 from nsflow_ros.evaluation.section import Section, config_data, quick_note
 from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
-__all__ = ["TARGETS", "ConvergenceConfig", "capture_range", "convergence_curves", "prepare_pair", "run"]
+__all__ = ["QUICK", "TARGETS", "ConvergenceConfig", "capture_range", "convergence_curves", "run"]
 
-CONDITIONS = ("none", "light")
 # the paper's claim: faster error reduction than LK on intensity; under changing light also faster than the
 # baseline a VINS user picks then (KLT on CLAHE'd images)
 TARGETS: dict[str, Target] = {
@@ -68,7 +50,8 @@ TARGETS: dict[str, Target] = {
 REPORT_AT = (0, 1, 2, 3, 5, 10, 20, 30)
 
 Frames = dict[str, tuple[Any, Any]]
-"""Method name -> its representations of a pair's two frames (:func:`prepare_pair`)."""
+"""Method name -> its representations of a pair's two frames
+(:func:`~nsflow_ros.evaluation.methods.prepare_pair`)."""
 
 
 @dataclass(frozen=True)
@@ -101,18 +84,12 @@ class ConvergenceConfig:
     ceiling: float = 10.0
     basin_errors: tuple[float, ...] = (1.0, 3.0, 5.0, 8.0)
 
-    @classmethod
-    def quick(cls) -> ConvergenceConfig:
-        """Tiny sizes for tests and CI."""
-        return cls(
-            width=240,
-            height=180,
-            photos=HELDOUT_IMAGES[:1],
-            per_photo=1,
-            max_points=100,
-            iterations=8,
-            basin_errors=(1.0, 5.0),
-        )
+
+QUICK = ConvergenceConfig(
+    width=240, height=180, photos=HELDOUT_IMAGES[:1], per_photo=1, max_points=100, iterations=8,
+    basin_errors=(1.0, 5.0),
+)
+"""Tiny sizes for tests and CI."""
 
 
 def _clipped(flow: np.ndarray, gt: np.ndarray, ceiling: float) -> np.ndarray:
@@ -121,24 +98,8 @@ def _clipped(flow: np.ndarray, gt: np.ndarray, ceiling: float) -> np.ndarray:
     return np.minimum(np.where(np.isfinite(e), e, ceiling), ceiling)
 
 
-def prepare_pair(methods: list[PairMethod], pair: HomographyPair) -> Frames:
-    """Each method's representations of the pair's two frames, prepared once for every depth and run.
-
-    Raises:
-        EvaluationError: a method that is not an evaluation method (LM or KLT).
-    """
-    out: Frames = {}
-    for m in methods:
-        if not isinstance(m, EvalMethod):
-            raise EvaluationError(
-                f"convergence needs an LM or KLT evaluation method, got {type(m).__name__} {m.name!r}"
-            )
-        out[m.name] = (m.prepare(pair.image1), m.prepare(pair.image2))
-    return out
-
-
 def convergence_curves(
-    methods: list[PairMethod],
+    methods: list[EvalMethod],
     pair: HomographyPair,
     points: np.ndarray,
     flow0: np.ndarray,
@@ -151,21 +112,18 @@ def convergence_curves(
     """Per-point error after each iteration k = 0..K, for every method.
 
     Args:
-        methods: the compared methods (LM methods and KLT-like ones; others raise).
-        pair: frames and exact homography.
-        points: (N, 2) keypoints in frame 1.
-        flow0: (N, 2) initial flow.
+        points, flow0: (N, 2) keypoints in frame 1 and their initial flow.
         iterations: K.
         levels: pyramid levels every method uses here (at most each method's own).
         ceiling: clip errors (and non-finite flows) to this, pixels.
-        frames: the methods' representations of the pair (:func:`prepare_pair`); None = prepare here.
+        frames: the methods' representations of the pair (:data:`Frames`); None = prepare here.
 
     Returns:
         (curves, final): ``curves[name]`` is (K + 1, N) clipped errors, row k after k iterations;
         ``final[name]`` is (N,) the final errors with lost points infinite.
 
     Raises:
-        EvaluationError: bad shapes or settings, or a method of unknown kind.
+        EvaluationError: bad shapes or settings, or an object that is not an evaluation method.
     """
     pts = np.asarray(points, np.float64)
     f0 = np.asarray(flow0, np.float64)
@@ -175,45 +133,38 @@ def convergence_curves(
         raise EvaluationError(f"iterations and levels must be >= 1, got {iterations} and {levels}")
     gt = true_flow(pts, pair.homography)
     if frames is None:
-        frames = prepare_pair(methods, pair)
+        frames = prepare_pair(methods, pair.image1, pair.image2)
     curves, final = {}, {}
     for m in methods:
-        flows, result = m.iterate(*frames[m.name], pts, f0, levels, iterations)  # type: ignore[attr-defined]
-        rows = [_clipped(f, gt, ceiling) for f in (f0, *flows)]
-        flow, status = result.flow, result.status
-        curves[m.name] = np.stack(rows)
-        final[m.name] = endpoint_errors(PairResult(flow, status), gt)
+        flows, result = m.iterate(*frames[m.name], pts, f0, levels, iterations)
+        curves[m.name] = np.stack([_clipped(f, gt, ceiling) for f in (f0, *flows)])
+        final[m.name] = endpoint_errors(result, gt)
     return curves, final
 
 
 def capture_range(
-    methods: list[PairMethod], pair: HomographyPair, points: np.ndarray, direction: np.ndarray,
+    methods: list[EvalMethod], pair: HomographyPair, points: np.ndarray, direction: np.ndarray,
     errors: tuple[float, ...], levels: int, *, frames: Frames | None = None,
 ) -> dict[float, dict[str, np.ndarray]]:  # fmt: skip
-    """Final errors (inf where lost) from initial errors of each length along fixed unit directions.
+    """Final errors (inf where lost) from initial errors of each length (px) along fixed unit directions.
 
     Args:
-        methods: the compared methods.
-        pair: frames and exact homography.
-        points: (N, 2) keypoints.
-        direction: (N, 2) unit vectors of the initial errors.
-        errors: initial error lengths in pixels.
+        points, direction: (N, 2) keypoints and the unit vectors of their initial errors.
         levels: pyramid levels every method uses (at most each method's own).
-        frames: the methods' representations of the pair (:func:`prepare_pair`); None = prepare here.
+        frames: the methods' representations of the pair (:data:`Frames`); None = prepare here.
 
     Returns:
         ``{initial error: {method name: (N,) final errors}}``.
     """
     gt = true_flow(points, pair.homography)
     if frames is None:
-        frames = prepare_pair(methods, pair)
+        frames = prepare_pair(methods, pair.image1, pair.image2)
     out: dict[float, dict[str, np.ndarray]] = {}
     for err in errors:
         out[err] = {}
         flow0 = gt + err * direction
         for m in methods:
-            res = m.track_frames(*frames[m.name], points, flow0, levels)  # type: ignore[attr-defined]
-            out[err][m.name] = endpoint_errors(res, gt)
+            out[err][m.name] = endpoint_errors(m.track(*frames[m.name], points, flow0, levels), gt)
     return out
 
 
@@ -238,9 +189,7 @@ def _pairs(
                     f1, f2 = perturb_pair(f1, f2, np.random.default_rng([seed, 12, k, i]), 1.0)
                 pair = HomographyPair(name, "convergence", 1, f1, f2, p)
                 pts = keypoints(f1, cfg.max_points, cfg.min_distance)
-                gt = true_flow(pts, p)
-                keep = inside(pts + gt, cfg.width, cfg.height)
-                pts, gt = pts[keep], gt[keep]
+                pts, gt = keep_inside(pts, true_flow(pts, p), cfg.width, cfg.height)
                 ang = np.random.default_rng([seed, 13, k, i]).uniform(0.0, 2.0 * np.pi, len(pts))
                 flow0 = gt + cfg.init_error * np.stack([np.cos(ang), np.sin(ang)], 1)
                 out.append((cond, pair, pts, gt, flow0))
@@ -270,16 +219,11 @@ def _plot(mean: dict, median: dict, names: list[str], cfg: ConvergenceConfig, pa
 
 
 def run(ctx: EvalContext, cfg: ConvergenceConfig | None = None) -> Section:
-    """Error-versus-iteration curves of every method on the held-out pairs.
+    """The ``convergence`` section (``convergence.png``, the tables, headline rows).
 
-    Args:
-        ctx: the evaluation context (methods, quick, out_dir, progress, seed).
-        cfg: settings; ``ConvergenceConfig.quick()`` in quick mode, else ``ConvergenceConfig()``.
-
-    Returns:
-        the "convergence" :class:`Section` (``convergence.png``, the table, headline rows).
+    ``cfg`` None: :data:`QUICK` in a quick run, else ``ConvergenceConfig()``.
     """
-    cfg = cfg or (ConvergenceConfig.quick() if ctx.quick else ConvergenceConfig())
+    cfg = cfg or (QUICK if ctx.quick else ConvergenceConfig())
     names = [m.name for m in ctx.methods]
     items = _pairs(cfg, ctx.seed)
     curves, finals, basin = _measure(ctx, cfg, items, names)
@@ -322,7 +266,7 @@ def _measure(
     level_set = sorted(depths - {0})
     basin: dict[tuple[str, int, float], dict[str, list[np.ndarray]]] = {}
     for cond, pair, pts, gt, flow0 in ctx.bar(items, desc="convergence", unit="pair"):
-        frames = prepare_pair(ctx.methods, pair)
+        frames = prepare_pair(ctx.methods, pair.image1, pair.image2)
         cv, fin = convergence_curves(
             ctx.methods, pair, pts, flow0, iterations=cfg.iterations, levels=cfg.levels, ceiling=cfg.ceiling,
             frames=frames,

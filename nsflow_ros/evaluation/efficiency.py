@@ -1,21 +1,10 @@
 """Inference efficiency (the paper's Table II) and the whole tracker's per-frame time per method.
 
-* Parameters and FLOPs of the ONNX encoder, counted from its graph (:func:`onnx_complexity`):
-  parameters = elements of every initializer that feeds a ``Conv``, ``Gemm`` or ``MatMul`` node (weights
-  and biases); MACs = for ``Conv``, output elements x (input channels / group) x kernel area; for
-  ``Gemm`` / ``MatMul`` with an initializer operand, output elements x the inner dimension. FLOPs =
-  2 x MACs. Biases, activations, padding, resizes and every other node are not counted (the convention
-  of ``models/README.md``: "2 per multiply-add, convolutions only"). Output sizes come from one
-  onnxruntime run at the requested size with the counted nodes' outputs exposed, so any padding scheme
-  (the shipped model pads with ``Pad(edge)`` nodes) is measured, not assumed.
-* Encoder milliseconds at 320x240 and 752x480 (onnxruntime on the CPU, median and p90 over N runs after
-  warm-up, :func:`nsflow_ros.evaluation.timing.time_encoder`), with the intensity encoder timed in the
-  same run.
-* The whole :class:`~nsflow_ros.core.tracker.FeatureTracker` per frame (encode, track + flow-back,
-  detection, total) for every evaluated method (``nsflow``, ``nsflow_lk``, ``classical``, ``klt`` and
-  ``klt`` with CLAHE) on frames of the sample sequence.
-
-Reading the ONNX graph needs the ``onnx`` package (a dependency of nsflow_ros; no rosdep key exists).
+Parameters and FLOPs of the ONNX encoder are counted from its graph (:func:`onnx_complexity`), the
+encoder is timed at 320x240 and 752x480 beside the intensity encoder, and the whole
+:class:`~nsflow_ros.core.tracker.FeatureTracker` is timed stage by stage for every evaluated method on
+frames of the sample sequence. Reading the graph needs the ``onnx`` package (a dependency of nsflow_ros
+with no rosdep key).
 """
 
 from __future__ import annotations
@@ -29,6 +18,7 @@ import numpy as np
 from nsflow_ros.core.encoder import Encoder, IntensityEncoder
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
+from nsflow_ros.evaluation import sequences
 from nsflow_ros.evaluation.context import EvalContext, axis_label, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW
@@ -85,15 +75,17 @@ def _import_onnx() -> Any:
 
 
 def onnx_complexity(path: str | Path, width: int = 320, height: int = 240) -> ModelComplexity:
-    """Count the parameters and MACs of an ONNX model (see the module docstring for what is counted).
+    """Count the parameters and MACs of an ONNX model at a ``width`` x ``height`` input.
+
+    Parameters are the elements of every initializer feeding a ``Conv``, ``Gemm`` or ``MatMul`` node;
+    MACs are, for ``Conv``, output elements x (input channels / group) x kernel area, and for ``Gemm`` /
+    ``MatMul`` with an initializer operand, output elements x the inner dimension; nothing else is
+    counted (the convention of ``models/README.md``). Output sizes come from one onnxruntime run with
+    the counted nodes' outputs exposed, so any padding scheme is measured, not assumed.
 
     Args:
         path: the .onnx file; its first input must be (1, C, H, W) with C fixed.
-        width: input width.
-        height: input height.
-
-    Returns:
-        the counts.
+        width, height: input size.
 
     Raises:
         EvaluationError: missing file, no onnx package, an input that is not (N, C, H, W) with a fixed C,
@@ -125,7 +117,6 @@ def onnx_complexity(path: str | Path, width: int = 320, height: int = 240) -> Mo
         shape = [d.dim_value or d.dim_param for d in dims]
         raise EvaluationError(f"{path}: expected an (N, C, H, W) input with a fixed C, got {shape}")
     channels = int(dims[1].dim_value)
-    # Expose the counted nodes' outputs, so their sizes are measured whatever padding the graph uses.
     have = {o.name for o in graph.output}
     for n in counted:
         if n.output[0] not in have:
@@ -171,10 +162,10 @@ def time_tracker(
     """Per-frame time of the whole tracker, stage by stage, over a frame sequence.
 
     Args:
-        frames: images in order (uint8).
+        frames: uint8 images in order.
         camera: the tracker's camera model (its size must match the frames).
-        method: tracker method (a key of :data:`nsflow_ros.core.methods.METHODS`).
-        settings: tracker settings (``method`` is replaced); None = the defaults.
+        method: tracker method (a key of :data:`nsflow_ros.core.methods.METHODS`), replacing the one of
+            ``settings`` (None: the defaults).
         encoder: encoder of a method that has one (None: the tracker loads its own).
         dt: seconds between frames.
 
@@ -234,34 +225,25 @@ def _figure(enc: dict[str, dict[str, dict[str, float]]], trk: dict[str, dict[str
 
 
 def run(ctx: EvalContext) -> Section:
-    """The ``efficiency`` section of the report (see the module docstring).
+    """The ``efficiency`` section: Table II (with the paper's row), the tracker's per-frame times, a figure.
 
     ``ctx.extra["efficiency"]`` may hold ``repeats`` (encoder runs) and ``frames`` (tracker frames).
-
-    Args:
-        ctx: the evaluation context; NSFlow's encoder is taken from ``ctx.methods`` (or loaded from
-            ``ctx.model``).
-
-    Returns:
-        the section: Table II (with the paper's row), the tracker's per-frame times, a figure.
 
     Raises:
         EvaluationError: no ONNX model, no onnx package, or a run that fails.
     """
-    from nsflow_ros.evaluation import sequences
-
     opts = dict(ctx.extra.get(KEY, {}))
     repeats = int(opts.get("repeats", 3 if ctx.quick else 50))
     warmup = 1 if ctx.quick else 5
     n_frames = int(opts.get("frames", 0 if ctx.quick else 40))  # 0: the whole (quick) sequence
-    encoder = _nsflow_encoder(ctx)
+    encoder = sequences.method_encoders(ctx, [NSFLOW])[NSFLOW]
     model_path = Path(encoder.path)  # type: ignore[attr-defined]
     counts = {f"{w}x{h}": onnx_complexity(model_path, w, h) for w, h in SIZES}
     enc_times = _time_encoders(ctx, {NSFLOW: encoder, "intensity": IntensityEncoder()}, repeats, warmup)
     setup = sequences.QUICK if ctx.quick else sequences.FULL
     source = sequences.load_source(ctx, setup)
     count = len(source) if n_frames <= 0 else min(n_frames, len(source))
-    tracker_times = _time_trackers(ctx, source, count, setup, encoder, model_path)
+    tracker_times = _time_trackers(ctx, source, count, setup)
     fig = _figure(enc_times, tracker_times, source.size, Path(ctx.out_dir) / f"{KEY}_times.png")
     size_txt = f"{source.size[0]}x{source.size[1]}"
     threads = "all usable cores" if ctx.threads is None else str(ctx.threads)
@@ -299,18 +281,6 @@ def run(ctx: EvalContext) -> Section:
     return Section(KEY, "Inference efficiency (Table II) and per-frame time", md, [fig], headline, data)
 
 
-def _nsflow_encoder(ctx: EvalContext) -> Encoder:
-    """NSFlow's encoder: the run's loaded model, or loaded here as the registry loads it."""
-    from nsflow_ros.evaluation import sequences  # imported late, as run and _time_trackers do
-
-    found = (getattr(m, "encoder", None) for m in ctx.methods if m.name == NSFLOW)
-    encoder: Encoder | None = next(found, None)
-    if encoder is None:
-        encoder = sequences.learned_encoder(NSFLOW, ctx.model, ctx.threads, ctx.providers)
-    assert encoder is not None  # NSFlow is a learned method
-    return encoder
-
-
 def _time_encoders(ctx: EvalContext, encoders: dict[str, Encoder], repeats: int,
                    warmup: int) -> dict[str, dict[str, dict[str, float]]]:  # fmt: skip
     """Each encoder's time per size: name -> "WxH" -> median / p90 ms."""
@@ -324,24 +294,19 @@ def _time_encoders(ctx: EvalContext, encoders: dict[str, Encoder], repeats: int,
     return enc_times
 
 
-def _time_trackers(ctx: EvalContext, source: Any, count: int, setup: Any, encoder: Encoder,
-                   model_path: Path) -> dict[str, dict[str, dict[str, float]]]:  # fmt: skip
+def _time_trackers(
+    ctx: EvalContext, source: sequences.FrameSource, count: int, setup: sequences.SequenceSetup
+) -> dict[str, dict[str, dict[str, float]]]:
     """The whole tracker's stage times on the first ``count`` frames, per method of the sequences analysis."""
-    from nsflow_ros.evaluation import sequences
-
     frames = [source.image(i) for i in range(count)]
-    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
-                               providers=ctx.providers)
+    settings = setup.tracker_settings(ctx)
     kinds = sequences.TRACKER_METHODS
+    encoders = sequences.method_encoders(ctx, list(kinds))
     tracker_times: dict[str, dict[str, dict[str, float]]] = {}
     for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):
-        enc: Encoder | None = None
-        if name == NSFLOW:
-            enc = encoder
-        elif name in sequences.LEARNED:  # the same model, as the registry loads it for that method
-            enc = sequences.learned_encoder(name, str(model_path), ctx.threads, ctx.providers)
         per = settings.with_overrides(kinds[name])
-        tracker_times[name] = time_tracker(frames, source.camera, per.method, settings=per, encoder=enc)
+        tracker_times[name] = time_tracker(frames, source.camera, per.method, settings=per,
+                                           encoder=encoders.get(name))  # fmt: skip
     return tracker_times
 
 

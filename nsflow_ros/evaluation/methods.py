@@ -1,29 +1,16 @@
 """The methods every analysis compares: a view over the tracker's method registry.
 
-Each evaluated method is a :class:`Variant`: an entry of :data:`nsflow_ros.core.methods.METHODS` (the
-configuration :class:`~nsflow_ros.core.tracker.FeatureTracker` deploys), under its label, with or
-without the tracker's CLAHE. Its method object is built by :func:`~nsflow_ros.core.methods.make_method`
-and wrapped in one pair interface (:class:`EvalMethod`): the frame representation comes from its
-``prepare`` and every solve from its ``track_pair``, so what is evaluated is the code and the
-configuration that are deployed and benchmarked.
-
-* ``NSFlow``: core ``nsflow``;
-* ``NSFlow + OpenCV LK``: core ``nsflow_lk``;
-* ``LM (intensity)``: core ``classical``;
-* ``OpenCV KLT``: core ``klt``;
-* ``OpenCV KLT + CLAHE``: core ``klt`` on CLAHE-equalised images (VINS ``equalize: 1``), the baseline a
-  VINS user picks against changing light.
-
-All of them get the same images, points and initial flow, and by default the tracker's deployed
-pyramid depth (:func:`deployed_levels`).
+Each evaluated method is a :class:`Variant` (an entry of :data:`nsflow_ros.core.methods.METHODS` under
+its label, with or without the tracker's CLAHE) built by :func:`~nsflow_ros.core.methods.make_method`
+and wrapped in :class:`EvalMethod`, so that what is evaluated is the code and configuration deployed.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from types import MappingProxyType
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -39,8 +26,7 @@ from nsflow_ros.core.methods import (
     make_method,
     method_encoder,
 )
-from nsflow_ros.core.pyramid import DescriptorPyramid
-from nsflow_ros.core.solver import LMConfig, TrackResult
+from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.evaluation.errors import EvaluationError
 
 __all__ = [
@@ -55,13 +41,11 @@ __all__ = [
     "EvalMethod",
     "KLTPairMethod",
     "LMPairMethod",
-    "PairMethod",
     "PairResult",
     "Variant",
     "default_methods",
-    "deployed_levels",
-    "deployed_lm",
     "eval_method",
+    "prepare_pair",
 ]
 
 NSFLOW = METHODS["nsflow"].label
@@ -109,16 +93,6 @@ BASELINES = tuple(label for label, v in VARIANTS.items() if not v.spec.learned)
 """The classical baselines (the methods without the learned descriptors)."""
 
 
-def deployed_lm() -> LMConfig:
-    """The LM solver settings the tracker deploys (:data:`~nsflow_ros.core.methods.DEPLOYED_LM`)."""
-    return DEPLOYED_LM
-
-
-def deployed_levels() -> int:
-    """Pyramid levels the tracker deploys: the LM solver's, and OpenCV's maxLevel 3 + 1 (VINS)."""
-    return DEPLOYED_LM.levels
-
-
 @dataclass(frozen=True)
 class PairResult:
     """Flow of N points from image 1 to image 2.
@@ -130,17 +104,6 @@ class PairResult:
 
     flow: np.ndarray
     status: np.ndarray
-
-
-class PairMethod(Protocol):
-    """What an analysis needs of a method."""
-
-    name: str
-    levels: int
-
-    def track(
-        self, image1: np.ndarray, image2: np.ndarray, points: np.ndarray, flow0: np.ndarray | None = None
-    ) -> PairResult: ...
 
 
 def _check_points(points: np.ndarray, flow0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -178,10 +141,15 @@ class EvalMethod:
         """The core method's descriptor encoder (None for OpenCV's KLT on the gray image)."""
         return self.core.encoder
 
-    @property
-    def tracker_overrides(self) -> dict[str, Any]:
-        """The :class:`~nsflow_ros.core.tracker.TrackerSettings` fields that make the tracker run this."""
-        return {"method": self.core.name, "equalize": self.equalize}
+    def levels_fewer(self, fewer: int) -> int:
+        """:attr:`levels` less ``fewer``.
+
+        Raises:
+            EvaluationError: no level would be left.
+        """
+        if self.levels - fewer < 1:
+            raise EvaluationError(f"{self.name}: {self.levels} levels cannot be reduced by {fewer}")
+        return self.levels - fewer
 
     def prepare(self, image: np.ndarray) -> Any:
         """The image's representation (the core method's ``prepare``, as the tracker calls it).
@@ -198,22 +166,20 @@ class EvalMethod:
         except CoreError as err:
             raise EvaluationError(f"{self.name}: {err}") from err
 
-    def track_frames(
+    def track(
         self, frame1: Any, frame2: Any, points: np.ndarray, flow0: np.ndarray | None = None,
         levels: int | None = None,
     ) -> PairResult:
-        """Track on representations from :meth:`prepare` (the core method's ``track_pair``).
+        """Track ``points`` between two frames from :meth:`prepare` (the core method's ``track_pair``).
 
         Args:
             frame1, frame2: representations of the two images.
             points: (N, 2) points in image 1.
             flow0: (N, 2) initial flow; None = zero.
-            levels: pyramid levels of this solve, at most :attr:`levels` (an LM pyramid is built that
-                deep; the solver uses its first levels, and fewer on images too small for them);
-                None = :attr:`levels`.
+            levels: pyramid levels of this solve, 1..:attr:`levels`; None = :attr:`levels`.
 
-        Returns:
-            the flow and status.
+        Raises:
+            EvaluationError: bad shapes or levels, or a solve that fails.
         """
         pts, flow0 = _check_points(points, flow0)
         lev = self.levels if levels is None else int(levels)
@@ -228,12 +194,6 @@ class EvalMethod:
             raise EvaluationError(f"{self.name}: {err}") from err
         return PairResult(new - pts, np.asarray(status, bool))
 
-    def track(
-        self, image1: np.ndarray, image2: np.ndarray, points: np.ndarray, flow0: np.ndarray | None = None
-    ) -> PairResult:
-        """Track ``points`` of image 1 into image 2 from ``flow0`` (None = zero) at :attr:`levels`."""
-        return self.track_frames(self.prepare(image1), self.prepare(image2), points, flow0)
-
     def iterate(
         self, frame1: Any, frame2: Any, points: np.ndarray, flow0: np.ndarray, levels: int, iterations: int
     ) -> tuple[list[np.ndarray], PairResult]:
@@ -246,13 +206,7 @@ class EvalMethod:
 
 
 class LMPairMethod(EvalMethod):
-    """An LM method of the registry (core ``nsflow`` / ``classical``) behind the pair interface.
-
-    Args:
-        name: label in tables and plots.
-        core: the core LM method (:func:`~nsflow_ros.core.methods.make_method`); its ``lm.levels`` is
-            the pyramid depth.
-    """
+    """An LM method of the registry (core ``nsflow`` / ``classical``); its ``lm.levels`` is the depth."""
 
     core: LMMethod
 
@@ -264,55 +218,28 @@ class LMPairMethod(EvalMethod):
         """The solver settings of the core method."""
         return self.core.lm
 
-    def track_pair_result(
-        self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, points: np.ndarray,
-        flow0: np.ndarray | None = None, *, config: LMConfig | None = None, record: bool = False,
-    ) -> TrackResult:
-        """The solver's full result (the core's ``track_pair_result``); ``record`` keeps the history.
-
-        Args:
-            frame1, frame2: pyramids from :meth:`prepare`.
-            points: (N, 2) points in image 1.
-            flow0: (N, 2) initial flow; None = zero.
-            config: solver settings for this call; None = :attr:`config`.
-            record: keep the history.
-        """
-        pts, flow0 = _check_points(points, flow0)
-        try:
-            return self.core.track_pair_result(frame1, frame2, pts, flow0, config, record=record)
-        except CoreError as err:
-            raise EvaluationError(f"{self.name}: {err}") from err
-
     def iterate(
         self, frame1: Any, frame2: Any, points: np.ndarray, flow0: np.ndarray, levels: int, iterations: int
     ) -> tuple[list[np.ndarray], PairResult]:
         # Algorithm 1's per-iteration flow, read from the solver's history: no straggler cut-off.
+        pts, flow0 = _check_points(points, flow0)
         cfg = replace(self.config, levels=levels, max_iterations=iterations, tail_share=0.0)
-        res = self.track_pair_result(frame1, frame2, points, flow0, config=cfg, record=True)
+        try:
+            res = self.core.track_pair_result(frame1, frame2, pts, flow0, cfg, record=True)
+        except CoreError as err:
+            raise EvaluationError(f"{self.name}: {err}") from err
         flows = [rec.flow for rec in res.history]
         flows += [res.flow] * (iterations - len(flows))  # every point had stopped: flows stay
         return flows[:iterations], PairResult(res.flow, res.status)
 
 
 class KLTPairMethod(EvalMethod):
-    """An OpenCV LK method of the registry (core ``klt``, ``nsflow_lk``) behind the pair interface.
-
-    Args:
-        name: label in tables and plots.
-        core: the core method (:func:`~nsflow_ros.core.methods.make_method`).
-        levels: pyramid levels (OpenCV ``maxLevel`` = levels - 1); None = :func:`deployed_levels`.
-        equalize: CLAHE the gray image first (VINS ``equalize: 1``).
-    """
+    """An OpenCV LK method of the registry (core ``klt``, ``nsflow_lk``)."""
 
     core: KLTMethod
 
-    def __init__(
-        self, name: str, core: KLTMethod, levels: int | None = None, *, equalize: bool = False
-    ) -> None:
-        super().__init__(name, core, deployed_levels() if levels is None else levels, equalize=equalize)
-
     def with_iterations(self, max_iterations: int) -> KLTPairMethod:
-        """A copy limited to ``max_iterations`` per level (convergence curves); same representation.
+        """A copy limited to ``max_iterations`` per level; same representation.
 
         Raises:
             EvaluationError: max_iterations < 1.
@@ -323,15 +250,31 @@ class KLTPairMethod(EvalMethod):
         except CoreError as err:
             raise EvaluationError(f"{self.name}: {err}") from err
         core = make_method(spec, encoder=self.encoder)
-        return KLTPairMethod(self.name, core, self.levels, equalize=self.equalize)  # type: ignore[arg-type]
+        return KLTPairMethod(self.name, core, self.levels, equalize=self.equalize)
 
     def iterate(
         self, frame1: Any, frame2: Any, points: np.ndarray, flow0: np.ndarray, levels: int, iterations: int
     ) -> tuple[list[np.ndarray], PairResult]:
         # OpenCV keeps no history: run again with max_iterations = k, on the same representations.
-        results = [self.with_iterations(k).track_frames(frame1, frame2, points, flow0, levels)
+        results = [self.with_iterations(k).track(frame1, frame2, points, flow0, levels)
                    for k in range(1, iterations + 1)]
         return [r.flow for r in results], results[-1]
+
+
+def prepare_pair(
+    methods: Sequence[EvalMethod], image1: np.ndarray, image2: np.ndarray
+) -> dict[str, tuple[Any, Any]]:
+    """Each method's representations of two images, by name, for any number of solves on them.
+
+    Raises:
+        EvaluationError: an object that is not an :class:`EvalMethod`, or an image a method cannot take.
+    """
+    out = {}
+    for m in methods:
+        if not isinstance(m, EvalMethod):
+            raise EvaluationError(f"expected LM or KLT evaluation methods, got {type(m).__name__} {m.name!r}")
+        out[m.name] = (m.prepare(image1), m.prepare(image2))
+    return out
 
 
 def eval_method(
@@ -343,7 +286,8 @@ def eval_method(
     Args:
         label: the method's label.
         encoder: encoder to use instead of the one the registry loads (a method without one: ignored).
-        levels: pyramid levels; None = :func:`deployed_levels`.
+        levels: pyramid levels; None = the tracker's deployed depth (the LM solver's, which is OpenCV's
+            maxLevel 3 + 1 as VINS calls it).
         model: ONNX encoder of the learned methods when ``encoder`` is None; None = the shipped one.
         threads: encoder threads (None = all usable cores).
         providers: onnxruntime execution providers of the learned encoder, best first.
@@ -354,7 +298,7 @@ def eval_method(
     variant = VARIANTS.get(label)
     if variant is None:
         raise EvaluationError(f"unknown method {label!r}; expected one of {list(VARIANTS)}")
-    lev = deployed_levels() if levels is None else levels
+    lev = DEPLOYED_LM.levels if levels is None else levels
     if lev < 1:
         raise EvaluationError(f"levels must be >= 1, got {lev}")
     spec = variant.spec.with_levels(lev)
@@ -365,23 +309,13 @@ def eval_method(
         raise EvaluationError(f"{label}: {err}") from err
     if spec.is_lm:
         return LMPairMethod(label, core)  # type: ignore[arg-type]
-    return KLTPairMethod(label, core, lev, equalize=variant.equalize)  # type: ignore[arg-type]
+    return KLTPairMethod(label, core, lev, equalize=variant.equalize)
 
 
 def default_methods(
     model: str | None = None, levels: int | None = None, threads: int | None = None, providers: str = "cpu"
 ) -> list[EvalMethod]:
-    """Every evaluated method (:data:`METHOD_ORDER`), all at ``levels`` (None = the deployed depth).
-
-    Args:
-        model: NSFlow ONNX encoder (None = the shipped one), loaded as the registry loads it for each
-            method (NSFlow + OpenCV LK without the model's declared smoothing).
-        levels: pyramid levels of every method; None = :func:`deployed_levels`.
-        threads: encoder threads (None = all usable cores).
-        providers: onnxruntime execution providers of the learned encoders, best first.
-
-    Returns:
-        NSFlow, NSFlow + OpenCV LK, LM (intensity), OpenCV KLT, OpenCV KLT + CLAHE.
+    """Every evaluated method (:data:`METHOD_ORDER`), each built by :func:`eval_method` with these settings.
 
     Raises:
         EvaluationError: bad levels, or the model cannot be loaded.

@@ -1,27 +1,12 @@
 """HPatches-style homography pairs from the held-out real photos: tracking error per method.
 
-The paper evaluates on HPatches (viewpoint and illumination sequences) with 1000 keypoints (NMS 6) on the
-first image, reference positions from the ground-truth homography, and box plots of the errors. HPatches
-cannot be downloaded here, so the pairs are rendered from the photos held out of training
-(:data:`~nsflow_ros.data.photos.HELDOUT_IMAGES`), with an exact homography:
-
-* frame 1 is an axis-aligned crop of the photo; frame 2 is the same crop seen through a random homography
-  P of frame-1 pixels, both rendered from the full photo with ``cv2.warpPerspective``, so a frame-1 point
-  x is at P(x) in frame 2;
-* **viewpoint** subset: no lighting change, P of increasing strength, level k = 1..5 moving the frame
-  corners by up to about 6k px (rotation, scale, translation and perspective together);
-* **illumination** subset: mild geometry (level 1) and both frames independently perturbed by the
-  project's illumination perturbation (:func:`~nsflow_ros.data.perturb.perturb_pair`: local shading,
-  gamma, gain, offset, noise) at strength k / 5 (level 5: the full strength 1).
-
-Keypoints: up to 1000 GFTT corners with minimum distance 6 (the paper's NMS 6) on frame 1, kept where
-the true position P(x) lies inside frame 2 with a margin of 10 px (half of KLT's 21 px window), since a
-point that leaves the view cannot be tracked. Every method tracks every keypoint from zero initial flow
-at the pyramid depth the tracker deploys (4 levels): the pairs measure the capture range as well as the
-accuracy.
-
-Errors are ||x + u - P(x)||; a point the method reports as lost counts as an infinite error (so a
-method cannot look better by dropping hard points), and the tracked share is reported beside it.
+HPatches cannot be downloaded here, so the pairs are rendered from the photos held out of training
+(:data:`~nsflow_ros.data.photos.HELDOUT_IMAGES`) with an exact homography: a **viewpoint** subset of
+growing geometric strength and an **illumination** subset (mild geometry, both frames perturbed by
+:func:`~nsflow_ros.data.perturb.perturb_pair` at growing strength). Up to 1000 GFTT keypoints (the paper's
+NMS 6) whose true position stays inside frame 2 are tracked from zero flow at the deployed depth, so the
+pairs measure the capture range as well as the accuracy; a lost point counts as an infinite error, so a
+method cannot look better by dropping hard points.
 """
 
 from __future__ import annotations
@@ -38,17 +23,21 @@ from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import EvalContext, axis_label, levels_text, new_figure, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import CLASSICAL, KLT, KLT_CLAHE, PairMethod, PairResult
+from nsflow_ros.evaluation.methods import CLASSICAL, KLT, KLT_CLAHE, EvalMethod, PairResult, prepare_pair
 from nsflow_ros.evaluation.section import HeadlineRow, Section, config_data, quick_note
 from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = [
+    "MARGIN",
+    "QUICK",
     "SUBSETS",
     "TARGETS",
     "HomographyPair",
     "PairSetConfig",
     "endpoint_errors",
     "error_summary",
+    "inside",
+    "keep_inside",
     "keypoints",
     "make_pairs",
     "random_homography",
@@ -113,22 +102,16 @@ class PairSetConfig:
     max_points: int = 1000
     min_distance: float = 6.0
 
-    @classmethod
-    def quick(cls) -> PairSetConfig:
-        """Tiny sizes for tests and CI."""
-        return cls(width=240, height=180, photos=HELDOUT_IMAGES[:1], levels=2, per_level=1, max_points=150)
+
+QUICK = PairSetConfig(width=240, height=180, photos=HELDOUT_IMAGES[:1], levels=2, per_level=1, max_points=150)
+"""Tiny sizes for tests and CI."""
 
 
 def random_homography(rng: np.random.Generator, width: int, height: int, level: float) -> np.ndarray:
-    """A random homography moving the frame corners by up to about ``6 * level`` pixels.
+    """A random homography moving the frame corners by up to about ``6 * level`` pixels (0: identity).
 
-    Rotation about the centre (up to 1 degree per level), scale (1 +- 1 % per level), translation
-    (up to 2 px per level) and independent corner jitter (up to 2 px per level), composed.
-
-    Args:
-        rng: random generator.
-        width, height: frame size.
-        level: strength (0 = identity).
+    Rotation about the centre (up to 1 degree per level), scale (1 +- 1 % per level), translation and
+    independent corner jitter (each up to 2 px per level), composed.
 
     Returns:
         P, (3, 3) float64, frame-1 pixel -> frame-2 pixel.
@@ -157,6 +140,9 @@ def render_pair(
 
     Returns:
         (frame1, frame2), each (height, width) uint8.
+
+    Raises:
+        EvaluationError: a photo that is not (H, W) uint8, or a homography that is not (3, 3).
     """
     if photo.ndim != 2 or photo.dtype != np.uint8:
         raise EvaluationError(f"photo must be (H, W) uint8, got {photo.shape} {photo.dtype}")
@@ -181,15 +167,7 @@ def render_pair(
 
 
 def make_pairs(subset: str, cfg: PairSetConfig, seed: int = 0) -> list[HomographyPair]:
-    """The pairs of one subset, reproducible from ``seed``.
-
-    Args:
-        subset: "viewpoint" or "illumination".
-        cfg: sizes.
-        seed: base seed.
-
-    Returns:
-        ``len(cfg.photos) * cfg.levels * cfg.per_level`` pairs, mildest first.
+    """The ``len(cfg.photos) * cfg.levels * cfg.per_level`` pairs of one subset, mildest first.
 
     Raises:
         EvaluationError: unknown subset or photo.
@@ -215,15 +193,13 @@ def make_pairs(subset: str, cfg: PairSetConfig, seed: int = 0) -> list[Homograph
 
 
 def keypoints(image: np.ndarray, max_points: int = 1000, min_distance: float = 6.0) -> np.ndarray:
-    """GFTT keypoints as the paper's evaluation takes them (1000, NMS 6).
+    """GFTT keypoints as the paper's evaluation takes them (1000, NMS 6), strongest first.
 
-    Args:
-        image: (H, W) uint8 frame.
-        max_points: at most this many, strongest first.
-        min_distance: minimum distance between keypoints (non-maximum suppression radius).
+    Shape:
+        image: (H, W) uint8. Returns (N, 2) float64 (x, y).
 
-    Returns:
-        (N, 2) float64 (x, y) positions.
+    Raises:
+        EvaluationError: a bad image.
     """
     try:
         return detect_corners(image, max_points, min_distance=min_distance)
@@ -232,14 +208,13 @@ def keypoints(image: np.ndarray, max_points: int = 1000, min_distance: float = 6
 
 
 def true_flow(points: np.ndarray, homography: np.ndarray) -> np.ndarray:
-    """Exact flow P(x) - x of frame-1 points.
+    """Exact flow P(x) - x of frame-1 points under the homography P.
 
-    Args:
-        points: (N, 2) positions in frame 1.
-        homography: (3, 3) P.
+    Shape:
+        points: (N, 2). homography: (3, 3). Returns (N, 2) float64.
 
-    Returns:
-        (N, 2) float64 flow.
+    Raises:
+        EvaluationError: points that are not (N, 2).
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
@@ -259,15 +234,22 @@ def inside(points: np.ndarray, width: int, height: int, margin: float = MARGIN) 
     )
 
 
+def keep_inside(
+    points: np.ndarray, flow: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points, and their flow, whose true position ``points + flow`` lies :data:`MARGIN` px inside."""
+    keep = inside(points + flow, width, height)
+    return points[keep], flow[keep]
+
+
 def endpoint_errors(result: PairResult, flow_gt: np.ndarray) -> np.ndarray:
-    """Endpoint error of every point, infinite where the method lost it.
+    """Endpoint error (px) of every point, infinite where the method lost it or its flow is not finite.
 
-    Args:
-        result: a method's output for N points.
-        flow_gt: (N, 2) exact flow.
+    Shape:
+        result: N points. flow_gt: (N, 2). Returns (N,) float64.
 
-    Returns:
-        (N,) float64 errors in pixels (inf where status is False or the flow is not finite).
+    Raises:
+        EvaluationError: the shapes differ.
     """
     if result.flow.shape != flow_gt.shape:
         raise EvaluationError(f"flow has shape {result.flow.shape}, ground truth {flow_gt.shape}")
@@ -277,15 +259,8 @@ def endpoint_errors(result: PairResult, flow_gt: np.ndarray) -> np.ndarray:
 
 
 def error_summary(errors: np.ndarray) -> dict[str, float]:
-    """Median error (lost = inf), shares within 1 / 2 / 3 px, tracked share, median of tracked points.
-
-    Args:
-        errors: (N,) errors, inf where lost.
-
-    Returns:
-        dict with ``median``, ``within_1px``, ``within_2px``, ``within_3px``, ``tracked``,
-        ``median_tracked``, ``mean_tracked``, ``points`` (nan statistics for no points).
-    """
+    """``median`` (lost = inf), ``within_1px`` / ``2px`` / ``3px``, ``tracked``, ``median_tracked``,
+    ``mean_tracked`` and ``points`` of (N,) errors (inf where lost; nan statistics for no points)."""
     e = np.asarray(errors, dtype=np.float64).reshape(-1)
     if e.size == 0:
         nan = float("nan")
@@ -305,16 +280,13 @@ def error_summary(errors: np.ndarray) -> dict[str, float]:
 
 
 def _track_pair(
-    pair: HomographyPair, methods: list[PairMethod], cfg: PairSetConfig
+    pair: HomographyPair, methods: list[EvalMethod], cfg: PairSetConfig
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Keypoints of one pair, their true displacement, and each method's errors."""
+    """The true displacement of one pair's keypoints, and each method's errors."""
     pts = keypoints(pair.image1, cfg.max_points, cfg.min_distance)
-    gt = true_flow(pts, pair.homography)
-    keep = inside(pts + gt, cfg.width, cfg.height)
-    pts, gt = pts[keep], gt[keep]
-    errs = {}
-    for m in methods:
-        errs[m.name] = endpoint_errors(m.track(pair.image1, pair.image2, pts), gt)
+    pts, gt = keep_inside(pts, true_flow(pts, pair.homography), cfg.width, cfg.height)
+    frames = prepare_pair(methods, pair.image1, pair.image2)
+    errs = {m.name: endpoint_errors(m.track(*frames[m.name], pts), gt) for m in methods}
     return np.linalg.norm(gt, axis=1), errs
 
 
@@ -356,16 +328,11 @@ class _Subset:
 
 
 def run(ctx: EvalContext, cfg: PairSetConfig | None = None) -> Section:
-    """Track GFTT keypoints on both subsets with every method and summarise the errors.
+    """The ``pairs`` section: every method on both subsets (``pairs_boxplot.png``, tables, headline rows).
 
-    Args:
-        ctx: the evaluation context (methods, quick, out_dir, progress, seed).
-        cfg: pair settings; ``PairSetConfig.quick()`` in quick mode, else ``PairSetConfig()``.
-
-    Returns:
-        the "pairs" :class:`Section` (``pairs_boxplot.png``, tables, headline rows).
+    ``cfg`` None: :data:`QUICK` in a quick run, else ``PairSetConfig()``.
     """
-    cfg = cfg or (PairSetConfig.quick() if ctx.quick else PairSetConfig())
+    cfg = cfg or (QUICK if ctx.quick else PairSetConfig())
     names = [m.name for m in ctx.methods]
     subsets = {s: _track_subset(ctx, cfg, s, names) for s in SUBSETS}
     summary = {s: {n: error_summary(subsets[s].errors[n]) for n in names} for s in SUBSETS}

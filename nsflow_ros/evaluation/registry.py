@@ -1,8 +1,7 @@
-"""The registry of analyses the evaluation command runs, in report order (the sequences first).
+"""The registry of analyses the evaluation command runs, in report order.
 
-An :class:`Analysis` names a function ``run(ctx: EvalContext) -> Section``; ``nsflow-evaluate --only`` /
-``--skip`` select them by key. To add one: write the module with its ``run``, import it here and append
-it to :data:`ANALYSES`.
+To add one: write the module with its ``run(ctx) -> Section``, import it here and append it to
+:data:`ANALYSES`.
 """
 
 from __future__ import annotations
@@ -54,14 +53,7 @@ ANALYSES: list[Analysis] = [
 
 
 def select(only: Sequence[str] = (), skip: Sequence[str] = ()) -> list[Analysis]:
-    """The analyses to run, in registry order.
-
-    Args:
-        only: keys to run (empty = all).
-        skip: keys not to run.
-
-    Returns:
-        the selected analyses.
+    """The analyses to run, in registry order: those in ``only`` (empty = all) that are not in ``skip``.
 
     Raises:
         EvaluationError: an unknown key, or nothing left to run.

@@ -1,10 +1,7 @@
 """Runs the selected analyses and writes ``report.md`` and ``results.json``.
 
-The report: title, date, the exact command line, the machine (CPUs, load, library versions, git commit),
-the headline table built from every section's :class:`~nsflow_ros.evaluation.section.HeadlineRow` (one
-column per compared method, then the target and whether NSFlow meets it), then each section. An
-analysis that fails with a known error (:class:`~nsflow_ros.errors.NSFlowError`) is reported as failed
-and the others still run, so a long run is never lost to one broken part.
+An analysis that fails with a known error (:class:`~nsflow_ros.errors.NSFlowError`) is reported as
+failed and the others still run, so a long run is never lost to one broken part.
 """
 
 from __future__ import annotations
@@ -40,8 +37,6 @@ __all__ = [
     "write_report",
 ]
 
-METHOD_COLUMNS = METHOD_ORDER
-
 
 @dataclass
 class RunResult:
@@ -59,15 +54,10 @@ class RunResult:
 
 
 def run_analyses(ctx: EvalContext, analyses: Sequence[Analysis]) -> RunResult:
-    """Run each analysis in turn with a progress bar over them.
+    """Run each analysis in turn (``ctx.out_dir`` must exist) with a progress bar over them.
 
-    Args:
-        ctx: the evaluation context (``ctx.out_dir`` must exist).
-        analyses: what to run, e.g. :func:`~nsflow_ros.evaluation.registry.select`.
-
-    Returns:
-        the :class:`RunResult`; an analysis raising a :class:`~nsflow_ros.errors.NSFlowError` is recorded
-        in ``failures`` (other exceptions are bugs and propagate).
+    An analysis raising a :class:`~nsflow_ros.errors.NSFlowError` is recorded in ``failures``; other
+    exceptions are bugs and propagate.
     """
     result = RunResult()
     for a in ctx.bar(analyses, desc="evaluation", total=len(analyses), unit="analysis"):
@@ -96,14 +86,8 @@ def _git_commit() -> str:
 
 
 def machine_info(model: Path | None = None) -> dict[str, Any]:
-    """Where the figures were measured: CPUs, load, Python and library versions, git commit, model file.
-
-    Args:
-        model: the NSFlow encoder file (None: the shipped one).
-
-    Returns:
-        a JSON-serialisable dict.
-    """
+    """Where the figures were measured, as JSON data: CPUs, load, Python and library versions, git commit,
+    the NSFlow encoder file (None: the shipped one)."""
     import cv2
     import numpy as np
     import onnxruntime
@@ -124,19 +108,13 @@ def machine_info(model: Path | None = None) -> dict[str, Any]:
 
 
 def headline_table(sections: Sequence[Section]) -> str:
-    """The headline table: every section's headline rows, one column per method, target, met.
-
-    Args:
-        sections: finished sections.
-
-    Returns:
-        a Markdown table (a sentence when no section has headline rows).
-    """
+    """Every section's headline rows as a Markdown table (one column per method, then target and met), or a
+    sentence when there are none."""
     rows = [row for s in sections for row in s.headline]
     if not rows:
         return "_No headline figures in this run._"
-    extra = sorted({m for r in rows for m in r.values} - set(METHOD_COLUMNS))
-    cols = [*METHOD_COLUMNS, *extra]
+    extra = sorted({m for r in rows for m in r.values} - set(METHOD_ORDER))
+    cols = [*METHOD_ORDER, *extra]
     lines = ["| metric | " + " | ".join(cols) + " | target | met |", "|---|" + "---|" * (len(cols) + 2)]
     for r in rows:
         met = "-" if r.met is None else ("yes" if r.met else "**no**")
@@ -148,18 +126,7 @@ def headline_table(sections: Sequence[Section]) -> str:
 def render_report(
     result: RunResult, info: dict[str, Any], command: str, started: datetime, quick: bool = False
 ) -> str:
-    """The Markdown report.
-
-    Args:
-        result: the sections, timings and failures of the run.
-        info: :func:`machine_info`.
-        command: the exact command line.
-        started: when the run began (local time).
-        quick: quick mode (says so at the top: its figures are not meaningful).
-
-    Returns:
-        the report text.
-    """
+    """The Markdown report of a run: ``info`` is :func:`machine_info`, ``started`` the local start time."""
     total = sum(result.seconds.values())
     lines = [
         "# NSFlow evaluation report",
@@ -219,18 +186,13 @@ def write_report(
     started: datetime,
     quick: bool = False,
 ) -> tuple[Path, Path]:
-    """Write ``report.md`` and ``results.json`` atomically into ``out_dir``.
-
-    Args:
-        out_dir: the report folder (exists; the sections' PNGs are already in it).
-        result: the run's sections, timings and failures.
-        info: :func:`machine_info`.
-        command: the exact command line.
-        started: when the run began.
-        quick: quick mode.
+    """Write ``report.md`` (:func:`render_report`) and ``results.json`` atomically into ``out_dir``.
 
     Returns:
         (report path, results path).
+
+    Raises:
+        EvaluationError: a file cannot be written.
     """
     out_dir = Path(out_dir)
     text = render_report(result, info, command, started, quick)

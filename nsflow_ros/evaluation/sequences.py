@@ -1,52 +1,22 @@
 """Front-end metrics on the sample sequences, per illumination perturbation level and method.
 
-Every method runs through the deployed :class:`~nsflow_ros.core.tracker.FeatureTracker` (GFTT top-up to
-``max_cnt``, flow-back 0.5 px, border check, persistent ids), offline: every frame is processed, none is
-dropped for being late. The methods differ only in the flow:
+Every method runs through the deployed :class:`~nsflow_ros.core.tracker.FeatureTracker` with its
+deployed settings, offline (every frame processed), so the methods differ only in the flow. Per
+perturbation level (:class:`~nsflow_ros.data.perturb.IlluminationPerturber`, the same images for every
+method) it measures track survival and lengths, the tracking error against the exact ground-truth flow,
+the relative-rotation error of a 5-point RANSAC, the paper's Table III fundamental-matrix inlier rate and
+epipolar error, and where tracks are lost (the report's text beside the table says how each is
+computed). Two long-track figures are kept because they differ: a tracker that loses and re-detects
+features makes more distinct tracks reaching 10 frames, but keeps fewer old tracks alive in any frame.
 
-* ``NSFlow``: tracker method ``"nsflow"`` (the ONNX encoder's descriptors through the LM solver);
-* ``LM (intensity)``: tracker method ``"classical"`` (image intensity through the same solver);
-* ``NSFlow + OpenCV LK``: tracker method ``"nsflow_lk"`` (the same descriptors as uint8 through OpenCV's
-  pyramidal LK with VINS-Fusion's calls);
-* ``OpenCV KLT``: tracker method ``"klt"`` (``cv2.calcOpticalFlowPyrLK`` exactly as VINS-Fusion calls it);
-* ``OpenCV KLT + CLAHE``: tracker method ``"klt"`` with ``equalize`` on (VINS ``equalize: 1``).
-
-Every method uses the tracker's deployed settings (the LM solver's 4 levels, VINS's maxLevel 3).
-
-Per perturbation level (``none`` / ``small`` / ``large``:
-:class:`~nsflow_ros.data.perturb.IlluminationPerturber` seeded with the run's seed, the same images for
-every method) and method, it measures:
-
-* tracked share: features carried over from the previous frame over all features of frames 2..N
-  (the tracker tops up to ``max_cnt``, so this is the frame-to-frame survival rate);
-* mean track length (frames an id was seen; tracks still alive at the end count with their length so
-  far), the number of distinct tracks reaching 10 frames, and the features per frame whose track is at
-  least 10 frames old (mean over frames 10..N). The two 10-frame figures differ: a tracker that loses
-  and re-detects features makes more distinct tracks, some of which reach 10 frames, while it keeps
-  fewer old tracks alive in any one frame;
-* tracking error of every carried-over feature against the exact ground-truth flow of the previous
-  position (median and p90, px; points the ground truth marks occluded are left out);
-* relative-rotation error of a 5-point RANSAC: ``cv2.findEssentialMat`` (threshold 1 px, converted to
-  normalised units with the focal length; confidence 0.999) and ``cv2.recoverPose`` on the undistorted
-  normalised points of the ids two consecutive frames share, against the ground-truth relative rotation
-  from the sequence's camera poses; the angle of ``R_est R_gt^T`` in degrees. Pairs with fewer than
-  :data:`MIN_MATCHES` matches or no pose count as failures;
-* the paper's Table III method: ``cv2.findFundamentalMat`` RANSAC (threshold :data:`F_THRESHOLD_PX` px,
-  confidence 0.99) on the consecutive frames' matches, in undistorted pixels (normalised points through
-  the camera's own fx, fy, cx, cy); inlier rate = inliers over all features of the first frame (lost
-  tracks count against it, as in the paper); epipolar error = mean point-to-line distance (px) of the
-  inliers to their epipolar line ``F x1`` in the second image;
-* where tracks are lost: tracks lost per frame and the share of them whose last position lies within
-  :data:`NEAR_BORDER_PX` of the image edge.
-
-Quick mode renders a tiny version of the same scene and flight (0.6 s, 0.4 x resolution) in memory; full
-mode generates (once, cached) an 8 s 752x480 sample sequence under the cache folder.
+Quick mode renders a tiny version of the same scene and flight in memory; full mode generates (once,
+cached) an 8 s 752x480 sample sequence.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -55,8 +25,9 @@ import numpy as np
 
 from nsflow_ros.core.encoder import Encoder
 from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.methods import method_encoder
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
-from nsflow_ros.evaluation.context import EvalContext, new_figure, save_figure
+from nsflow_ros.evaluation.context import EvalContext, new_figure, sample_sequence, save_figure
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import CLASSICAL, KLT, NSFLOW, VARIANTS
 from nsflow_ros.evaluation.section import HeadlineRow, Section
@@ -79,6 +50,7 @@ __all__ = [
     "fundamental_inliers",
     "learned_encoder",
     "load_source",
+    "method_encoders",
     "relative_rotation_error",
     "rotation_angle_deg",
     "run",
@@ -146,6 +118,11 @@ class SequenceSetup:
         if not 0 < self.scale <= 1:
             raise EvaluationError(f"scale must be in (0, 1], got {self.scale}")
 
+    def tracker_settings(self, ctx: EvalContext) -> TrackerSettings:
+        """The tracker's settings for this setup, with the run's threads and providers."""
+        return TrackerSettings(max_cnt=self.max_cnt, min_dist=self.min_dist, num_threads=ctx.threads,
+                               providers=ctx.providers)  # fmt: skip
+
 
 QUICK = SequenceSetup(duration=0.6, scale=0.4, max_cnt=60, min_dist=12.0)
 FULL = SequenceSetup(duration=8.0)
@@ -156,13 +133,13 @@ class FrameSource:
 
     Args:
         sequence: a :class:`~nsflow_ros.data.sample.SampleSequence`.
-        scale: image scale; 1 uses the stored (or re-rendered) images, below 1 renders the same scene and
-            flight through the scaled camera (pixel centres map as ``u' = (u + 0.5) s - 0.5``).
+        scale: image scale; 1 uses the stored images, below 1 renders the same scene and flight through
+            the scaled camera.
 
     Attributes:
-        camera: the (scaled) camera as the tracker's camera model (pinhole-radtan).
+        camera: the (scaled) camera as the tracker's camera model.
         size: (width, height).
-        stamps_ns: (N,) int64 frame stamps (for :class:`~nsflow_ros.data.scoring.TrackStats`).
+        stamps_ns: (N,) int64 frame stamps.
     """
 
     def __init__(self, sequence: Any, scale: float = 1.0) -> None:
@@ -327,15 +304,15 @@ class MethodRun:
     Attributes:
         method: report name of the method.
         level: perturbation level.
-        figures: the summary numbers (see :meth:`summary`).
+        figures: the summary numbers (:meth:`summary`).
         lengths: final length (frames) of every track.
         errors: GT tracking error (px) of every carried-over, visible feature.
         rotation_errors: per consecutive frame pair, degrees (NaN where the 5-point step failed).
         inlier_rates, epipolar_errors: per frame pair, Table III figures (NaN where F failed).
         frame_ms: per-frame tracker time (ms).
         long_per_frame: per frame from the 10th on, features whose track is at least 10 frames old.
-        lost_border_distance: for every track lost between two frames, its last position's distance to
-            the nearest image edge (px).
+        lost_border_distance: per track lost between two frames, its last position's distance to the
+            nearest image edge (px).
     """
 
     method: str
@@ -402,14 +379,10 @@ def track_sequence(
         source: the frames and their ground truth.
         method: report name (a key of :data:`TRACKER_METHODS`).
         level: ``none``, ``small`` or ``large``.
-        settings: tracker settings; ``method`` and ``equalize`` are replaced by the method's
-            (:data:`TRACKER_METHODS`).
+        settings: tracker settings; the method's :data:`TRACKER_METHODS` fields replace theirs.
         encoder: encoder of a method that has one (None: the tracker loads its own).
         seed: perturbation and RANSAC seed.
         tick: called after every frame (progress bar).
-
-    Returns:
-        the run with its figures.
 
     Raises:
         EvaluationError: unknown method or level, or the tracker / model fails.
@@ -484,19 +457,11 @@ def evaluate_sequences(
     seed: int = 0,
     progress: bool = False,
 ) -> dict[str, dict[str, MethodRun]]:
-    """Every method on every level; returns ``{level: {method: MethodRun}}``.
+    """Every method (keys of :data:`TRACKER_METHODS`) on every level, as :func:`track_sequence` runs
+    them (``encoders`` by method name; progress over all frames); returns ``{level: {method: run}}``.
 
-    Args:
-        source: the frames.
-        methods: report names (keys of :data:`TRACKER_METHODS`).
-        levels: perturbation levels.
-        settings: tracker settings shared by all methods.
-        encoders: report name -> encoder for the LM methods (missing: loaded by the tracker).
-        seed: perturbation and RANSAC seed.
-        progress: show progress over all frames.
-
-    Returns:
-        the runs.
+    Raises:
+        EvaluationError: no or unknown methods, or a run that fails.
     """
     from nsflow_ros.progress import progress_bar
 
@@ -650,8 +615,6 @@ def learned_encoder(
     Raises:
         EvaluationError: the model cannot be loaded.
     """
-    from nsflow_ros.core.methods import method_encoder
-
     try:
         return method_encoder(TRACKER_METHODS[name]["method"], model, threads, providers)
     except CoreError as err:
@@ -659,44 +622,23 @@ def learned_encoder(
 
 
 def load_source(ctx: EvalContext, setup: SequenceSetup) -> FrameSource:
-    """The sample sequence of ``setup`` (made once under the cache folder) as a :class:`FrameSource`.
-
-    The cache folder is ``ctx.extra["sequences"]["cache_dir"]``, by default ``cache/`` beside
-    ``ctx.out_dir``. Full-size sequences are stored with their images (ASL); scaled ones keep only the
-    poses and scene and render their frames in memory.
+    """The sample sequence of ``setup`` as a :class:`FrameSource`, made once
+    (:func:`~nsflow_ros.evaluation.context.sample_sequence`); a scaled one keeps only the poses and
+    scene on disk, since its frames are rendered in memory.
 
     Raises:
-        EvaluationError: the sequence cannot be made there.
+        EvaluationError: the sequence cannot be made.
     """
-    from nsflow_ros.data.errors import DataError
-    from nsflow_ros.data.sample import make_sample_sequence
-
-    opts = ctx.extra.get(KEY, {})
-    cache = Path(opts.get("cache_dir", ctx.out_dir.parent / "cache"))
-    name = f"sample-seed{setup.seed}-{setup.duration:g}s"
-    # quick mode renders its small frames itself: only the sidecar (poses, scene) is needed on disk
-    formats: tuple[str, ...] = ("asl",) if setup.scale == 1 else ()
-    try:
-        seq = make_sample_sequence(
-            cache / (name + ("" if formats else "-meta")), seed=setup.seed, duration=setup.duration,
-            stereo=False, formats=formats, progress=ctx.progress and not ctx.quick,
-        )
-    except (DataError, OSError) as err:
-        raise EvaluationError(f"cannot make the sample sequence under {cache}: {err}") from err
+    seq = sample_sequence(ctx, KEY, setup.seed, setup.duration, stereo=False, images=setup.scale == 1,
+                          progress=ctx.progress and not ctx.quick)  # fmt: skip
     return FrameSource(seq, setup.scale)
 
 
 def run(ctx: EvalContext) -> Section:
-    """The ``sequences`` section of the report (see the module docstring).
+    """The ``sequences`` section: bar chart, track-length histogram, table and headline rows.
 
     ``ctx.extra["sequences"]`` may hold ``duration`` (s), ``scale``, ``sequence_seed``, ``levels`` and
-    ``cache_dir`` (default ``<out_dir>/../cache``) to override the quick / full setups.
-
-    Args:
-        ctx: the evaluation context (methods, model, quick, out_dir, progress, seed, threads).
-
-    Returns:
-        the section, with its bar chart, track-length histogram, table and headline rows.
+    ``cache_dir`` to override the quick / full setups.
 
     Raises:
         EvaluationError: no usable method, a model or sequence that cannot be loaded.
@@ -706,12 +648,11 @@ def run(ctx: EvalContext) -> Section:
     if not methods:
         have = [m.name for m in ctx.methods]
         raise EvaluationError(f"none of the run's methods {have} is one of {list(TRACKER_METHODS)}")
-    encoders = _encoders(ctx, methods)
-    settings = TrackerSettings(max_cnt=setup.max_cnt, min_dist=setup.min_dist, num_threads=ctx.threads,
-                               providers=ctx.providers)
+    encoders = method_encoders(ctx, methods)
     source = load_source(ctx, setup)
     runs = evaluate_sequences(
-        source, methods, levels, settings=settings, encoders=encoders, seed=ctx.seed, progress=ctx.progress
+        source, methods, levels, settings=setup.tracker_settings(ctx), encoders=encoders, seed=ctx.seed,
+        progress=ctx.progress,
     )
     out = Path(ctx.out_dir)
     figs = [
@@ -740,8 +681,6 @@ def run(ctx: EvalContext) -> Section:
 
 def _setup(ctx: EvalContext) -> tuple[SequenceSetup, tuple[str, ...]]:
     """The quick / full setup with ``ctx.extra["sequences"]``'s overrides, and the perturbation levels."""
-    from dataclasses import replace
-
     opts = dict(ctx.extra.get(KEY, {}))
     base = QUICK if ctx.quick else FULL
     setup = replace(
@@ -753,13 +692,16 @@ def _setup(ctx: EvalContext) -> tuple[SequenceSetup, tuple[str, ...]]:
     return setup, tuple(opts.get("levels", LEVELS))
 
 
-def _encoders(ctx: EvalContext, methods: list[str]) -> dict[str, Encoder]:
-    """The encoders of the methods that have one: the run's loaded models, the missing learned ones loaded."""
+def method_encoders(ctx: EvalContext, methods: list[str]) -> dict[str, Encoder]:
+    """The encoders of the methods that have one: the run's loaded models, the missing learned ones loaded.
+
+    Raises:
+        EvaluationError: a model cannot be loaded.
+    """
     encoders: dict[str, Encoder] = {}
     for m in ctx.methods:
-        enc = getattr(m, "encoder", None)
-        if m.name in (*LEARNED, CLASSICAL) and isinstance(enc, Encoder):
-            encoders[m.name] = enc  # reuse the run's loaded model instead of opening it again
+        if m.name in (*LEARNED, CLASSICAL) and m.encoder is not None:
+            encoders[m.name] = m.encoder  # reuse the run's loaded model instead of opening it again
     for name in (n for n in LEARNED if n in methods and n not in encoders):
         encoders[name] = learned_encoder(name, ctx.model, ctx.threads, ctx.providers)
     return encoders

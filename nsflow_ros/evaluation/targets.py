@@ -1,9 +1,8 @@
-"""The evaluation's targets as data: one row both prints the target in words and decides whether it is met.
+"""The evaluation's targets as data: one row both prints the target in words and decides whether it is met,
+so the headline row's text and verdict cannot drift apart.
 
 A :class:`Target` compares one figure of NSFlow (or another subject method) with a conjunction of
-:class:`Clause` s, each against a fixed bound ("<= 0.5 px") or against a multiple of the other methods'
-figures ("<= 1.2x OpenCV KLT", ">= 1.5x the best baseline"); the headline row's target text and its
-verdict are both derived from the row, so they cannot drift apart.
+:class:`Clause` s, each against a fixed bound ("<= 0.5 px") or a multiple of other methods' figures.
 """
 
 from __future__ import annotations
@@ -118,14 +117,8 @@ class Target:
         return f"stretch: {body}" if self.stretch else body
 
     def check(self, figures: Mapping[str, Any]) -> bool | None:
-        """Whether the target is met.
-
-        Args:
-            figures: method name -> the figure (None or absent: not evaluated).
-
-        Returns:
-            True / False; None when the subject or a required rival was not evaluated.
-        """
+        """Whether the target is met by ``figures`` (method name -> figure; None or absent: not evaluated);
+        None when the subject or a required rival was not evaluated."""
         value = figures.get(self.subject)
         if value is None:
             return None

@@ -4,7 +4,7 @@ median / p90 summary of millisecond samples, and one encoder call timed on a rea
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import cv2
@@ -17,16 +17,8 @@ __all__ = ["make_frames", "time_encoder", "timed", "timing_stats"]
 
 
 def make_frames(count: int, size: tuple[int, int] = (752, 480), seed: int = 0) -> list[np.ndarray]:
-    """A smooth camera-like sequence over a real photo: small rotations, zoom and translation per frame.
-
-    Args:
-        count: number of frames.
-        size: (width, height).
-        seed: motion seed.
-
-    Returns:
-        ``count`` BGR uint8 frames.
-    """
+    """``count`` BGR uint8 frames of ``size`` (width, height): a smooth camera-like motion over a real
+    photo (small rotations, zoom and translation per frame, seeded by ``seed``)."""
     from skimage import data as skdata
 
     w, h = size
@@ -42,9 +34,11 @@ def make_frames(count: int, size: tuple[int, int] = (752, 480), seed: int = 0) -
     return frames
 
 
-def timing_stats(samples: list[float]) -> dict[str, float]:
-    """``{"median_ms", "p90_ms"}`` of millisecond samples."""
+def timing_stats(samples: Sequence[float]) -> dict[str, float]:
+    """``{"median_ms", "p90_ms"}`` of millisecond samples (NaN for none)."""
     arr = np.asarray(samples, dtype=np.float64)
+    if arr.size == 0:
+        return {"median_ms": float("nan"), "p90_ms": float("nan")}
     return {"median_ms": float(np.median(arr)), "p90_ms": float(np.percentile(arr, 90))}
 
 
@@ -58,16 +52,11 @@ def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
 def time_encoder(
     encoder: Encoder, size: tuple[int, int], repeats: int, warmup: int = 1
 ) -> dict[str, float]:
-    """Median and p90 milliseconds of one encoder call on a real-photo frame of ``size``.
+    """``{"median_ms", "p90_ms"}`` of ``repeats`` encoder calls on a real-photo frame of ``size`` (width,
+    height), after ``warmup`` untimed calls (onnxruntime allocates its buffers on the first run).
 
-    Args:
-        encoder: any encoder (ONNX or intensity).
-        size: (width, height) of the frame.
-        repeats: timed calls.
-        warmup: untimed calls first (onnxruntime allocates its buffers on the first run).
-
-    Returns:
-        ``{"median_ms", "p90_ms"}``.
+    Raises:
+        EvaluationError: repeats < 1 or warmup < 0.
     """
     if repeats < 1 or warmup < 0:
         raise EvaluationError(f"repeats must be >= 1 and warmup >= 0, got {repeats} and {warmup}")

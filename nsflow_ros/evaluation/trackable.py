@@ -1,24 +1,11 @@
 """Trackable-region ratio (the paper's Table I and its heat-map figure).
 
-The paper takes every pixel as a keypoint, moves its initial position by 15 px in a random direction,
-lets the solver recover the true correspondence and counts the pixels recovered within 1 / 2 / 3 px.
-Here the pairs are rendered from the held-out photos (:mod:`nsflow_ros.evaluation.pairs`): mild
-geometry (a level-1 homography, a few px) once with no lighting change and once with both frames
-perturbed at full strength (:func:`~nsflow_ros.data.perturb.perturb_pair`). Every pixel at least 10 px
-from the border (every ``stride``-th pixel in quick mode) whose true position stays 10 px inside frame 2
-is a keypoint; the initial flow is the true flow plus exactly 15 px in a uniformly random direction,
-the same for every method. A lost point counts as not recovered.
-
-Each method runs at the pyramid depth the tracker deploys (4 levels: the LM solver's, and OpenCV's
-maxLevel 3 as VINS calls it; the 15 px offset is under 2 px at the coarsest level) and, to show the
-basin per level, at one level fewer. The heat map (deployed depth) colours each pixel by the threshold
-it was recovered within (red = easy, blue = not recovered), one column per method, as the paper's
-figure does.
-
-A lighting change at full strength saturates parts of some photos, and no descriptor keeps what
-clipping erased. So the report
-also gives each method's share among the keypoints whose solver window is not clipped
-(:func:`clipped_windows`), next to the share of keypoints that are.
+As in the paper, every pixel (every ``stride``-th in quick mode) of a pair rendered from a held-out photo
+is a keypoint whose initial flow is off by 15 px in a random direction, and the share recovered within
+1 / 2 / 3 px is counted, without and with a full-strength lighting change, at the deployed depth and one
+level fewer. A lighting change at full strength saturates parts of some photos and no descriptor keeps
+what clipping erased, so the shares are also given among the keypoints whose solver window is not
+clipped (:func:`clipped_windows`).
 """
 
 from __future__ import annotations
@@ -28,24 +15,20 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from nsflow_ros.core.methods import DEPLOYED_LM
 from nsflow_ros.data.perturb import perturb_pair
 from nsflow_ros.data.photos import HELDOUT_IMAGES, load_photo
 from nsflow_ros.evaluation.context import (
+    CONDITIONS,
     EvalContext,
     condition_label,
+    level_reductions,
     levels_text,
     new_figure,
     save_figure,
 )
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import (
-    BASELINES,
-    CLASSICAL,
-    EvalMethod,
-    PairMethod,
-    PairResult,
-    deployed_lm,
-)
+from nsflow_ros.evaluation.methods import BASELINES, CLASSICAL, EvalMethod, PairResult, prepare_pair
 from nsflow_ros.evaluation.pairs import (
     MARGIN,
     HomographyPair,
@@ -60,6 +43,7 @@ from nsflow_ros.evaluation.targets import Clause, Target, headline_row
 
 __all__ = [
     "CLIP_SHARE",
+    "QUICK",
     "TARGETS",
     "THRESHOLDS",
     "TrackableConfig",
@@ -71,7 +55,6 @@ __all__ = [
 ]
 
 THRESHOLDS = (1.0, 2.0, 3.0)
-CONDITIONS = ("none", "light")
 CLIP_DARK, CLIP_BRIGHT = 5, 250  # gray values at or beyond which a pixel counts as clipped
 CLIP_SHARE = 0.2
 """A window is clipped when more than this share of its pixels is (:func:`clipped_windows`)."""
@@ -102,10 +85,9 @@ class TrackableConfig:
     perturbation: float = 15.0
     chunk: int = 2000
 
-    @classmethod
-    def quick(cls) -> TrackableConfig:
-        """Tiny sizes for tests and CI."""
-        return cls(width=160, height=120, stride=6, photos=HELDOUT_IMAGES[:1])
+
+QUICK = TrackableConfig(width=160, height=120, stride=6, photos=HELDOUT_IMAGES[:1])
+"""Tiny sizes for tests and CI."""
 
 
 @dataclass(frozen=True)
@@ -151,15 +133,8 @@ class TrackableMap:
 
 
 def make_trackable_pairs(cfg: TrackableConfig, seed: int = 0) -> list[tuple[str, HomographyPair]]:
-    """One mildly warped pair per photo and condition ("none", "light"), labelled.
-
-    Args:
-        cfg: sizes.
-        seed: base seed.
-
-    Returns:
-        [(label, pair)], same geometry for both conditions of a photo.
-    """
+    """One mildly warped pair per photo and condition ("none", "light"), labelled; the same geometry for
+    both conditions of a photo."""
     out = []
     for k, name in enumerate(cfg.photos):
         photo = load_photo(name)
@@ -177,21 +152,12 @@ def clipped_windows(
     image1: np.ndarray, image2: np.ndarray, points1: np.ndarray, points2: np.ndarray, window: int,
     share: float = CLIP_SHARE,
 ) -> np.ndarray:
-    """Which keypoints' windows are clipped: more than ``share`` of the window's pixels at or beyond
+    """Which keypoints' ``window`` px windows are clipped: more than ``share`` of their pixels at or beyond
     :data:`CLIP_DARK` / :data:`CLIP_BRIGHT` gray, around the point in frame 1 or its true position in
     frame 2.
 
-    Args:
-        image1, image2: the frames.
-        points1: (N, 2) keypoints in frame 1; points2: (N, 2) their true positions in frame 2.
-        window: window side in pixels (the solver's).
-        share: clipped share above which a window counts as clipped.
-
-    Returns:
-        (N,) bool.
-
     Shape:
-        image1, image2: (H, W) uint8.
+        image1, image2: (H, W) uint8. points1, points2: (N, 2). Returns (N,) bool.
     """
 
     def clipped_share(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -206,23 +172,20 @@ def clipped_windows(
 
 
 def _track_chunked(
-    m: PairMethod, pair: HomographyPair, pts: np.ndarray, flow0: np.ndarray, chunk: int, levels: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """(flow, status) of many points, ``chunk`` at a time; each image is prepared once per method."""
+    m: EvalMethod, frames: tuple, pts: np.ndarray, flow0: np.ndarray, chunk: int, levels: int
+) -> PairResult:
+    """The result for many points, ``chunk`` at a time."""
     flow = np.empty_like(pts)
     status = np.empty(len(pts), bool)
-    if not isinstance(m, EvalMethod):
-        raise EvaluationError(f"trackable needs an evaluation method, got {type(m).__name__} {m.name!r}")
-    f1, f2 = m.prepare(pair.image1), m.prepare(pair.image2)
     for s in range(0, len(pts), chunk):
         sl = slice(s, s + chunk)
-        res = m.track_frames(f1, f2, pts[sl], flow0[sl], levels)
+        res = m.track(*frames, pts[sl], flow0[sl], levels)
         flow[sl], status[sl] = res.flow, res.status
-    return flow, status
+    return PairResult(flow, status)
 
 
 def trackable_map(
-    methods: list[PairMethod],
+    methods: list[EvalMethod],
     pair: HomographyPair,
     rng: np.random.Generator,
     *,
@@ -235,21 +198,15 @@ def trackable_map(
     """Every (stride-th) pixel of frame 1 as a keypoint, recovered from a ``perturbation`` px offset.
 
     Args:
-        methods: the compared methods.
-        pair: the frames and their exact homography.
         rng: draws the direction of each keypoint's initial error (shared by all methods).
         stride: grid step in pixels (>= 1).
         perturbation: initial error length in pixels (>= 0).
         chunk: points per solver call.
         label: name of the pair in tables.
-        fewer_levels: run each method on this many pyramid levels fewer than its own (the basin at a
-            shallower pyramid).
-
-    Returns:
-        the :class:`TrackableMap`.
+        fewer_levels: run each method on this many pyramid levels fewer than its own.
 
     Raises:
-        EvaluationError: bad stride / perturbation / levels, or frames of different shapes.
+        EvaluationError: bad stride / perturbation / levels / methods, or frames of different shapes.
 
     Shape:
         pair.image1, pair.image2: (H, W) uint8.
@@ -273,13 +230,12 @@ def trackable_map(
     pts, gt, index = pts[keep], gt[keep], index[keep]
     ang = rng.uniform(0.0, 2.0 * np.pi, len(pts))
     flow0 = gt + perturbation * np.stack([np.cos(ang), np.sin(ang)], 1)
+    frames = prepare_pair(methods, pair.image1, pair.image2)
     errors = {}
     for m in methods:
-        if m.levels - fewer_levels < 1:
-            raise EvaluationError(f"{m.name}: {m.levels} levels cannot be reduced by {fewer_levels}")
-        flow, status = _track_chunked(m, pair, pts, flow0, max(1, chunk), m.levels - fewer_levels)
-        errors[m.name] = endpoint_errors(PairResult(flow, status), gt)
-    clipped = clipped_windows(pair.image1, pair.image2, pts, pts + gt, deployed_lm().window)
+        res = _track_chunked(m, frames[m.name], pts, flow0, max(1, chunk), m.levels_fewer(fewer_levels))
+        errors[m.name] = endpoint_errors(res, gt)
+    clipped = clipped_windows(pair.image1, pair.image2, pts, pts + gt, DEPLOYED_LM.window)
     return TrackableMap(label, pair.image1, pts, errors, (len(ys), len(xs)), index, clipped)
 
 
@@ -327,20 +283,13 @@ def _median(ratios: dict[str, dict[str, list[float]]], names: list[str]) -> dict
 
 
 def run(ctx: EvalContext, cfg: TrackableConfig | None = None) -> Section:
-    """Trackable-region ratios of every method on the held-out pairs, with the heat map.
+    """The ``trackable`` section (``trackable_heatmap.png``, the tables, headline rows).
 
-    Every method runs at its own (the deployed) pyramid depth and at one level fewer.
-
-    Args:
-        ctx: the evaluation context (methods, quick, out_dir, progress, seed).
-        cfg: settings; ``TrackableConfig.quick()`` in quick mode, else ``TrackableConfig()``.
-
-    Returns:
-        the "trackable" :class:`Section` (``trackable_heatmap.png``, the tables, headline rows).
+    ``cfg`` None: :data:`QUICK` in a quick run, else ``TrackableConfig()``.
     """
-    cfg = cfg or (TrackableConfig.quick() if ctx.quick else TrackableConfig())
+    cfg = cfg or (QUICK if ctx.quick else TrackableConfig())
     names = [m.name for m in ctx.methods]
-    fewer_set = (0, 1) if ctx.methods and min(m.levels for m in ctx.methods) > 1 else (0,)
+    fewer_set = level_reductions(ctx.methods)
     maps = _measure(ctx, cfg, make_trackable_pairs(cfg, ctx.seed), fewer_set)
     fig_path = ctx.out_dir / "trackable_heatmap.png"
     _heat_map(maps[0], names, fig_path)
@@ -428,7 +377,7 @@ def _clipped_table(ctx: EvalContext, names: list[str], maps: list[TrackableMap],
     """The shares among the keypoints whose windows are not clipped, per pair and their median."""
     lines = [
         "", "(percent of keypoints)", "",
-        f"Keypoints whose {deployed_lm().window} px window is clipped (more than {CLIP_SHARE:.0%} of its "
+        f"Keypoints whose {DEPLOYED_LM.window} px window is clipped (more than {CLIP_SHARE:.0%} of its "
         f"pixels at <= {CLIP_DARK} or >= {CLIP_BRIGHT} gray around the keypoint in frame 1 or its true "
         "position in frame 2) carry little of the photo; the same shares among the others "
         f"({levels_text(ctx.methods)}):",

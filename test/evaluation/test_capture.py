@@ -35,7 +35,7 @@ def test_shift_homography_moves_by_about_the_nominal_shift():
 
 
 def test_stereo_pairs_carry_the_exact_disparity(ctx, methods):
-    cfg = cp.CaptureConfig.quick()
+    cfg = cp.QUICK
     pairs = cp.stereo_pairs(cp.load_stereo_sequence(ctx, cfg), cfg, seed=0)
     assert [p.condition for p in pairs] == ["none", "light"]
     clean, lit = pairs

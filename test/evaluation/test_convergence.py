@@ -41,8 +41,8 @@ def test_curves_start_at_the_initial_error_and_decrease_on_texture(setup):
     # LM: once every point has stopped the curve is flat, and its end is the final flow of Algorithm 1
     # (the curves run without the tracker's straggler cut-off)
     lm = next(m for m in methods if m.name == CLASSICAL)
-    res = lm.track_pair_result(lm.prepare(pair.image1), lm.prepare(pair.image2), pts, flow0,
-                 config=replace(lm.config, levels=1, max_iterations=12, tail_share=0.0))  # fmt: skip
+    res = lm.core.track_pair_result(lm.prepare(pair.image1), lm.prepare(pair.image2), pts, flow0,
+                                    replace(lm.config, levels=1, max_iterations=12, tail_share=0.0))
     end = np.linalg.norm(res.flow - true_flow(pts, SHIFT), axis=1)
     np.testing.assert_allclose(curves[lm.name][-1], np.minimum(end, 10.0), atol=1e-9)
 

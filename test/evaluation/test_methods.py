@@ -53,9 +53,8 @@ def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
         variant = ev.VARIANTS[m.name]
         # the evaluated method is the registry entry the tracker deploys, equalised as the label says
         assert m.core.spec == core.METHODS[variant.method] and m.equalize == variant.equalize
-        assert m.tracker_overrides == variant.tracker_overrides
         # the sequences analysis runs the tracker with the same method and equalisation
-        assert sequences.TRACKER_METHODS[m.name] == m.tracker_overrides
+        assert sequences.TRACKER_METHODS[m.name] == {"method": m.core.name, "equalize": m.equalize}
     lm = {m.name: m for m in methods if isinstance(m, ev.LMPairMethod)}
     assert set(lm) == {ev.NSFLOW, ev.CLASSICAL}
     assert lm[ev.NSFLOW].config == deployed and lm[ev.CLASSICAL].config == deployed
@@ -68,10 +67,10 @@ def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
 def test_each_method_solves_through_its_core_track_pair(methods, pair):
     f1, f2, pts, gt = pair
     flow0 = np.tile([1.0, -1.0], (len(pts), 1))
+    frames = ev.prepare_pair(methods, f1, f2)
     for m in methods:
-        res = m.track(f1, f2, pts, flow0)
-        r1, r2 = m.prepare(f1), m.prepare(f2)
-        new, status = m.core.track_pair(r1, r2, pts, pts + flow0, m.levels)
+        res = m.track(*frames[m.name], pts, flow0)
+        new, status = m.core.track_pair(*frames[m.name], pts, pts + flow0, m.levels)
         np.testing.assert_array_equal(res.status, status)
         np.testing.assert_allclose(res.flow, new - pts, atol=1e-12)
         assert np.median(endpoint_errors(res, gt)) < 0.1, m.name
@@ -82,16 +81,16 @@ def test_klt_is_vins_call_with_the_evaluations_criteria(methods, pair):
     klt = next(m for m in methods if m.name == ev.KLT)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     want, ok = core.klt_track(f1, f2, pts, None, 3, window=(21, 21), criteria=crit)
-    res = klt.track(f1, f2, pts)
+    frames = (klt.prepare(f1), klt.prepare(f2))
+    res = klt.track(*frames, pts)
     np.testing.assert_array_equal(res.status, ok)
     np.testing.assert_allclose(res.flow, want - pts)
     # one iteration per level from a 5 px start ends further off than thirty on a single level
     start = gt + np.tile([5.0, 0.0], (len(pts), 1))
     one = klt.with_iterations(1)
     assert one.name == klt.name and one.levels == klt.levels
-    frames = (klt.prepare(f1), klt.prepare(f2))
-    e1 = endpoint_errors(one.track_frames(*frames, pts, start, 1), gt)
-    e30 = endpoint_errors(klt.track_frames(*frames, pts, start, 1), gt)
+    e1 = endpoint_errors(one.track(*frames, pts, start, 1), gt)
+    e30 = endpoint_errors(klt.track(*frames, pts, start, 1), gt)
     assert np.median(e30) < 0.1 < np.median(e1)
 
 
@@ -109,10 +108,14 @@ def test_clahe_and_descriptor_lk_prepare_what_the_tracker_tracks(methods, pair):
 
 def test_guards(methods, pair):
     f1, f2, pts, _ = pair
+    frames = ev.prepare_pair(methods, f1, f2)
     with pytest.raises(EvaluationError, match=r"levels must be in 1\.\.4, got 5"):
-        methods[0].track_frames(methods[0].prepare(f1), methods[0].prepare(f2), pts, None, 5)
+        methods[0].track(*frames[methods[0].name], pts, None, 5)
     with pytest.raises(EvaluationError, match=r"\(N, 2\)"):
-        methods[3].track(f1, f2, pts[:, 0])
+        methods[3].track(*frames[methods[3].name], pts[:, 0])
+    with pytest.raises(EvaluationError, match="cannot be reduced by 4"):
+        methods[0].levels_fewer(4)
+    assert methods[0].levels_fewer(1) == 3
     with pytest.raises(EvaluationError, match="levels"):
         ev.default_methods(levels=0)
     klt = next(m for m in methods if m.name == ev.KLT)

@@ -26,7 +26,7 @@ def test_known_subpixel_translation_is_tracked_below_a_tenth_of_a_pixel_by_every
     assert len(pts) > 50
     np.testing.assert_allclose(gt, np.tile([2.4, -1.7], (len(gt), 1)), atol=1e-9)
     for m in methods:
-        err = pr.endpoint_errors(m.track(f1, f2, pts), gt)
+        err = pr.endpoint_errors(m.track(m.prepare(f1), m.prepare(f2), pts), gt)
         assert np.median(err) < 0.1, (m.name, np.median(err))
 
 
@@ -43,7 +43,7 @@ def test_homography_strength_grows_with_level_and_level_zero_is_identity():
 
 
 def test_pairs_are_reproducible_and_subsets_differ_only_as_described():
-    cfg = pr.PairSetConfig.quick()
+    cfg = pr.QUICK
     a = pr.make_pairs("viewpoint", cfg, seed=3)
     b = pr.make_pairs("viewpoint", cfg, seed=3)
     assert len(a) == len(cfg.photos) * cfg.levels * cfg.per_level

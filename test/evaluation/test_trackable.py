@@ -117,5 +117,5 @@ def test_quick_run_reports_the_deployed_depth_and_one_fewer_with_computed_target
     assert set(sec.data["clipped_share"]) == set(sec.data["ratios"])
     assert "clipped windows" in sec.markdown
     with pytest.raises(EvaluationError, match="cannot be reduced"):
-        tr.trackable_map(methods, tr.make_trackable_pairs(tr.TrackableConfig.quick())[0][1],
+        tr.trackable_map(methods, tr.make_trackable_pairs(tr.QUICK)[0][1],
                          np.random.default_rng(0), stride=20, fewer_levels=4)  # fmt: skip
