@@ -120,8 +120,7 @@ def run_node_benchmark(
     from sensor_msgs.msg import Image, PointCloud
 
     from nsflow_ros.core.encoder import encoder_provider
-    from nsflow_ros.ros.image_conv import numpy_to_image_fields
-    from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode
+    from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode, rclpy_image
 
     left, right = _frames(width, height)
     prefix = f"/nsflow_bench_{uuid.uuid4().hex[:8]}"
@@ -161,16 +160,7 @@ def run_node_benchmark(
                 executor.spin_once(timeout_sec=0.01)
 
             # Message templates: only the stamp changes per frame.
-            templates = []
-            for imgs in (left, right):
-                row = []
-                for img in imgs:
-                    f = numpy_to_image_fields(img)
-                    msg = Image(height=f["height"], width=f["width"], encoding="mono8", is_bigendian=0,
-                                step=f["step"])
-                    msg.data = f["data"]
-                    row.append(msg)
-                templates.append(row)
+            templates = [[rclpy_image(img) for img in imgs] for imgs in (left, right)]
 
             node_lat = np.zeros(frames)
             trip = np.zeros(frames)

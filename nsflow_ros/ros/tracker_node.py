@@ -56,12 +56,12 @@ from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.data.images import ImageDecodeError, compressed_for_tracker, image_for_tracker
+from nsflow_ros.data.messages import image_message, ros2_store
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.ros.counters import WINDOWED, NodeCounters
 from nsflow_ros.ros.errors import ParameterError
 from nsflow_ros.ros.frame_queue import LatestFrames
-from nsflow_ros.ros.image_conv import numpy_to_image_fields
 from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
 from nsflow_ros.ros.tracker_params import NODE_NAME, PARAMETERS, coerce, spec, usage
 from nsflow_ros.ros.transport import use_large_image_transport
@@ -76,7 +76,8 @@ from nsflow_ros.vins.session import FrameOutcome, FrontEndSession, Skip
 from nsflow_ros.vins.settings import SESSION_SETTINGS, Mode
 
 __all__ = [
-    "FEATURE_QOS", "IMAGE_TRANSPORTS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "resolve_config_path"
+    "FEATURE_QOS", "IMAGE_TRANSPORTS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "rclpy_image",
+    "resolve_config_path",
 ]
 
 FEATURE_QOS = QoSProfile(
@@ -118,6 +119,19 @@ def resolve_config_path(value: str) -> Path:
         if cand.is_file():
             return cand
     raise ConfigError(f"VINS config {value!r} not found (looked at {', '.join(str(c) for c in candidates)})")
+
+
+def rclpy_image(image: np.ndarray, encoding: str | None = None) -> Image:
+    """An rclpy sensor_msgs/Image (header unset) of pixels, as :func:`~nsflow_ros.data.messages.image_message`
+    lays them out (encoding by default from dtype and channels).
+
+    Raises:
+        DataError: the pixels do not match the encoding.
+    """
+    m = image_message(ros2_store(), 0, "", image, encoding)
+    msg = Image(height=m.height, width=m.width, encoding=m.encoding, is_bigendian=0, step=m.step)
+    msg.data = m.data.tobytes()
+    return msg
 
 
 @dataclass
@@ -411,11 +425,8 @@ class TrackerNode(Node):
     def _publish_track(
         self, header: Any, frame: FrameFeatures, img0: np.ndarray, img1: np.ndarray | None
     ) -> None:
-        fields = numpy_to_image_fields(draw_tracks(frame, img0, img1), "bgr8")
-        msg = Image(height=fields["height"], width=fields["width"], encoding="bgr8", is_bigendian=0,
-                    step=fields["step"])
+        msg = rclpy_image(draw_tracks(frame, img0, img1), "bgr8")
         msg.header = header
-        msg.data = fields["data"]
         self._track_pub.publish(msg)
         self.track_images_published += 1
 
