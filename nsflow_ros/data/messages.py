@@ -26,6 +26,7 @@ __all__ = [
     "IMU",
     "POINT_CLOUD",
     "POINT_STAMPED",
+    "compressed_image_message",
     "decode_compressed",
     "default_encoding",
     "image_message",
@@ -121,6 +122,13 @@ def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, e
         packed = padded
     return store.types[IMAGE](header=_header(store, stamp_ns, frame_id, seq), height=h, width=w,
                               encoding=encoding, is_bigendian=0, step=step, data=packed.reshape(-1))
+
+
+def compressed_image_message(store: Any, stamp_ns: int, frame_id: str, fmt: str, data: bytes, *,
+                             seq: int = 0) -> Any:
+    """A sensor_msgs/CompressedImage of the ``(fmt, data)`` that :func:`.images.encode_compressed` returns."""
+    return store.types[COMPRESSED_IMAGE](header=_header(store, stamp_ns, frame_id, seq), format=fmt,
+                                          data=np.frombuffer(data, np.uint8))
 
 
 def imu_message(store: Any, stamp_ns: int, frame_id: str, gyro: Any, accel: Any, *, seq: int = 0) -> Any:
