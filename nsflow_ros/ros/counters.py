@@ -45,11 +45,6 @@ class NodeCounters:
         """Frames received but not tracked: superseded, left at the stop, or refused by the session."""
         return self.frames_superseded + self.frames_left_at_stop + self.frames_refused
 
-    @property
-    def bad_frames(self) -> int:
-        """Undecodable images plus refused frames."""
-        return self.images_undecodable + self.frames_refused
-
     def totals(self) -> dict[str, int]:
         """Every count by its name (``bad`` aside), plus ``frames_dropped``."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "bad"}

@@ -269,7 +269,7 @@ def test_garbage_frames_are_skipped_and_features_keep_coming(tmp_path, prefix, p
         stats = h.tracker.stats
         assert stats.bad["encoding:bayer_rggb8"] == 2 and stats.bad["step"] == 2
         assert stats.bad["truncated"] == 2
-        assert stats.bad["duplicate_stamp"] == 1 and stats.bad_frames == 10
+        assert stats.bad["duplicate_stamp"] == 1 and stats.images_undecodable + stats.frames_refused == 10
     finally:
         h.close()
 
