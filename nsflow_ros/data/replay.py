@@ -1,8 +1,7 @@
-"""What a replay publishes, independent of ROS: the (optionally perturbed, remapped) message stream.
+"""What a replay publishes, independent of ROS: the (optionally perturbed, remapped, compressed) stream.
 
-The ROS shell (:mod:`nsflow_ros.ros.replay_node`) only paces and publishes what :func:`replay_stream`
-yields, so the stream itself (and its reproducibility from a seed) is tested without middleware. Images can
-go out compressed, as image_transport's ``compressed`` plugin publishes them (``<topic>/compressed``).
+:mod:`nsflow_ros.ros.replay_node` only paces and publishes what :func:`replay_stream` yields, so the stream
+and its reproducibility from a seed are tested without middleware.
 """
 
 from __future__ import annotations
@@ -90,9 +89,9 @@ def parse_remaps(items: Sequence[str]) -> dict[str, str]:
 def replay_stream(opts: ReplayOptions) -> Iterator[RawMessage]:
     """The messages of a replay, in time order, as ROS 2 CDR bytes on their published topics.
 
-    Without perturbation or compression the source's bytes pass through untouched (any topic type); with
-    either, camera images are decoded, perturbed as a function of (seed, stamp), re-serialised (compressed
-    on ``<topic>/compressed``), and the IMU passes through.
+    Without perturbation or compression the source's bytes pass through (any topic type); with either,
+    images are decoded, perturbed from (seed, stamp) and re-serialised, compressed on
+    ``<topic>/compressed``.
 
     Raises:
         DataError: from the source (missing path or topic, damaged bag after the last good message).
@@ -116,7 +115,7 @@ def replay_stream(opts: ReplayOptions) -> Iterator[RawMessage]:
 
 
 def replay_records(opts: ReplayOptions) -> Iterator[Record]:
-    """Decoded image and IMU records of a replay: perturbed (as a function of seed and stamp), remapped.
+    """Decoded image and IMU records of a replay, perturbed and remapped.
 
     Raises:
         DataError: from the source.
@@ -129,7 +128,7 @@ def _source(opts: ReplayOptions) -> SensorSource:
 
 
 def _records(source: SensorSource, remap: Mapping[str, str], opts: ReplayOptions) -> Iterator[Record]:
-    """The source's records, perturbed unless ``opts.perturb`` is ``none``, on their remapped topics."""
+    """The source's records, perturbed as ``opts`` says, on their remapped topics."""
     perturber = None if opts.perturb == "none" else IlluminationPerturber(opts.perturb, seed=opts.seed)
     records: Iterator[Record] = source.records()
     if perturber is not None:
