@@ -268,10 +268,7 @@ class BagWriter:
 
     def write_message(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
         """Serialise a message object (built for :attr:`store`) and write it at bag time ``stamp_ns``."""
-        self.write_raw(topic, msgtype, stamp_ns, serialize(self.store, msg, msgtype))
-
-    def write_raw(self, topic: str, msgtype: str, stamp_ns: int, data: bytes) -> None:
-        """Write already serialised bytes (ROS 1 wire format for ROS 1 bags, CDR for ROS 2)."""
+        data = serialize(self.store, msg, msgtype)
         self._writer.write(self._connection(topic, msgtype), int(stamp_ns), data)
         self.count += 1
 

@@ -20,8 +20,7 @@ class NodeCounters:
         frames_received: frames (image pairs for stereo) queued for the tracker.
         frames_processed: frames the tracker ran on.
         frames_published: feature messages published.
-        frames_superseded: frames given up unprocessed because a newer frame arrived while they waited
-            (the tracker was behind; see :class:`~nsflow_ros.ros.frame_queue.LatestFrames`).
+        frames_superseded: frames given up unprocessed for a newer one while the tracker was behind.
         frames_left_at_stop: frames still waiting when the node stopped.
         frames_refused: frames the session refused (duplicate stamp, tracker error).
         frames_missing_upstream: frames lost before the node, inferred from stamp gaps.
