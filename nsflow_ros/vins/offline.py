@@ -1,17 +1,9 @@
 """Offline tracking: the VINS frame policy over a recorded source (bag or ASL folder), no ROS middleware.
 
-Output files (in the output folder):
-
-* ``features.csv`` — one row per published feature, VINS-Fusion layout with the track count added:
-  ``stamp_ns,camera_id,feature_id,u,v,x,y,velocity_x,velocity_y,track_count`` (u, v distorted pixels;
-  x, y undistorted normalised coordinates);
-* ``tracks.png`` — a contact sheet of debug images (circles blue -> red with track length, lines to the
-  previous positions);
-* ``summary.json`` — the figures of :class:`OfflineSummary`.
-
-Each file is written under a temporary name and renamed when complete, so an interrupted run never
-leaves a file that looks finished. When the data is a project sample sequence, the tracking error of
-every tracked feature is measured against the exact ground-truth optical flow.
+Writes ``features.csv`` (one row per published feature, :data:`CSV_HEADER`; u, v distorted pixels, x, y
+undistorted normalised coordinates), ``tracks.png`` (a contact sheet of debug images) and ``summary.json``
+(:class:`OfflineSummary`), each renamed into place when complete. On a project sample sequence the error
+of every tracked feature is measured against the exact optical flow.
 """
 
 from __future__ import annotations
@@ -91,22 +83,17 @@ def run_offline(
     """Track a recorded sequence with the core tracker and write features, a contact sheet and a summary.
 
     Args:
-        opts: what to read (path, topics, window, perturbation); the tracker uses camera 0 (mono).
+        opts: what to read; the tracker uses camera 0 (mono).
         out_dir: output folder (created).
         config: VINS config file (default: the shipped EuRoC mono config).
-        method: ``nsflow``, ``classical`` or ``klt`` (see :data:`nsflow_ros.core.methods.METHODS`).
+        method: a key of :data:`nsflow_ros.core.methods.METHODS`.
         overrides: further tracker settings.
         sheet_frames: debug images in the contact sheet, spread over the sequence.
-        progress: show a progress bar.
-        opencv_threads: OpenCV's threads during the run (:func:`nsflow_ros.threads.opencv_threads`),
-            restored afterwards; None = the node's ``opencv_threads`` default.
-
-    Returns:
-        the summary (also written as summary.json).
+        opencv_threads: OpenCV's threads during the run; None = the node's ``opencv_threads`` default.
 
     Raises:
-        NSFlowError: a bad source (DataError), config (ConfigError) or model (EncoderError); outputs of
-            the frames processed before a damaged part of a bag are still written.
+        NSFlowError: a bad source, config or model; the outputs of the frames before a damaged part of a
+            bag are still written.
     """
     from nsflow_ros.progress import progress_bar
     from nsflow_ros.resources import DEFAULT_CONFIG, share_file
