@@ -120,7 +120,6 @@ class Scene:
 
     Args:
         room_min, room_max: opposite corners of the room (m), floor at ``room_min[2]``.
-        boxes: the boxes.
         room_materials: 6 materials for -x, +x, -y, +y walls, floor, ceiling.
         textures: texture file names in scikit-image's data folder (see :data:`TEXTURES`).
         lights: (L, 3) point-light positions (m).
@@ -427,16 +426,13 @@ class Scene:
 
     def shade(self, points: np.ndarray, surf: np.ndarray, footprint: np.ndarray,
               normal: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """Intensity in [0, ~1] of surface points.
+        """(N,) float32 intensity in [0, ~1] of surface points.
 
         Args:
             points: (3, N) float32 hit points in the world frame.
             surf: (N,) surface indices (all valid).
             footprint: (N,) size of a pixel on the surface in metres; picks the texture's prefilter level.
             normal: the surfaces' normals per point as three (N,) arrays, if already gathered.
-
-        Returns:
-            (N,) float32 intensities.
         """
         f32 = np.float32
         tb = self._tables
@@ -488,13 +484,11 @@ class Rendered:
 
 
 class Renderer:
-    """Renders a scene through one camera; precomputes the camera's rays once.
+    """Renders a scene through one camera, whose distorted rays are computed once.
 
     Args:
-        scene: the scene.
-        camera: the camera (its distortion is applied through the precomputed rays).
-        psf_sigma: Gaussian blur (pixels) standing for the lens' point-spread function; it also softens
-            aliasing at silhouettes. 0 disables it.
+        psf_sigma: Gaussian blur (pixels) standing for the lens' point-spread function, which also softens
+            aliasing at silhouettes; 0 disables it.
     """
 
     def __init__(self, scene: Scene, camera: PinholeRadtan, psf_sigma: float = 0.6) -> None:
@@ -541,7 +535,6 @@ class Renderer:
         """Render the view of a camera at pose ``T_wc`` (4x4 camera-to-world).
 
         Args:
-            T_wc: 4x4 camera-to-world transform.
             noise_sigma: standard deviation of additive Gaussian pixel noise (gray levels).
             noise_seed: seed of that noise.
 
@@ -628,16 +621,14 @@ def flow_between(scene: Scene, cam_i: PinholeRadtan, T_w_ci: Any, cam_j: Pinhole
     """Exact optical flow of pixels from view i to view j, with a visibility flag.
 
     Args:
-        scene: the scene.
         cam_i, cam_j: cameras of the two views (the same one for temporal flow, cam0/cam1 for stereo).
         T_w_ci, T_w_cj: 4x4 camera-to-world poses of the views.
         pixels: (N, 2) pixel coordinates (u, v) in view i.
         occlusion_tol: relative depth tolerance of the occlusion test.
 
     Returns:
-        ``(flow, visible)``: (N, 2) float64 flow (position in view j minus ``pixels``; NaN where the point
-        cannot be projected) and (N,) bool, true where the point is inside image i, inside image j and
-        not hidden behind another surface in view j.
+        ``(flow, visible)``: (N, 2) float64 flow, NaN where the point cannot be projected, and (N,) bool,
+        true where the point is inside both images and not hidden behind another surface in view j.
 
     Raises:
         DataError: when ``pixels`` is not (N, 2) or a pose is not 4x4.

@@ -152,16 +152,19 @@ class SensorSource:
 
     # -- topic selection --------------------------------------------------------------------------------
 
-    def _resolve(self, present: dict[str, str], raw: bool) -> list[str]:
+    def _resolve(self, present: dict[str, str], raw: bool, where: Path | None = None,
+                 aliases: dict[str, str] | None = None) -> list[str]:
+        """The topics to read; requested ones may also be ``aliases`` (name -> type) of present ones."""
         listing = ", ".join(f"{t} ({present[t]})" for t in sorted(present)) or "none"
         if self.requested is not None:
-            missing = [t for t in self.requested if t not in present]
+            known = {**present, **(aliases or {})}
+            missing = [t for t in self.requested if t not in known]
             if missing:
-                raise DataError(f"topic(s) {', '.join(missing)} not found in {self.path}; "
+                raise DataError(f"topic(s) {', '.join(missing)} not found in {where or self.path}; "
                                 f"topics present: {listing}")
             if not raw:
                 for t in self.requested:
-                    if present[t] not in _DECODABLE:
+                    if known[t] not in _DECODABLE:
                         raise DataError(f"topic {t} in {self.path} has type {present[t]}; records can "
                                         f"be read only from {', '.join(_DECODABLE)} "
                                         "(use raw_messages for others)")
@@ -283,15 +286,7 @@ class SensorSource:
         # /imuN/data (UMA-VI's bag name) is accepted for an ASL folder's imuN.
         aliases = {f"{t}/data": t for t, typ in present.items() if typ == IMU}
         lookup = {**present, **{a: IMU for a in aliases}}
-        if self.requested is not None:
-            missing = [t for t in self.requested if t not in lookup]
-            if missing:
-                listing = ", ".join(f"{t} ({present[t]})" for t in sorted(present)) or "none"
-                raise DataError(f"topic(s) {', '.join(missing)} not found in {root}; "
-                                f"topics present: {listing}")
-            topics = list(self.requested)
-        else:
-            topics = self._resolve(present, raw=False)
+        topics = self._resolve(present, raw=False, where=root, aliases=lookup)
         streams = []
         # IMU first at equal stamps: a consumer then has the inertial data up to an image's time.
         order = sorted(topics, key=lambda t: (lookup[t] != IMU, t))

@@ -105,8 +105,7 @@ def resolve_config_path(value: str) -> Path:
 
 
 def rclpy_image(image: np.ndarray, encoding: str | None = None) -> Image:
-    """An rclpy sensor_msgs/Image (header unset) of pixels, as :func:`~nsflow_ros.data.messages.image_message`
-    lays them out (encoding by default from dtype and channels).
+    """The rclpy sensor_msgs/Image (header unset) that :func:`~nsflow_ros.data.messages.image_message` builds.
 
     Raises:
         DataError: the pixels do not match the encoding.
