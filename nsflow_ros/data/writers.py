@@ -186,13 +186,6 @@ class AslWriter:
             f.close()
         self._files.clear()
 
-    def __enter__(self) -> AslWriter:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
-
 
 class BagWriter:
     """Writes messages to a new ROS 1 bag or ROS 2 bag; one connection per topic, added on first use.
