@@ -12,7 +12,7 @@ from typing import Any
 
 from nsflow_ros.ros.errors import ParameterError
 from nsflow_ros.vins.errors import ConfigError
-from nsflow_ros.vins.settings import SETTINGS, Setting, Value, setting
+from nsflow_ros.vins.settings import KINDS, SETTINGS, Setting, Value, setting
 
 __all__ = ["NODE_NAME", "PARAMETERS", "coerce", "render_params_yaml", "spec", "usage"]
 
@@ -53,14 +53,11 @@ def coerce(p: Setting, value: Any) -> Value:
                 f"parameter {p.name}: got {value}, expected {_article(p.kind)} {p.kind} {p.bound}"
             )
         return value
-    got = "no value" if value is None else f"{value!r} ({_KINDS.get(type(value), type(value).__name__)})"
+    got = "no value" if value is None else f"{value!r} ({KINDS.get(type(value), type(value).__name__)})"
     example = _yaml_value(p.default if p.example is None else p.example)
     raise ParameterError(
         f"parameter {p.name}: got {got}, expected {_article(p.kind)} {p.kind} (e.g. -p {p.name}:={example})"
     )
-
-
-_KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
 
 
 def _article(word: str) -> str:

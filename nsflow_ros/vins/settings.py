@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "KEEP",
+    "KINDS",
     "SESSION_SETTINGS",
     "SETTINGS",
     "TRACKER_SETTINGS",
@@ -44,7 +45,8 @@ Value = bool | int | float | str
 KEEP = -1
 """A setting's value meaning "the default": the VINS config's value for a setting with a VINS key."""
 
-_KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
+KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
+"""A value type in words, as help texts and error messages name it."""
 
 
 class Mode(Enum):
@@ -102,7 +104,7 @@ class Setting:
     @property
     def kind(self) -> str:
         """The type in words: boolean, integer, number or string."""
-        return _KINDS[self.type]
+        return KINDS[self.type]
 
     @property
     def full_description(self) -> str:
