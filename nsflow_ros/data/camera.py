@@ -1,12 +1,10 @@
 """Pinhole camera with radial-tangential (radtan) distortion, as calibrated for EuRoC MAV.
 
-Pixel convention: OpenCV's; integer coordinates are pixel centres, (0, 0) is the centre of the top-left
-pixel. Normalised coordinates are the undistorted ``(X / Z, Y / Z)`` of a point in the camera frame.
-
-Projection and distortion are the tracker's own camera model (:class:`~nsflow_ros.core.camera.PinholeCamera`,
-camodocal's ``PINHOLE``), so the sample's images and the tracker agree on where a point lands. Only the
-inverse differs: the ground truth needs the exact undistortion (Newton's method, ~1e-13), the tracker
-reproduces camodocal's fixed-point iteration bit for bit.
+Pixels follow OpenCV (integer coordinates are pixel centres); normalised coordinates are the undistorted
+``(X / Z, Y / Z)``. Projection is the tracker's own model (:class:`~nsflow_ros.core.camera.PinholeCamera`),
+so the sample's images and the tracker agree on where a point lands; only the inverse differs, since the
+ground truth needs the exact undistortion (Newton's method) where the tracker reproduces camodocal's
+fixed-point iteration.
 """
 
 from __future__ import annotations
@@ -49,10 +47,10 @@ EUROC_T_BS_CAM1 = np.array(
 
 
 def as_points(points: Any, dim: int, name: str) -> np.ndarray:
-    """Return ``points`` as a float64 array of shape (N, dim).
+    """``points`` as float64 (N, dim); a single point of shape (dim,) is accepted.
 
     Raises:
-        DataError: when the shape is not (N, dim) (a single point of shape (dim,) is accepted).
+        DataError: naming ``name`` when the shape is neither.
     """
     arr = np.asarray(points, dtype=np.float64)
     if arr.ndim == 1 and arr.shape[0] == dim:
@@ -100,11 +98,11 @@ class PinholeRadtan:
 
     @property
     def dist(self) -> np.ndarray:
-        """Distortion coefficients ``[k1, k2, p1, p2]`` in OpenCV's order."""
+        """``[k1, k2, p1, p2]``."""
         return np.array([self.k1, self.k2, self.p1, self.p2])
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON description (inverse of :meth:`from_dict`)."""
+        """Plain-JSON description that :meth:`from_dict` reads back."""
         return {
             "name": self.name,
             "model": "pinhole-radtan",
@@ -131,10 +129,7 @@ class PinholeRadtan:
             raise DataError(f"invalid camera description {d!r}: {err}") from None
 
     def scaled(self, factor: float) -> PinholeRadtan:
-        """The same camera at another resolution (e.g. 0.5 for a half-size image); distortion kept.
-
-        Pixel centres map as ``u' = (u + 0.5) * factor - 0.5``.
-        """
+        """The same camera at another resolution; pixel centres map as ``u' = (u + 0.5) * factor - 0.5``."""
         w, h = round(self.width * factor), round(self.height * factor)
         return PinholeRadtan(w, h, self.fx * factor, self.fy * factor, (self.cx + 0.5) * factor - 0.5,
                              (self.cy + 0.5) * factor - 0.5, self.k1, self.k2, self.p1, self.p2,
@@ -154,17 +149,11 @@ class PinholeRadtan:
     # -- distortion -------------------------------------------------------------------------------------
 
     def distort(self, xn: np.ndarray) -> np.ndarray:
-        """Apply the distortion to normalised coordinates (the tracker's camodocal formula).
-
-        Shape: (N, 2) -> (N, 2), float64.
-        """
+        """Distort normalised coordinates (the tracker's camodocal formula). Shape: (N, 2) -> (N, 2)."""
         return radtan_distort(xn, self.dist)
 
     def undistort_normalized(self, xd: np.ndarray, iterations: int = 20, tol: float = 1e-13) -> np.ndarray:
-        """Invert :meth:`distort` by Newton's method (exact to ~1e-13, unlike a fixed-point loop).
-
-        Shape: (N, 2) -> (N, 2), float64.
-        """
+        """Invert :meth:`distort` by Newton's method (exact to ~1e-13). Shape: (N, 2) -> (N, 2)."""
         k1, k2, p1, p2 = self.k1, self.k2, self.p1, self.p2
         xd = np.asarray(xd, dtype=np.float64)
         x, y = xd[:, 0].copy(), xd[:, 1].copy()
@@ -189,10 +178,7 @@ class PinholeRadtan:
 
     @cached_property
     def max_radius(self) -> float:
-        """Largest normalised radius for which projection is valid (distortion still monotonic).
-
-        Points beyond it would fold back into the image; they count as not visible.
-        """
+        """Largest normalised radius where the distortion is monotonic; points beyond it are not visible."""
         corners = np.array([[0, 0], [self.width - 1, 0], [0, self.height - 1],
                             [self.width - 1, self.height - 1]], dtype=np.float64)
         r_img = np.linalg.norm(self.pixels_to_normalized(corners), axis=1).max()
@@ -206,10 +192,7 @@ class PinholeRadtan:
     # -- projection -------------------------------------------------------------------------------------
 
     def normalized_to_pixels(self, xn: np.ndarray) -> np.ndarray:
-        """Distort normalised coordinates and map them to pixels: the tracker's model projecting (x, y, 1).
-
-        Shape: (N, 2) -> (N, 2), float64.
-        """
+        """Pixels of normalised coordinates, as the tracker's model projects (x, y, 1). Shape: (N, 2)."""
         p = as_points(xn, 2, "normalized points")
         return self._model.project(np.column_stack([p, np.ones(len(p))]))
 
@@ -224,14 +207,11 @@ class PinholeRadtan:
         return self.undistort_normalized(xd)
 
     def project(self, points_cam: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Project points given in this camera's frame.
-
-        Args:
-            points_cam: (N, 3) points in the camera frame.
+        """Project (N, 3) points of the camera frame.
 
         Returns:
-            ``(pixels, valid)``: (N, 2) float64 pixel coordinates and an (N,) bool mask, false for points
-            behind the camera or outside the distortion model's valid radius (their pixels are NaN).
+            ``(pixels, valid)``: (N, 2) pixels, NaN where ``valid`` (N,) is false: behind the camera or
+            beyond :attr:`max_radius`.
         """
         P = as_points(points_cam, 3, "points_cam")
         z = P[:, 2]
@@ -253,10 +233,7 @@ class PinholeRadtan:
 
     @cached_property
     def ray_grid(self) -> np.ndarray:
-        """Undistorted normalised coordinates of every pixel centre, computed once per camera.
-
-        Shape: (height, width, 2), float64.
-        """
+        """Undistorted normalised coordinates of every pixel centre. Shape: (height, width, 2)."""
         u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
         xn = self.pixels_to_normalized(np.stack([u.ravel(), v.ravel()], axis=1))
         return xn.reshape(self.height, self.width, 2)

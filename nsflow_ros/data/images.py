@@ -1,11 +1,9 @@
 """sensor_msgs/Image -> NumPy: the one decoder of the node, the replayer, the offline run and the feature bag.
 
 Records keep the pixels as the encoding stores them (:func:`decode_image`), so they can be re-serialised;
-the tracker gets the image as received rather than a gray copy (:func:`tracker_image`) so that a colour
-encoder sees colour and the debug image stays in colour. CompressedImage (JPEG, PNG) decodes to the same
-arrays as the raw path.
-
-Works on any object with the message fields (the header is not used), so no ROS import is needed.
+the tracker gets colour as BGR rather than a gray copy (:func:`tracker_image`), so a colour encoder sees
+colour and the debug image stays in colour. CompressedImage (JPEG, PNG) decodes to the same arrays. Any
+object with the message fields works, so no ROS import is needed.
 """
 
 from __future__ import annotations
@@ -67,7 +65,7 @@ def decode_image(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
 
     Args:
         msg: the message (fields encoding, height, width, step, is_bigendian, data).
-        topic: named in error messages ("" = none).
+        topic: named in error messages.
 
     Returns:
         ``(image, encoding)``: a writable C-contiguous copy in native byte order.
@@ -204,19 +202,19 @@ def _codec(fmt: str, data: bytes, where: str) -> tuple[str, str]:
 def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
     """Pixels of a sensor_msgs/CompressedImage (JPEG or PNG), decoded by OpenCV.
 
-    A colour image decodes as BGR, as image_transport's plugin stores it; a mono source (the ``format``
-    field's first part is mono8 / mono16 / 8UC1 / 16UC1) stays mono even when stored with three channels.
+    Colour decodes as BGR, as image_transport's plugin stores it; a mono source (the ``format`` field's
+    first part is mono8 / mono16 / 8UC1 / 16UC1) stays mono even when stored with three channels.
 
     Args:
         msg: the message (fields format, data).
-        topic: named in error messages ("" = none).
+        topic: named in error messages.
 
     Returns:
-        ``(image, encoding)``: encoding mono8, mono16, bgr8 or bgra8 (a key of :data:`ENCODINGS`).
+        ``(image, encoding)``: encoding mono8, mono16, bgr8 or bgra8.
 
     Raises:
-        ImageDecodeError: a format other than JPEG / PNG (cause ``format:<codec>``), data that does not
-            decode (``corrupt:<codec>``), or decoded pixels the raw path has no encoding for (16-bit colour).
+        ImageDecodeError: a format other than JPEG / PNG, data that does not decode, or pixels with no raw
+            encoding (16-bit colour).
 
     Shape:
         image: (H, W) uint8 / uint16 for mono, (H, W, 3|4) uint8 for colour.
@@ -273,19 +271,16 @@ def compressed_format(encoding: str, codec: str) -> str:
 
 
 def encode_compressed(image: np.ndarray, encoding: str, codec: str, quality: int = 90) -> tuple[str, bytes]:
-    """Compress decoded pixels as image_transport's ``compressed`` plugin does.
+    """Compress decoded pixels as image_transport's ``compressed`` plugin does: ``(format, data)``.
 
     Colour goes in as BGR (alpha dropped); 16-bit mono goes into PNG as 16 bits and into JPEG as its 8 most
     significant bits, the bits the tracker uses.
 
     Args:
         image: pixels as :func:`decode_image` returns them.
-        encoding: their encoding (a key of :data:`ENCODINGS`).
-        codec: ``jpeg`` or ``png``.
+        encoding: a key of :data:`ENCODINGS`.
+        codec: one of :data:`CODECS`.
         quality: JPEG quality, 1..100.
-
-    Returns:
-        ``(format, data)`` of the sensor_msgs/CompressedImage.
 
     Raises:
         DataError: for an unknown encoding or codec, or a quality out of range.

@@ -1,9 +1,7 @@
 """Build, serialise and decode the sensor messages the data layer handles, with rosbags typestores.
 
-Image pixels are decoded by :func:`nsflow_ros.data.images.decode_image`, the decoder the node shares.
-
-ROS 1 and ROS 2 differ in the header (ROS 1 has ``seq``) and in serialisation (ROS 1 wire format vs CDR):
-every builder takes the typestore to build for, :func:`ros2_store` (Jazzy) or :func:`ros1_store` (Noetic).
+ROS 1 and ROS 2 differ in the header (ROS 1 has ``seq``) and in serialisation, so every builder takes the
+typestore to build for, :func:`ros2_store` (Jazzy) or :func:`ros1_store` (Noetic).
 """
 
 from __future__ import annotations
@@ -26,6 +24,7 @@ __all__ = [
     "IMU",
     "POINT_CLOUD",
     "POINT_STAMPED",
+    "compressed_image_message",
     "decode_compressed",
     "default_encoding",
     "image_message",
@@ -48,7 +47,7 @@ POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 POINT_CLOUD = "sensor_msgs/msg/PointCloud"
 
 def default_encoding(dtype: np.dtype, channels: int) -> str | None:
-    """The encoding OpenCV-style pixels get by default: mono8, mono16, bgr8 or bgra8 (None otherwise)."""
+    """The encoding OpenCV-style pixels get by default: mono8, mono16, bgr8, bgra8 or None."""
     u8, u16 = np.dtype(np.uint8), np.dtype(np.uint16)
     table = {(u8, 1): "mono8", (u16, 1): "mono16", (u8, 3): "bgr8", (u8, 4): "bgra8"}
     return table.get((np.dtype(dtype), channels))
@@ -85,14 +84,10 @@ def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, e
     """A sensor_msgs/Image.
 
     Args:
-        store: typestore to build for.
-        stamp_ns: header stamp in nanoseconds.
-        frame_id: header frame id.
         image: (H, W) or (H, W, C) uint8 / uint16 pixels.
-        encoding: one of :data:`nsflow_ros.data.images.ENCODINGS`; default mono8 / mono16 / bgr8 / bgra8
-            from dtype and channels.
+        encoding: a key of :data:`nsflow_ros.data.images.ENCODINGS`; None = :func:`default_encoding`.
         seq: ROS 1 header sequence number (ignored for ROS 2).
-        step: row length in bytes; larger than the packed row to pad rows (default: packed).
+        step: row length in bytes, larger than the packed row to pad rows (None = packed).
 
     Raises:
         DataError: when the image does not match the encoding or ``step`` is too small.
@@ -123,6 +118,13 @@ def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, e
                               encoding=encoding, is_bigendian=0, step=step, data=packed.reshape(-1))
 
 
+def compressed_image_message(store: Any, stamp_ns: int, frame_id: str, fmt: str, data: bytes, *,
+                             seq: int = 0) -> Any:
+    """A sensor_msgs/CompressedImage of the ``(fmt, data)`` that :func:`.images.encode_compressed` returns."""
+    return store.types[COMPRESSED_IMAGE](header=_header(store, stamp_ns, frame_id, seq), format=fmt,
+                                          data=np.frombuffer(data, np.uint8))
+
+
 def imu_message(store: Any, stamp_ns: int, frame_id: str, gyro: Any, accel: Any, *, seq: int = 0) -> Any:
     """A sensor_msgs/Imu with no orientation (``orientation_covariance[0] = -1``, the ROS convention)."""
     t = store.types
@@ -150,16 +152,7 @@ def point_message(store: Any, stamp_ns: int, frame_id: str, xyz: Any, *, seq: in
 
 def point_cloud_message(store: Any, stamp_ns: int, frame_id: str, points: np.ndarray, channels: np.ndarray,
                         names: Sequence[str], *, seq: int = 0) -> Any:
-    """A sensor_msgs/PointCloud (the VINS feature message) from arrays.
-
-    Args:
-        store: typestore to build for.
-        stamp_ns: header stamp in nanoseconds.
-        frame_id: header frame id.
-        points: (x, y, z) per point.
-        channels: one row of values per channel.
-        names: the channel names, one per row of ``channels``.
-        seq: ROS 1 header sequence number (ignored for ROS 2).
+    """A sensor_msgs/PointCloud (the VINS feature message): one channel per row of ``channels``.
 
     Raises:
         DataError: when the shapes do not agree.
@@ -202,11 +195,7 @@ def record_to_message(store: Any, record: Record, seq: int = 0) -> tuple[str, An
 
 
 def record_to_cdr(record: Record) -> tuple[str, bytes]:
-    """ROS 2 CDR bytes of a record (e.g. a perturbed image) for a raw rclpy publisher.
-
-    Returns:
-        ``(msgtype, cdr)`` with the ROS 2 type name and the bytes including the encapsulation header.
-    """
+    """``(msgtype, cdr)`` of a record for a raw rclpy publisher, the CDR with its encapsulation header."""
     msgtype, msg = record_to_message(ros2_store(), record)
     return msgtype, serialize(ros2_store(), msg, msgtype)
 

@@ -1,12 +1,9 @@
 """A smooth 6-DoF trajectory for a MAV-like body and the IMU readings it produces.
 
-The body frame is the IMU frame (EuRoC's ``S`` frame of imu0): its x axis points up when the body is
-level and the cameras look along its z axis, as on the EuRoC MAV. Position and the yaw / pitch / roll
-angles are sums of sinusoids drawn from a seed, so the trajectory is smooth, deterministic and
-analytically differentiable: velocity, acceleration and angular velocity are exact, and so is the
-synthetic IMU (before the noise that is added on purpose).
-
-World frame: z up, gravity ``(0, 0, -9.81)`` m/s^2. Times are seconds since the trajectory's start.
+The body frame is the IMU frame (EuRoC's ``S`` of imu0): x up when level, cameras looking along z, as on the
+EuRoC MAV. Position and yaw / pitch / roll are seeded sums of sinusoids, so velocity, acceleration, angular
+velocity and hence the synthetic IMU (before its deliberate noise) are exact. World frame: z up, gravity
+``(0, 0, -9.81)`` m/s^2; times are seconds since the trajectory's start.
 """
 
 from __future__ import annotations
@@ -39,10 +36,7 @@ _R0 = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 
 
 def _sines(t: np.ndarray, amp: np.ndarray, freq: np.ndarray, phase: np.ndarray, order: int) -> np.ndarray:
-    """Sum over k of the ``order``-th derivative of ``amp_k sin(freq_k t + phase_k)``, per row of amp.
-
-    Shapes: t (N,), amp/freq/phase (D, K) -> (N, D).
-    """
+    """Sum over k of the ``order``-th derivative of ``amp_k sin(freq_k t + phase_k)``; (N, D)."""
     arg = t[:, None, None] * freq[None] + phase[None]
     # d^n/dt^n sin(w t + p) = w^n sin(w t + p + n pi / 2)
     return (amp[None] * freq[None] ** order * np.sin(arg + order * np.pi / 2)).sum(axis=2)
@@ -110,13 +104,9 @@ class Trajectory:
     def from_seed(cls, seed: int = 0, *, speed: float = 1.0) -> Trajectory:
         """Draw an EuRoC-like flight around the room's centre, deterministically from ``seed``.
 
-        Bounds (speed 1): ``|x| <= 1.4 m``, ``|y| <= 1.0 m``, ``z`` in ``1.45 +- 0.35 m``; typical speed
-        0.5 - 1 m/s; yaw rate up to about 1 rad/s, pitch within +-0.25 rad, roll within +-0.15 rad.
-        The full yaw range is swept, so the cameras see every wall and box.
-
-        Args:
-            seed: random seed.
-            speed: time scaling of every frequency (1 = the bounds above; 2 = twice as fast).
+        Bounds at ``speed`` 1 (a factor on every frequency): ``|x| <= 1.4 m``, ``|y| <= 1.0 m``, ``z`` in
+        ``1.45 +- 0.35 m``, 0.5 - 1 m/s, yaw rate up to about 1 rad/s, pitch within +-0.25 rad, roll within
+        +-0.15 rad; the full yaw range is swept, so the cameras see every wall and box.
         """
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A7]))
 
@@ -143,7 +133,7 @@ class Trajectory:
                    ang_phase)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON description; :meth:`from_dict` rebuilds the identical trajectory."""
+        """Plain-JSON description that :meth:`from_dict` reads back."""
         return {k: getattr(self, k).tolist() for k in self.__dataclass_fields__}
 
     @classmethod
@@ -182,10 +172,7 @@ class Trajectory:
         return _rz(a[:, 0]) @ _ry(a[:, 1]) @ _rx(a[:, 2]) @ _R0
 
     def angular_velocity(self, t: Any) -> np.ndarray:
-        """Angular velocity of the body, in the body frame (rad/s), as a gyroscope measures it.
-
-        Shape: (N,) -> (N, 3).
-        """
+        """Angular velocity in the body frame (rad/s), as a gyroscope measures it. Shape: (N,) -> (N, 3)."""
         tt = _times(t)
         a = self.angles(tt)
         rate = _sines(tt, self.ang_amp, self.ang_freq, self.ang_phase, 1)
@@ -256,14 +243,10 @@ def synthesize_imu(trajectory: Trajectory, stamps_ns: Any, t0_ns: int, *, noise:
     follow a random walk with per-step deviation ``walk * sqrt(dt)``, ``dt`` being the mean sample period.
 
     Args:
-        trajectory: the body trajectory.
         stamps_ns: (N,) increasing sample stamps in nanoseconds.
         t0_ns: stamp of the trajectory's time zero.
         noise: noise model; :data:`NO_IMU_NOISE` gives the exact kinematics.
         seed: random seed of the noise and biases.
-
-    Returns:
-        The readings and the true biases at each sample.
 
     Raises:
         DataError: when the stamps are not a 1-D increasing sequence.

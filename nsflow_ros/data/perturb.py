@@ -1,29 +1,13 @@
 """Illumination perturbation of image streams (evaluation) and of image pairs (training).
 
-Evaluation follows the NSFlow paper's EuRoC experiment: every frame gets an absolute and a relative
-pixel transform driven by two random variables that change smoothly over time,
+Evaluation follows the NSFlow paper's EuRoC experiment: ``I'(t) = clip(a(t) * I + b(t), 0, 255)`` with a
+gain ``a(t) = exp(g * s_a(t))`` and an offset ``b(t) = B * s_b(t)``, each ``s(t) = tanh(z(t))`` where
+``z`` is a sum of four seeded sinusoids scaled to unit mean square: smooth, in (-1, 1), and a pure function
+of ``(seed, t)``, so any frame can be perturbed on its own and replays are reproducible.
 
-    I'(t) = clip(a(t) * I + b(t), 0, 255)
-
-with a gain ``a(t) = exp(g * s_a(t))`` (relative transform) and an offset ``b(t) = B * s_b(t)`` (absolute
-transform). Each ``s(t) = tanh(z(t))`` where ``z`` is a sum of four sinusoids with seeded random
-frequencies, phases and weights, scaled to unit mean-square; so ``s`` is smooth, lies in (-1, 1),
-and is a pure function of ``(seed, t)``: any frame can be perturbed on its own, and replays are
-reproducible.
-
-Levels (exact ranges):
-
-============  ===============================  ======================  ==============================
-level         gain a(t)                        offset b(t) (gray lv.)  sinusoid frequencies
-============  ===============================  ======================  ==============================
-``none``      1 (image returned unchanged)     0                       -
-``small``     (exp(-0.25), exp(0.25)) =        (-20, 20)               0.05 - 0.4 Hz
-              (0.78, 1.28)
-``large``     (exp(-0.7), exp(0.7)) =          (-60, 60)               0.1 - 0.6 Hz
-              (0.50, 2.01)
-============  ===============================  ======================  ==============================
-
-For 16-bit images the offset is scaled by 257 (same relative change).
+Levels (:data:`LEVELS`): ``small`` gain (0.78, 1.28) = exp(+-0.25), offset (-20, 20) gray levels,
+sinusoids of 0.05 - 0.4 Hz; ``large`` gain (0.50, 2.01) = exp(+-0.7), offset (-60, 60), 0.1 - 0.6 Hz;
+``none`` returns the image unchanged. For 16-bit images the offset is scaled by 257.
 """
 
 from __future__ import annotations
@@ -97,8 +81,7 @@ class IlluminationPerturber:
     """Time-varying gain and offset on a stream of images, deterministic in ``(seed, t)``.
 
     Args:
-        level: ``"none"``, ``"small"``, ``"large"`` (see the module docstring for exact ranges) or a
-            :class:`PerturbLevel`.
+        level: a key of :data:`LEVELS` or a :class:`PerturbLevel`.
         seed: random seed of the two processes.
 
     Raises:
@@ -124,13 +107,7 @@ class IlluminationPerturber:
         self._weight = w / np.sqrt((w * w).sum(axis=1, keepdims=True) / 2.0)  # unit mean square
 
     def params(self, t: float) -> tuple[float, float]:
-        """Gain ``a(t)`` and offset ``b(t)`` (8-bit gray levels) at time ``t``.
-
-        Args:
-            t: time in seconds: a stamp (``stamp_ns * 1e-9``) or seconds since the sequence start; any
-                clock works as long as it is used consistently, since the output depends only on
-                ``(seed, t)``.
-        """
+        """Gain ``a(t)`` and offset ``b(t)`` (8-bit gray levels) at ``t`` seconds on any consistent clock."""
         if self.level.log_gain == 0.0 and self.level.offset == 0.0:
             return 1.0, 0.0
         z = (self._weight * np.sin(self._freq * float(t) + self._phase)).sum(axis=1)
@@ -142,10 +119,9 @@ class IlluminationPerturber:
 
         Args:
             image: (H, W) or (H, W, C) image, uint8, uint16 or float in [0, 1].
-            t: time in seconds.
 
         Returns:
-            The perturbed image, same shape and dtype. At level ``none`` the input array itself.
+            The perturbed image, same shape and dtype; at level ``none`` the input array itself.
 
         Raises:
             DataError: on a bad shape or dtype.
@@ -163,10 +139,9 @@ class IlluminationPerturber:
 
 
 def perturb_records(records: Iterable[Record], perturber: IlluminationPerturber) -> Iterator[Record]:
-    """Perturb the images of a record stream; IMU records pass unchanged.
+    """Perturb the images of a record stream at ``t = stamp_ns * 1e-9``; IMU records pass unchanged.
 
-    Each image is perturbed at ``t = stamp_ns * 1e-9``, so the cameras of a stereo pair (same stamp)
-    see the same illumination, and a replay of the stream gives the same images.
+    The stamp is the clock so that both images of a stereo pair see the same illumination.
     """
     for rec in records:
         if isinstance(rec, ImageRecord):
@@ -193,7 +168,7 @@ def perturb_pair(img1: Any, img2: Any, rng: np.random.Generator, strength: float
         strength: 0 leaves the images unchanged, 1 is the full range above.
 
     Returns:
-        The two perturbed images, each with its input's shape and dtype.
+        The two perturbed images with their inputs' shapes and dtypes.
 
     Raises:
         DataError: on a bad shape or dtype, or a strength outside [0, 1].

@@ -1,7 +1,6 @@
 """Real photos bundled with scikit-image and matplotlib, and their fixed train / held-out split.
 
-Torch-free, so both training (:mod:`nsflow_ros.train.data`) and the evaluation suite
-(:mod:`nsflow_ros.evaluation`) read the same photos and the same split; nothing is downloaded.
+Torch-free, so training and evaluation read the same photos and the same split; nothing is downloaded.
 """
 
 from __future__ import annotations
@@ -37,13 +36,10 @@ HELDOUT_IMAGES = ("coffee", "chelsea", "grace_hopper")
 
 @functools.cache
 def load_photo(name: str) -> np.ndarray:
-    """Load a bundled photo as a gray image.
+    """A bundled photo as (H, W) uint8 gray, cached: do not modify it in place.
 
     Args:
         name: a scikit-image data file stem (e.g. "astronaut") or "grace_hopper" (matplotlib).
-
-    Returns:
-        the photo. Shape (H, W) uint8. Cached: do not modify it in place.
 
     Raises:
         DataError: no such bundled photo, or it cannot be read.

@@ -35,8 +35,7 @@ class ImageRecord:
         return to_gray(self.image, self.encoding)
 
     def for_tracker(self) -> np.ndarray:
-        """The image as the tracker is given it, the same array the node decodes from the message
-        (:func:`nsflow_ros.data.images.tracker_image`): (H, W) mono8 or (H, W, 3) BGR."""
+        """The array the node gives the tracker (:func:`~nsflow_ros.data.images.tracker_image`)."""
         return tracker_image(self.image, self.encoding)
 
 

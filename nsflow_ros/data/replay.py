@@ -1,8 +1,7 @@
-"""What a replay publishes, independent of ROS: the (optionally perturbed, remapped) message stream.
+"""What a replay publishes, independent of ROS: the (optionally perturbed, remapped, compressed) stream.
 
-The ROS shell (:mod:`nsflow_ros.ros.replay_node`) only paces and publishes what :func:`replay_stream`
-yields, so the stream itself (and its reproducibility from a seed) is tested without middleware. Images can
-go out compressed, as image_transport's ``compressed`` plugin publishes them (``<topic>/compressed``).
+:mod:`nsflow_ros.ros.replay_node` only paces and publishes what :func:`replay_stream` yields, so the stream
+and its reproducibility from a seed are tested without middleware.
 """
 
 from __future__ import annotations
@@ -11,19 +10,20 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import numpy as np
-
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.images import CODECS, encode_compressed
-from nsflow_ros.data.messages import COMPRESSED_IMAGE, record_to_cdr, ros2_store, serialize
+from nsflow_ros.data.messages import (
+    COMPRESSED_IMAGE,
+    compressed_image_message,
+    record_to_cdr,
+    ros2_store,
+    serialize,
+)
 from nsflow_ros.data.perturb import IlluminationPerturber, perturb_records
 from nsflow_ros.data.records import ImageRecord, RawMessage, Record
 from nsflow_ros.data.sources import SensorSource
 
-__all__ = [
-    "COMPRESSIONS", "ReplayError", "ReplayOptions", "compressed_image_cdr", "parse_remaps", "replay_records",
-    "replay_stream",
-]
+__all__ = ["COMPRESSIONS", "ReplayError", "ReplayOptions", "parse_remaps", "replay_records", "replay_stream"]
 
 COMPRESSIONS = ("none", *CODECS)
 """What ``ReplayOptions.compress`` takes: ``none`` (sensor_msgs/Image) or a codec of CompressedImage."""
@@ -89,9 +89,9 @@ def parse_remaps(items: Sequence[str]) -> dict[str, str]:
 def replay_stream(opts: ReplayOptions) -> Iterator[RawMessage]:
     """The messages of a replay, in time order, as ROS 2 CDR bytes on their published topics.
 
-    Without perturbation or compression the source's bytes pass through untouched (any topic type); with
-    either, camera images are decoded, perturbed as a function of (seed, stamp), re-serialised (compressed
-    on ``<topic>/compressed``), and the IMU passes through.
+    Without perturbation or compression the source's bytes pass through (any topic type); with either,
+    images are decoded, perturbed from (seed, stamp) and re-serialised, compressed on
+    ``<topic>/compressed``.
 
     Raises:
         DataError: from the source (missing path or topic, damaged bag after the last good message).
@@ -102,32 +102,20 @@ def replay_stream(opts: ReplayOptions) -> Iterator[RawMessage]:
         for msg in source.raw_messages():
             yield RawMessage(remap.get(msg.topic, msg.topic), msg.msgtype, msg.stamp_ns, msg.cdr)
         return
+    store = ros2_store()
     for rec in _records(source, remap, opts):
         if opts.compress != "none" and isinstance(rec, ImageRecord):
-            cdr = compressed_image_cdr(rec, opts.compress, opts.jpeg_quality)
+            fmt, data = encode_compressed(rec.image, rec.encoding, opts.compress, opts.jpeg_quality)
+            msg = compressed_image_message(store, rec.stamp_ns, rec.frame_id, fmt, data)
+            cdr = serialize(store, msg, COMPRESSED_IMAGE)
             yield RawMessage(f"{rec.topic}/compressed", COMPRESSED_IMAGE, rec.stamp_ns, cdr)
             continue
         msgtype, cdr = record_to_cdr(rec)
         yield RawMessage(rec.topic, msgtype, rec.stamp_ns, cdr)
 
 
-def compressed_image_cdr(rec: ImageRecord, codec: str, quality: int = 90) -> bytes:
-    """ROS 2 CDR bytes of the sensor_msgs/CompressedImage of an image record (format as image_transport's).
-
-    Raises:
-        DataError: an encoding or codec :func:`~nsflow_ros.data.images.encode_compressed` refuses.
-    """
-    fmt, data = encode_compressed(rec.image, rec.encoding, codec, quality)
-    store = ros2_store()
-    sec, nanosec = divmod(rec.stamp_ns, 1_000_000_000)
-    stamp = store.types["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=int(nanosec))
-    header = store.types["std_msgs/msg/Header"](stamp=stamp, frame_id=rec.frame_id)
-    msg = store.types[COMPRESSED_IMAGE](header=header, format=fmt, data=np.frombuffer(data, np.uint8))
-    return serialize(store, msg, COMPRESSED_IMAGE)
-
-
 def replay_records(opts: ReplayOptions) -> Iterator[Record]:
-    """Decoded image and IMU records of a replay: perturbed (as a function of seed and stamp), remapped.
+    """Decoded image and IMU records of a replay, perturbed and remapped.
 
     Raises:
         DataError: from the source.
@@ -140,7 +128,7 @@ def _source(opts: ReplayOptions) -> SensorSource:
 
 
 def _records(source: SensorSource, remap: Mapping[str, str], opts: ReplayOptions) -> Iterator[Record]:
-    """The source's records, perturbed unless ``opts.perturb`` is ``none``, on their remapped topics."""
+    """The source's records, perturbed as ``opts`` says, on their remapped topics."""
     perturber = None if opts.perturb == "none" else IlluminationPerturber(opts.perturb, seed=opts.seed)
     records: Iterator[Record] = source.records()
     if perturber is not None:

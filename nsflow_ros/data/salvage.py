@@ -1,13 +1,10 @@
 """Read what is readable from a damaged bag, in file order, by scanning it from the start.
 
-rosbags' readers need a bag's index (ROS 1), summary (MCAP) or an intact database (sqlite3), which a
-truncated file no longer has: they refuse to open it at all. These scanners walk the records from the
-front instead and stop, raising :class:`DataError`, where the data ends or stops making sense. Every
-message before that point has been yielded by then.
-
-Supported: ROS 1 bags v2.0 with uncompressed, bz2 or lz4 chunks; MCAP with uncompressed chunks; sqlite3
-(row order). Messages come as ``(topic, msgtype, log_time_ns, raw_bytes)`` with rosbags-style type names
-(``sensor_msgs/msg/Image``); raw bytes are ROS 1 wire format or CDR according to the bag.
+rosbags needs a bag's index (ROS 1), summary (MCAP) or an intact database (sqlite3), which a truncated file
+no longer has; these scanners walk the records from the front and raise :class:`DataError` where the data
+ends or stops making sense, after yielding every message before it. Supported: ROS 1 bags v2.0 (chunks
+uncompressed, bz2 or lz4), MCAP with uncompressed chunks, sqlite3. Messages come as
+``(topic, msgtype, log_time_ns, raw_bytes)`` with rosbags-style type names.
 """
 
 from __future__ import annotations

@@ -1,24 +1,18 @@
 """The built-in sample sequence: a synthetic EuRoC-like stereo-inertial flight, written in EuRoC's forms.
 
-:func:`make_sample_sequence` renders a seeded flight through a textured room (:mod:`.scene`) along a
-seeded trajectory with a synthetic IMU (:mod:`.motion`) and writes, under ``out_dir``:
+:func:`make_sample_sequence` renders a seeded flight through a textured room (:mod:`.scene`) with a
+synthetic IMU (:mod:`.motion`) and writes under ``out_dir``:
 
-* ``asl/mav0/``: an ASL folder in EuRoC's layout: ``cam0/`` and ``cam1/`` (``data.csv`` with
-  ``#timestamp [ns],filename``, ``data/<ns>.png`` mono8 752x480, ``sensor.yaml``), ``imu0/``
-  (``data.csv``, 200 Hz), ``state_groundtruth_estimate0/data.csv`` (p, q wxyz, v, bw, ba at the IMU rate);
-* ``ros2/``: a ROS 2 bag (mcap) and ``sample.bag``: a ROS 1 bag, both with EuRoC's topics
-  ``/cam0/image_raw``, ``/cam1/image_raw`` (sensor_msgs/Image mono8, frame ids cam0 / cam1), ``/imu0``
-  (sensor_msgs/Imu, frame id imu0) and ``/leica/position`` (geometry_msgs/PointStamped, body position at
-  the camera rate);
-* ``sequence.json`` (parameters, calibration, scene and trajectory descriptions, stamps),
-  ``poses.npz`` (camera and body poses per frame) and ``groundtruth.csv`` (EuRoC ground-truth layout
-  at the IMU rate): what evaluation needs. :class:`SampleSequence` reloads them and recomputes exact
-  depth and optical flow for any pixel of any frame;
-* ``done``: written last. Everything is built in a hidden temporary folder next to ``out_dir`` and
-  renamed into place at the end, so an interrupted run never leaves something that looks complete.
+* ``asl/mav0/``: EuRoC's ASL layout, ``cam0/`` and ``cam1/`` (``data.csv``, ``data/<ns>.png`` mono8
+  752x480, ``sensor.yaml``), ``imu0/`` (200 Hz) and ``state_groundtruth_estimate0/data.csv``;
+* ``ros2/`` (mcap) and ``sample.bag`` (ROS 1) with EuRoC's topics ``/cam0/image_raw``, ``/cam1/image_raw``,
+  ``/imu0`` and ``/leica/position`` (geometry_msgs/PointStamped, body position at the camera rate);
+* ``sequence.json``, ``poses.npz`` and ``groundtruth.csv`` (EuRoC's ground-truth layout at the IMU rate),
+  from which :class:`SampleSequence` recomputes exact depth and flow for any pixel of any frame;
+* ``done``, written last: the sequence is built in a hidden folder beside ``out_dir`` and renamed into
+  place, so an interrupted run never leaves something that looks complete.
 
-All outputs are a pure function of the parameters: calling again with the same ones returns the
-existing sequence without rendering anything.
+The outputs are a pure function of the parameters: the same ones again return the existing sequence.
 """
 
 from __future__ import annotations
@@ -102,9 +96,6 @@ class SampleSequence:
         cameras: the cameras (cam0, and cam1 if stereo).
         scene: the rendered scene.
         trajectory: the body trajectory (time zero at ``stamps_ns[0]``).
-
-    Raises:
-        DataError: (from :meth:`load`) when ``root`` is not a complete sample sequence.
     """
 
     def __init__(self, root: Path, meta: dict[str, Any], poses: dict[str, np.ndarray]) -> None:
@@ -156,10 +147,7 @@ class SampleSequence:
 
     @property
     def groundtruth_csv(self) -> Path:
-        """Body (IMU) ground truth at the IMU rate in EuRoC's state_groundtruth_estimate0 csv layout.
-
-        Written for every sequence, whatever its formats (the ASL folder holds an identical copy).
-        """
+        """Body (IMU) ground truth at the IMU rate in EuRoC's csv layout, whatever the formats."""
         return self.root / "groundtruth.csv"
 
     def path(self, fmt: str) -> Path:
@@ -226,17 +214,13 @@ class SampleSequence:
 
     def flow(self, i: int, j: int, pixels: Any, cam: int = 0, cam_j: int | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
-        """Exact optical flow of ``pixels`` from frame ``i`` to frame ``j``.
+        """Exact optical flow of ``pixels`` (N, 2) of frame ``i`` (camera ``cam``) to frame ``j``.
 
         Args:
-            i, j: frame indices.
-            pixels: (N, 2) pixel positions (u, v) in frame i of camera ``cam``.
-            cam: camera of frame i.
             cam_j: camera of frame j (default ``cam``; ``i == j, cam=0, cam_j=1`` is stereo matching).
 
         Returns:
-            ``(flow, visible)``: (N, 2) float64 displacement and (N,) bool visibility (inside both
-            images and not occluded in frame j); see :func:`nsflow_ros.data.scene.flow_between`.
+            ``(flow, visible)`` as :func:`nsflow_ros.data.scene.flow_between` returns them.
         """
         cj = cam if cam_j is None else cam_j
         self._check(i, cam)
@@ -278,19 +262,14 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
         out_dir: folder to create.
         seed: seed of scene, trajectory, IMU noise and image noise.
         duration: seconds of images (IMU and ground truth cover ``[0, duration]``).
-        rate_hz: camera rate.
-        stereo: render cam1 too.
-        formats: any of ``"asl"``, ``"ros2"``, ``"ros1"``.
+        formats: any of :data:`FORMATS`.
         imu_rate_hz: IMU and ground-truth rate.
         image_noise: standard deviation of the images' Gaussian noise in gray levels.
         imu_noise: add EuRoC-like IMU noise and bias random walk (False: exact kinematics, zero bias).
         progress: show progress; None shows it only when stderr is a terminal.
-        overwrite: replace a non-empty ``out_dir`` that is not a sample sequence. An existing sample
-            sequence with other parameters is always replaced; one with these parameters is reused.
+        overwrite: replace a non-empty ``out_dir`` that is not a sample sequence (a sample sequence with
+            other parameters is always replaced, one with these parameters reused).
         workers: render threads (NumPy and OpenCV release the GIL in the heavy parts).
-
-    Returns:
-        The sequence.
 
     Raises:
         DataError: on bad parameters, when ``out_dir`` holds other files and ``overwrite`` is false,

@@ -1,19 +1,11 @@
 """A textured indoor scene (a room with boxes), rendered by vectorised ray casting, with exact flow.
 
-The scene is a closed, axis-aligned room (floor, ceiling, four walls) holding boxes that may be turned
-about the vertical axis. Every face carries a real photograph from scikit-image's sample data (gray,
-contrast-normalised, mirror-tiled at a per-face scale and orientation) and Lambertian shading from two
-point lights. Shading depends on the surface point only, never on the viewpoint, so brightness
-constancy holds between frames up to sampling: exactly what optical flow assumes, which makes the
-ground-truth flow checkable by warping.
-
-Rendering casts one ray per pixel through EuRoC's pinhole-radtan model: the ray of a pixel comes from
-undistorting it (precomputed once per camera), so images carry the real lens distortion. Depth is the
-z coordinate of the hit point in the camera frame (``t`` along ``(x_n, y_n, 1)``).
-
-Ground-truth flow for any pixel set: backproject with the exact depth (a fresh ray cast, not an
-interpolated depth map), transform into the other camera, project with distortion, and flag the point
-not visible when it falls outside the image or another surface is nearer along the second ray.
+Every face carries a scikit-image photograph (mirror-tiled) under Lambertian point lights; shading depends
+on the surface point only, never on the viewpoint, so brightness constancy holds between frames as optical
+flow assumes. A pixel's ray comes from undistorting it through EuRoC's pinhole-radtan model, so images carry
+the real lens distortion; depth is the hit point's z in the camera frame. Ground-truth flow backprojects
+with a fresh ray cast (no interpolated depth map), projects with distortion into the other view, and marks
+a point not visible outside the image or behind a nearer surface.
 """
 
 from __future__ import annotations
@@ -128,7 +120,6 @@ class Scene:
 
     Args:
         room_min, room_max: opposite corners of the room (m), floor at ``room_min[2]``.
-        boxes: the boxes.
         room_materials: 6 materials for -x, +x, -y, +y walls, floor, ceiling.
         textures: texture file names in scikit-image's data folder (see :data:`TEXTURES`).
         lights: (L, 3) point-light positions (m).
@@ -202,7 +193,7 @@ class Scene:
         return cls(lo, hi, boxes, room, TEXTURES, lights, 0.42, seed=int(seed))
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON description; :meth:`from_dict` rebuilds the identical scene."""
+        """Plain-JSON description that :meth:`from_dict` reads back."""
         return {
             "room_min": self.room_min.tolist(),
             "room_max": self.room_max.tolist(),
@@ -303,7 +294,7 @@ class Scene:
 
     @cached_property
     def atlas(self) -> np.ndarray:
-        """Texture atlas: tiles on a grid, one grid per prefilter level, levels stacked vertically.
+        """Texture tiles on a grid, one grid per prefilter level, levels stacked vertically.
 
         Shape: (levels * rows * TILE, cols * TILE) float32; level ``l`` starts at row ``l * rows * TILE``.
         """
@@ -341,18 +332,18 @@ class Scene:
         Args:
             origin: (3,) ray origin in the world frame, inside the room.
             dirs: (3, ...) ray directions in the world frame (need not be unit); float32 or float64.
-            dnorm: optional norms of ``dirs``, shape ``dirs.shape[1:]`` (saves recomputing them).
-            windows: optional, per box, slices of the trailing axes of ``dirs`` outside which no ray can
-                hit that box (from :class:`Renderer`'s screen-space bounds), or None to cull by the box's
-                bounding cone.
+            dnorm: the norms of ``dirs``, if known.
+            windows: per box, slices of the trailing axes of ``dirs`` outside which no ray can hit it
+                (:class:`Renderer`'s screen-space bounds); None culls by each box's bounding cone.
 
         Returns:
-            ``(t, surface)``: distance along each ray in units of its direction (the hit is
-            ``origin + t * dir``), and int32 surface index (-1 where nothing is hit); both of shape
-            ``dirs.shape[1:]``.
+            ``(t, surface)``: the hit is ``origin + t * dir``; int32 surface index, -1 where nothing is hit.
 
         Raises:
             DataError: when ``dirs`` is not (3, ...).
+
+        Shape:
+            dirs: (3, ...) -> t, surface: ``dirs.shape[1:]``.
         """
         if dirs.ndim < 2 or dirs.shape[0] != 3:
             raise DataError(f"ray directions: expected shape (3, N), got {dirs.shape}")
@@ -435,17 +426,13 @@ class Scene:
 
     def shade(self, points: np.ndarray, surf: np.ndarray, footprint: np.ndarray,
               normal: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """Intensity in [0, ~1] of surface points.
+        """(N,) float32 intensity in [0, ~1] of surface points.
 
         Args:
             points: (3, N) float32 hit points in the world frame.
             surf: (N,) surface indices (all valid).
-            footprint: (N,) size of the pixel's footprint on the surface in metres (picks the
-                prefilter level, i.e. texture anti-aliasing).
+            footprint: (N,) size of a pixel on the surface in metres; picks the texture's prefilter level.
             normal: the surfaces' normals per point as three (N,) arrays, if already gathered.
-
-        Returns:
-            (N,) float32 intensities.
         """
         f32 = np.float32
         tb = self._tables
@@ -490,25 +477,18 @@ class Scene:
 
 @dataclass(frozen=True)
 class Rendered:
-    """A rendered frame.
-
-    Attributes:
-        image: (H, W) uint8 mono8 image.
-        depth: (H, W) float32 z-depth in metres (camera frame), inf where nothing was hit.
-    """
+    """A rendered frame: (H, W) uint8 image and (H, W) float32 z-depth in metres (inf: nothing hit)."""
 
     image: np.ndarray
     depth: np.ndarray
 
 
 class Renderer:
-    """Renders a scene through one camera; precomputes the camera's rays once.
+    """Renders a scene through one camera, whose distorted rays are computed once.
 
     Args:
-        scene: the scene.
-        camera: the camera (its distortion is applied through the precomputed rays).
-        psf_sigma: Gaussian blur (pixels) standing for the lens' point-spread function; it also softens
-            aliasing at silhouettes. 0 disables it.
+        psf_sigma: Gaussian blur (pixels) standing for the lens' point-spread function, which also softens
+            aliasing at silhouettes; 0 disables it.
     """
 
     def __init__(self, scene: Scene, camera: PinholeRadtan, psf_sigma: float = 0.6) -> None:
@@ -552,15 +532,11 @@ class Renderer:
         return out
 
     def render(self, T_wc: Any, *, noise_sigma: float = 0.0, noise_seed: int | None = None) -> Rendered:
-        """Render the view of a camera at pose ``T_wc``.
+        """Render the view of a camera at pose ``T_wc`` (4x4 camera-to-world).
 
         Args:
-            T_wc: 4x4 camera-to-world transform.
             noise_sigma: standard deviation of additive Gaussian pixel noise (gray levels).
-            noise_seed: seed of that noise (deterministic per frame).
-
-        Returns:
-            The image (H, W) uint8 and the z-depth (H, W) float32.
+            noise_seed: seed of that noise.
 
         Raises:
             DataError: when ``T_wc`` is not 4x4 or the camera is outside the free space of the room.
@@ -626,16 +602,12 @@ def _pixel_jacobian_area(camera: PinholeRadtan, grid: np.ndarray) -> np.ndarray:
 
 
 def ray_depth(scene: Scene, camera: PinholeRadtan, T_wc: Any, pixels: Any) -> np.ndarray:
-    """Exact z-depth at sub-pixel positions (a fresh ray cast per pixel; no interpolation across edges).
+    """Exact z-depth (m) at sub-pixel positions of a camera at ``T_wc``, inf where nothing is hit.
 
-    Args:
-        scene: the scene.
-        camera: the camera.
-        T_wc: 4x4 camera-to-world transform.
-        pixels: (N, 2) pixel coordinates (u, v).
+    A fresh ray cast per pixel: no interpolation across edges.
 
-    Returns:
-        (N,) float64 depth in metres; inf where nothing is hit.
+    Shape:
+        pixels: (N, 2) (u, v) -> (N,) float64.
     """
     T = np.asarray(T_wc, dtype=np.float64)
     xn = camera.pixels_to_normalized(pixels)
@@ -649,16 +621,14 @@ def flow_between(scene: Scene, cam_i: PinholeRadtan, T_w_ci: Any, cam_j: Pinhole
     """Exact optical flow of pixels from view i to view j, with a visibility flag.
 
     Args:
-        scene: the scene.
         cam_i, cam_j: cameras of the two views (the same one for temporal flow, cam0/cam1 for stereo).
         T_w_ci, T_w_cj: 4x4 camera-to-world poses of the views.
-        pixels: (N, 2) pixel coordinates (u, v) in view i, sub-pixel allowed.
+        pixels: (N, 2) pixel coordinates (u, v) in view i.
         occlusion_tol: relative depth tolerance of the occlusion test.
 
     Returns:
-        ``(flow, visible)``: (N, 2) float64 flow (position in view j minus ``pixels``; NaN where the point
-        cannot be projected) and (N,) bool, true where the point is inside image i, inside image j and
-        not hidden behind another surface in view j.
+        ``(flow, visible)``: (N, 2) float64 flow, NaN where the point cannot be projected, and (N,) bool,
+        true where the point is inside both images and not hidden behind another surface in view j.
 
     Raises:
         DataError: when ``pixels`` is not (N, 2) or a pose is not 4x4.

@@ -1,14 +1,11 @@
 """Front-end figures against a sample sequence's exact optical flow: the one place tracking is scored.
 
-Two accumulators, one per kind of output, each keeping the definition of the figures it publishes:
-
-* :class:`TrackStats` scores a published feature stream (camera 0, id -> pixel per frame, matched to the
-  sample by stamp), as the offline run, the demo and the evaluation's sequence analysis receive it: a
-  feature is carried over when its id was in the previous published frame, shares are ratios of sums,
-  and the error is the distance from where ground truth carries the previous published pixel.
-* :class:`FrameQuality` scores the tracker's own frames (sample index known, each feature with its
-  previous position, stereo matches too), as the whole-tracker benchmark measures them: shares are
-  means of per-frame ratios, and the error is measured from the tracker's previous position.
+* :class:`TrackStats` scores a published feature stream (camera 0, id -> pixel, matched by stamp), as the
+  offline run, the demo and the evaluation receive it: a feature is carried over when its id was in the
+  previous published frame, shares are ratios of sums, and the error is measured from where ground truth
+  carries the previous published pixel.
+* :class:`FrameQuality` scores the tracker's own frames, as the tracker benchmark does: shares are means of
+  per-frame ratios, and the error is measured from the tracker's previous position (stereo matches too).
 
 Points the ground truth marks occluded or outside the image are left out of every error.
 """
@@ -55,11 +52,9 @@ class TrackStats:
             self._index = {int(s): i for i, s in enumerate(self.sample.stamps_ns)}
 
     def add_frame(self, stamp_ns: int, features: dict[int, np.ndarray]) -> None:
-        """Add one frame's camera-0 features (id -> distorted pixel), in time order.
+        """Add one frame's camera-0 features (id -> (u, v) pixel), in time order.
 
-        Args:
-            stamp_ns: the frame's stamp; a stamp that is not one of the sample's frames measures no error.
-            features: feature id -> (2,) pixel (u, v).
+        A stamp that is not one of the sample's frames measures no error.
         """
         k = self._index.get(int(stamp_ns))
         carried = [] if self._prev is None else [i for i in features if i in self._prev[1]]

@@ -1,20 +1,13 @@
 """One streaming interface over ROS 1 bags, ROS 2 bags (sqlite3, mcap) and EuRoC / UMA-VI ASL folders.
 
-A :class:`SensorSource` yields :class:`ImageRecord` and :class:`ImuRecord` objects in time order, one
-at a time (a bag is never loaded whole), or the same stream as ROS 2 CDR bytes for a replayer
-(:meth:`SensorSource.raw_messages`).
+A :class:`SensorSource` yields image and IMU records one at a time, never loading a bag whole, or the same
+stream as ROS 2 CDR bytes for a replayer. Default topics: ``/cam0/image_raw``, ``/cam1/image_raw`` (those
+present) and ``/imu0`` (EuRoC) or ``/imu0/data`` (UMA-VI); an ASL folder's ``camN`` is ``/camN/image_raw``
+and its ``imuN`` is ``/imuN`` (alias ``/imuN/data``).
 
-Topics: by default the EuRoC names, ``/cam0/image_raw``, ``/cam1/image_raw`` (those present) and the
-IMU as ``/imu0`` (EuRoC) or ``/imu0/data`` (UMA-VI). An ASL folder's ``camN`` is ``/camN/image_raw``
-and its ``imuN`` is ``/imuN`` (``/imuN/data`` is accepted as an alias).
-
-Time: records come ordered by record time (bag receive time for bags, the CSV stamp for ASL folders;
-ties keep the bag's order, and IMU before cameras in ASL folders). ``start`` and ``duration`` (seconds)
-select a window relative to the first selected record. ``stamp_ns`` of a record is its header stamp.
-
-Errors are :class:`DataError` naming the path / topic / encoding at fault. A damaged bag (truncated
-by a full disk or an interrupted copy) is read from the front as far as it is intact; the error comes
-after the last good record, which has been yielded and stays with the caller.
+Records come in record time order (bag receive time, or the CSV stamp; ties keep the bag's order, IMU before
+cameras in ASL folders); ``start`` and ``duration`` select a window from the first selected record. A
+damaged bag is read from the front as far as it is intact, and the error comes after the last good record.
 """
 
 from __future__ import annotations
@@ -77,10 +70,7 @@ def _asl_root(path: Path) -> Path | None:
 
 
 def detect_kind(path: str | Path) -> SourceKind:
-    """Which kind of data set ``path`` is.
-
-    ``.bag`` file: ROS 1; ``.mcap`` / ``.db3`` file or a folder with ``metadata.yaml`` or such files:
-    ROS 2; a folder with ``mav0/`` (or a ``mav0`` folder itself) holding ``*/data.csv``: ASL.
+    """Which kind of data set ``path`` is: a ``.bag`` file, a ROS 2 bag file or folder, or an ASL folder.
 
     Raises:
         DataError: when the path does not exist or is none of these.
@@ -108,14 +98,13 @@ class SensorSource:
     Args:
         path: ROS 1 ``.bag`` file, ROS 2 bag folder (or its ``.mcap`` / ``.db3`` file), or ASL folder
             (the folder holding ``mav0``, or ``mav0`` itself).
-        topics: topics to read; None for the defaults (see the module docstring). Every topic named
-            here must exist.
+        topics: topics to read, each of which must exist; None for the defaults.
         start: seconds to skip from the first selected record.
         duration: seconds to read from there; None reads to the end.
 
     Raises:
-        DataError: when the path does not exist or is not a known kind, or on a negative start /
-            non-positive duration. Topic problems are raised when iteration starts.
+        DataError: an unknown path, a negative start or a non-positive duration (topic problems are raised
+            when iteration starts).
 
     Example:
         ``for rec in SensorSource("MH_01_easy.bag", duration=10.0): ...``
@@ -141,25 +130,18 @@ class SensorSource:
         return self.records()
 
     def records(self) -> Iterator[Record]:
-        """Decoded records, in time order.
-
-        Yields:
-            :class:`ImageRecord` / :class:`ImuRecord`.
+        """Decoded :class:`ImageRecord` / :class:`ImuRecord`, in time order.
 
         Raises:
-            DataError: for a missing topic (naming it and the topics present), a topic of another
-                type, an unknown image encoding, or a damaged source (after the last good record).
+            DataError: a missing topic (naming the topics present), a topic of another type, an unknown
+                image encoding, or a damaged source (after the last good record).
         """
         if self.kind == "asl":
             return self._asl_records()
         return self._bag_items(raw=False)
 
     def raw_messages(self) -> Iterator[RawMessage]:
-        """The stream as ROS 2 CDR bytes per message, for a raw rclpy publisher.
-
-        ROS 2 bags pass their bytes through; ROS 1 messages are converted (``ros1_to_cdr``); ASL rows
-        are serialised as sensor_msgs/Image and sensor_msgs/Imu. Topics of any type may be requested
-        here (e.g. ``/leica/position``), not only images and IMU.
+        """The stream as ROS 2 CDR bytes per message, for a raw rclpy publisher; any topic type is allowed.
 
         Raises:
             DataError: as :meth:`records`, and for ROS 1 types unknown to ROS 2 Jazzy.
@@ -170,16 +152,19 @@ class SensorSource:
 
     # -- topic selection --------------------------------------------------------------------------------
 
-    def _resolve(self, present: dict[str, str], raw: bool) -> list[str]:
+    def _resolve(self, present: dict[str, str], raw: bool, where: Path | None = None,
+                 aliases: dict[str, str] | None = None) -> list[str]:
+        """The topics to read; requested ones may also be ``aliases`` (name -> type) of present ones."""
         listing = ", ".join(f"{t} ({present[t]})" for t in sorted(present)) or "none"
         if self.requested is not None:
-            missing = [t for t in self.requested if t not in present]
+            known = {**present, **(aliases or {})}
+            missing = [t for t in self.requested if t not in known]
             if missing:
-                raise DataError(f"topic(s) {', '.join(missing)} not found in {self.path}; "
+                raise DataError(f"topic(s) {', '.join(missing)} not found in {where or self.path}; "
                                 f"topics present: {listing}")
             if not raw:
                 for t in self.requested:
-                    if present[t] not in _DECODABLE:
+                    if known[t] not in _DECODABLE:
                         raise DataError(f"topic {t} in {self.path} has type {present[t]}; records can "
                                         f"be read only from {', '.join(_DECODABLE)} "
                                         "(use raw_messages for others)")
@@ -301,15 +286,7 @@ class SensorSource:
         # /imuN/data (UMA-VI's bag name) is accepted for an ASL folder's imuN.
         aliases = {f"{t}/data": t for t, typ in present.items() if typ == IMU}
         lookup = {**present, **{a: IMU for a in aliases}}
-        if self.requested is not None:
-            missing = [t for t in self.requested if t not in lookup]
-            if missing:
-                listing = ", ".join(f"{t} ({present[t]})" for t in sorted(present)) or "none"
-                raise DataError(f"topic(s) {', '.join(missing)} not found in {root}; "
-                                f"topics present: {listing}")
-            topics = list(self.requested)
-        else:
-            topics = self._resolve(present, raw=False)
+        topics = self._resolve(present, raw=False, where=root, aliases=lookup)
         streams = []
         # IMU first at equal stamps: a consumer then has the inertial data up to an image's time.
         order = sorted(topics, key=lambda t: (lookup[t] != IMU, t))

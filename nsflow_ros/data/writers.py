@@ -1,6 +1,6 @@
 """Writers for the three on-disk forms of a sequence: EuRoC ASL folders, ROS 2 bags and ROS 1 bags.
 
-Every writer creates its output from scratch (an existing path is an error) and refuses to overwrite.
+Every writer creates its output from scratch: an existing path is an error.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from nsflow_ros.data.camera import PinholeRadtan
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.messages import (
+    IMAGE,
     IMU,
     POINT_CLOUD,
     POINT_STAMPED,
@@ -79,8 +80,8 @@ class AslWriter:
     """Writes an EuRoC ASL folder (``.../mav0``): camN/, imu0/, state_groundtruth_estimate0/.
 
     Args:
-        root: the ``mav0`` folder to create; it must not exist yet (or be empty).
-        png_compression: zlib level of the PNG files (0-9; all are lossless).
+        root: the ``mav0`` folder to create (or an empty one).
+        png_compression: zlib level of the lossless PNG files (0-9).
 
     Raises:
         DataError: when ``root`` exists and is not empty.
@@ -151,12 +152,7 @@ class AslWriter:
         return buf.tobytes()
 
     def write_image(self, folder: str, stamp_ns: int, image: np.ndarray | bytes) -> None:
-        """Append an image: ``folder/data/<stamp>.png`` and its data.csv row.
-
-        Args:
-            folder: camera folder, e.g. ``cam0``.
-            stamp_ns: stamp in nanoseconds (also the file name).
-            image: pixels, or PNG bytes from :meth:`encode`.
+        """Append an image, pixels or PNG bytes from :meth:`encode`: ``folder/data/<stamp>.png`` and a row.
 
         Raises:
             DataError: when the folder was not added or the PNG cannot be written.
@@ -190,20 +186,13 @@ class AslWriter:
             f.close()
         self._files.clear()
 
-    def __enter__(self) -> AslWriter:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
-
 
 class BagWriter:
     """Writes messages to a new ROS 1 bag or ROS 2 bag; one connection per topic, added on first use.
 
     Args:
-        path: bag file (ROS 1, ``.bag``) or bag directory (ROS 2); must not exist.
-        ros1: write ROS 1 (with the Noetic typestore) instead of ROS 2 (Jazzy).
+        path: bag file (ROS 1) or bag directory (ROS 2) to create.
+        ros1: write ROS 1 (Noetic typestore) instead of ROS 2 (Jazzy).
         storage: ROS 2 storage plugin, ``"mcap"`` or ``"sqlite3"``.
 
     Raises:
@@ -272,10 +261,7 @@ class BagWriter:
 
     def write_message(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
         """Serialise a message object (built for :attr:`store`) and write it at bag time ``stamp_ns``."""
-        self.write_raw(topic, msgtype, stamp_ns, serialize(self.store, msg, msgtype))
-
-    def write_raw(self, topic: str, msgtype: str, stamp_ns: int, data: bytes) -> None:
-        """Write already serialised bytes (ROS 1 wire format for ROS 1 bags, CDR for ROS 2)."""
+        data = serialize(self.store, msg, msgtype)
         self._writer.write(self._connection(topic, msgtype), int(stamp_ns), data)
         self.count += 1
 
@@ -283,7 +269,7 @@ class BagWriter:
                     encoding: str | None = None) -> None:
         """Write a sensor_msgs/Image stamped (header and bag time) ``stamp_ns``."""
         msg = image_message(self.store, stamp_ns, frame_id, image, encoding, seq=self._next_seq(topic))
-        self.write_message(topic, "sensor_msgs/msg/Image", stamp_ns, msg)
+        self.write_message(topic, IMAGE, stamp_ns, msg)
 
     def write_imu(self, topic: str, stamp_ns: int, gyro: Any, accel: Any, frame_id: str = "imu0") -> None:
         """Write a sensor_msgs/Imu."""
@@ -318,28 +304,19 @@ def temp_sibling(path: Path) -> Path:
 
 
 def write_ros2_bag(path: str | Path, records: Iterable[Record], *, storage: str = "mcap") -> int:
-    """Write a stream of records (e.g. perturbed images from :mod:`nsflow_ros.data.sources`) as a ROS 2 bag.
+    """Write image and IMU records, in order, as a new ROS 2 bag; returns the number of messages written.
 
-    The bag is written under a hidden temporary name next to ``path`` and renamed when complete, so an
-    interrupted run never leaves a bag at ``path``.
-
-    Args:
-        path: bag directory to create; must not exist.
-        records: image and IMU records, in the order to write them.
-        storage: ``"mcap"`` or ``"sqlite3"``.
-
-    Returns:
-        The number of messages written.
+    The bag is built under a hidden name beside ``path`` and renamed when complete, so an interrupted run
+    never leaves a bag at ``path``.
 
     Raises:
         DataError: when ``path`` exists, or on a record that cannot be serialised (the partial bag is
-            removed). Errors raised by ``records`` itself propagate after the same clean-up.
+            removed, as it is when ``records`` itself raises).
     """
     path = Path(path)
     if path.exists():
         raise DataError(f"bag {path} exists already; not overwriting")
-    # Build inside a hidden sibling folder under the final name (the storage file is named after the
-    # bag folder), then move it into place in one rename.
+    # the storage file is named after the bag folder: build under the final name inside the sibling
     tmp = temp_sibling(path)
     tmp.mkdir(parents=True)
     try:

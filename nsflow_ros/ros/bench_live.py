@@ -1,10 +1,9 @@
 """Live node benchmark: the stereo sample replayed at camera rate into ``tracker`` processes over real DDS.
 
-For each method, a ``tracker`` node process runs the shipped EuRoC stereo config while this process
-replays the sample sequence's two 752x480 image topics at ``rate`` (1.0 = the camera's 20 Hz) with
-sensor-data QoS, as a camera driver would, through the shipped Fast DDS profile. The node's own counters
-and latency (from the image callback, queueing and any decoding included, to the publication) come from
-its summary file; a background load can share the cores, standing in for the estimator.
+Per method a ``tracker`` process runs the shipped EuRoC stereo config while this process replays the
+sample's two 752x480 image topics with sensor-data QoS, as a camera driver would. The node's counters and
+latency (image callback to publication, queueing and decoding included) come from its summary file; a
+background load can share the cores, standing in for the estimator.
 """
 
 from __future__ import annotations
@@ -45,21 +44,16 @@ def run_live_benchmark(
         seconds: length of the sample sequence (20 Hz stereo).
         methods: tracking methods, one node run each, in this order.
         rate: replay speed (1.0 = camera rate).
-        seed: the sample sequence's seed.
-        cache_dir: where the sample (ROS 2 bag) is rendered and reused; None = a temporary folder.
-        progress: print a line per run to stderr.
+        cache_dir: where the sample is rendered and reused; None = a temporary folder.
         compress: image transports, one node run each per method: ``none`` (raw), ``jpeg``, ``png``.
-        jpeg_quality: JPEG quality of the ``jpeg`` runs.
-        background_load: CPU cores of synthetic load running during every replay (0 = none).
+        background_load: CPU cores of synthetic load during every replay (0 = none).
         load_nice: the load's niceness (> 0: below the tracker's priority).
         params: further tracker node parameters, e.g. ``{"queue_size": 1}``.
 
     Returns:
-        ``{"setup": ..., run: {"frames_sent", "tracker_received", "tracker_processed",
-        "tracker_dropped", "tracker_superseded", "frames" (feature messages out), "tracker_latency_ms_p50",
-        "..._p90", "tracker_cpu_ms_per_frame", ...}}`` where a run is the method's name, or
-        ``<method>/jpeg<quality>`` / ``<method>/png`` for a compressed run, which also has ``"agreement"``
-        (:func:`feature_agreement` against the method's raw run).
+        ``{"setup": ..., run: figures}`` where a run is the method's name, or ``<method>/jpeg<quality>`` /
+        ``<method>/png``, whose figures also hold ``"agreement"`` with the method's raw run
+        (:func:`feature_agreement`); :func:`format_live_table` shows them.
 
     Raises:
         NSFlowError: a tracker node did not come up, or bad arguments.
@@ -130,14 +124,10 @@ def run_live_benchmark(
 def feature_agreement(
     reference: dict[int, dict[int, np.ndarray]], other: dict[int, dict[int, np.ndarray]], within: float = 0.1
 ) -> dict[str, Any]:
-    """How far one run's features are from a reference run's, over the frames both published.
+    """How far one run's features (stamp -> {id: (u, v)}) are from a reference run's, in the frames of both.
 
-    Features are matched by position (ids diverge once one track differs): each reference feature's nearest
-    feature of the other run in the same frame.
-
-    Args:
-        reference, other: stamp -> {feature id: (u, v)}, camera 0.
-        within: distance in pixels counted as the same feature.
+    Features are matched by position, each with its nearest in the same frame, since ids diverge once one
+    track differs.
 
     Returns:
         ``{"frames": frames compared, "identical_frames": frames whose feature positions are equal,

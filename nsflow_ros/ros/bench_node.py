@@ -1,14 +1,9 @@
 """Node benchmark: image-received -> features-published latency and memory over many frames.
 
-One process, one rclpy context: a publisher node sends synthetic images (a real photo of scikit-image,
-panning back and forth so tracks live on), the ``nsflow_tracker`` node tracks them, and a receiver node
-takes the feature clouds. Frames go lock-step (the next image is published when the previous frame's
-features have arrived), so the latency is the node's own, not queueing.
-
-Latency is measured inside the node, from the moment the image callback starts (for stereo: the callback
-of the image that completes the pair) to the return of ``publish``; the round trip publisher -> receiver
-is reported too. Memory is the process's resident set size after 1,000 and 10,000 frames. The frames
-the node dropped or could not pair must stay 0 when fed lock-step.
+One process, one rclpy context: a publisher node sends a scikit-image photo panning back and forth, the
+``nsflow_tracker`` node tracks it, a receiver node takes the feature clouds. Frames go lock-step (the next
+image waits for the previous frame's features), so the latency is the node's own, not queueing; it runs
+from the image callback (for stereo, the one that completes the pair) to the return of ``publish``.
 """
 
 from __future__ import annotations
@@ -92,16 +87,13 @@ def run_node_benchmark(
     timeout_s: float = 5.0,
     progress: bool = False,
 ) -> dict[str, Any]:
-    """Run the tracker node on ``frames`` synthetic frames and measure latency and memory.
+    """Run the tracker node on ``frames`` synthetic frames (or stereo pairs) and measure latency and memory.
 
     Args:
-        frames: how many frames (or stereo pairs) to send.
-        stereo: stereo pairs instead of mono images.
-        width, height: image size.
-        method: "classical" or "nsflow" (the latter needs the shipped model or ``model_path``).
-        model_path: ONNX encoder for "nsflow".
+        method: a key of :data:`~nsflow_ros.core.methods.METHODS`.
+        model_path: ONNX encoder of the learned methods (None = the shipped one).
         threads: the node's ``num_threads`` (0 = all usable cores).
-        providers: the node's ``providers`` (onnxruntime execution providers of the encoder).
+        providers: the node's ``providers``.
         checkpoints: frame counts after which the RSS is recorded (and after the last frame).
         timeout_s: how long to wait for one frame's features before counting it lost.
         progress: print a line every 1,000 frames to stderr.
@@ -120,8 +112,7 @@ def run_node_benchmark(
     from sensor_msgs.msg import Image, PointCloud
 
     from nsflow_ros.core.encoder import encoder_provider
-    from nsflow_ros.ros.image_conv import numpy_to_image_fields
-    from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode
+    from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode, rclpy_image
 
     left, right = _frames(width, height)
     prefix = f"/nsflow_bench_{uuid.uuid4().hex[:8]}"
@@ -161,16 +152,7 @@ def run_node_benchmark(
                 executor.spin_once(timeout_sec=0.01)
 
             # Message templates: only the stamp changes per frame.
-            templates = []
-            for imgs in (left, right):
-                row = []
-                for img in imgs:
-                    f = numpy_to_image_fields(img)
-                    msg = Image(height=f["height"], width=f["width"], encoding="mono8", is_bigendian=0,
-                                step=f["step"])
-                    msg.data = f["data"]
-                    row.append(msg)
-                templates.append(row)
+            templates = [[rclpy_image(img) for img in imgs] for imgs in (left, right)]
 
             node_lat = np.zeros(frames)
             trip = np.zeros(frames)

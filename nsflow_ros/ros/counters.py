@@ -20,8 +20,7 @@ class NodeCounters:
         frames_received: frames (image pairs for stereo) queued for the tracker.
         frames_processed: frames the tracker ran on.
         frames_published: feature messages published.
-        frames_superseded: frames given up unprocessed because a newer frame arrived while they waited
-            (the tracker was behind; see :class:`~nsflow_ros.ros.frame_queue.LatestFrames`).
+        frames_superseded: frames given up unprocessed for a newer one while the tracker was behind.
         frames_left_at_stop: frames still waiting when the node stopped.
         frames_refused: frames the session refused (duplicate stamp, tracker error).
         frames_missing_upstream: frames lost before the node, inferred from stamp gaps.
@@ -44,11 +43,6 @@ class NodeCounters:
     def frames_dropped(self) -> int:
         """Frames received but not tracked: superseded, left at the stop, or refused by the session."""
         return self.frames_superseded + self.frames_left_at_stop + self.frames_refused
-
-    @property
-    def bad_frames(self) -> int:
-        """Undecodable images plus refused frames."""
-        return self.images_undecodable + self.frames_refused
 
     def totals(self) -> dict[str, int]:
         """Every count by its name (``bad`` aside), plus ``frames_dropped``."""

@@ -1,8 +1,6 @@
 """The frames waiting for the tracker: a bounded queue where a new frame supersedes the oldest waiting one.
 
-The node's subscription callbacks put decoded frames in, one worker thread takes them out. When the
-tracker falls behind, waiting frames go stale: keeping at most ``size`` of them (1 = only the newest)
-bounds the latency of what is tracked, and every frame given up that way is counted as superseded.
+Keeping at most ``size`` waiting frames bounds the latency of what is tracked when the tracker falls behind.
 """
 
 from __future__ import annotations

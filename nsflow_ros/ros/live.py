@@ -1,8 +1,7 @@
 """A live run over ROS 2: a sample sequence replayed into a ``tracker`` node process, its output collected.
 
-The demo and the live node benchmark share it: this process publishes the (perturbed) images with
-sensor-data QoS as a camera driver would, the tracker runs as its own process, and a collector node in
-this process receives its feature clouds and debug images, scored against the sample's exact flow.
+The demo and the live node benchmark share it: this process publishes the images as a camera driver would
+and collects the tracker process's feature clouds and debug images, scored against the exact flow.
 """
 
 from __future__ import annotations
@@ -106,16 +105,12 @@ def run_live(
     Args:
         ctx: an initialised rclpy context.
         seq: a :class:`~nsflow_ros.data.sample.SampleSequence` with its ROS 2 bag.
-        config: VINS config file (mono or stereo: ``topics`` must be its image topics).
-        method: tracking method.
+        config: VINS config file whose image topics are ``topics``.
         log: the tracker's log file; its summary goes beside it (``.summary.json``).
         level, seed: illumination perturbation level and seed.
         rate: replay speed factor (1.0 = camera rate).
-        topics: image topics to replay.
-        show_track: have the tracker publish its debug image.
-        compress: ``none``, or replay the images as CompressedImage (``jpeg`` / ``png``) on
-            ``<topic>/compressed`` into a tracker with ``image_transport:=compressed``.
-        jpeg_quality: JPEG quality with ``compress="jpeg"``.
+        compress: ``none``, or replay CompressedImage (``jpeg`` / ``png``) into a tracker with
+            ``image_transport:=compressed``.
         frames_out: filled with the camera-0 features received, stamp -> {id: (u, v)}.
         params: further tracker node parameters (``-p name:=value``).
 

@@ -1,9 +1,7 @@
 """``nsflow-replay``: play a bag or ASL folder over ROS 2 topics, optionally perturbed.
 
-The stream itself is :func:`nsflow_ros.data.replay.replay_stream`; this module paces it on wall time and
-publishes it (images with sensor-data QoS, everything else reliable, plus ``/clock``). Before the first
-message it waits for a camera topic's subscribers, so a tracker started just before or after the replay
-still gets the first frame.
+This module paces :func:`nsflow_ros.data.replay.replay_stream` on wall time and publishes it; it first waits
+for a camera topic's subscribers, so a tracker started just before or after the replay gets the first frame.
 """
 
 from __future__ import annotations
@@ -54,9 +52,7 @@ def wait_for_subscribers(publishers: Iterable[Any], count: int, timeout: float, 
     """Wait until one of ``publishers`` has matched ``count`` subscriptions, or ``timeout`` seconds passed.
 
     Args:
-        publishers: rclpy publishers (e.g. those of the camera topics).
         count: subscriptions to wait for; 0 returns at once.
-        timeout: seconds to wait at most.
         settle: seconds to wait after the match: the publisher sees the subscriber before the subscriber
             has matched the publisher, and a best-effort sample sent in between is lost.
 
@@ -90,15 +86,13 @@ def publish_stream(
     """Publish a message stream from ``node``, paced by the messages' stamps.
 
     Args:
-        node: an rclpy node.
-        stream: messages in time order.
         rate: speed factor (1.0 = real time, 0 = as fast as possible).
         clock: publish rosgraph_msgs/Clock with each message's time.
         progress: show a progress bar (seconds of data replayed).
         total_s: length of the stream in seconds, for the progress bar.
         publishers: topic -> publisher, reused and filled across calls (None: new ones per call).
-        wait_subscribers: before the first message, create the publishers of the topics in the first
-            second of data and wait until a camera topic has this many subscribers (0 = no wait).
+        wait_subscribers: before the first message, create the publishers of the first second's topics
+            and wait until a camera topic has this many subscribers (0 = no wait).
         wait_timeout: seconds to wait for them at most; then publishing starts anyway, with a warning.
 
     Returns:

@@ -1,11 +1,9 @@
 """Quiet, prompt shutdown on SIGINT and SIGTERM for the package's ROS processes.
 
-rclpy's own handlers shut the context down from inside the signal handler, so whatever the process does
-next (log its summary, publish the last message) meets an invalid context and prints an error or a
-traceback. The tools here start rclpy without its handlers (:func:`init_without_signal_handlers`) and
-install :class:`StopSignals` instead: the first SIGINT or SIGTERM only records the request, the process
-finishes its work in order (log, destroy the node, shut the context down) and exits 0. A second signal
-raises :class:`StopRequested` at once, for a process stuck somewhere.
+rclpy's own handlers shut the context down inside the signal handler, so the summary logged next meets an
+invalid context; instead rclpy starts without them (:func:`init_without_signal_handlers`) and
+:class:`StopSignals` only records the first signal, letting the process finish in order and exit 0. A
+second signal raises :class:`StopRequested` at once, for a process stuck somewhere.
 """
 
 from __future__ import annotations

@@ -3,29 +3,12 @@
     ros2 run nsflow_ros tracker --ros-args -p config_file:=<VINS config.yaml>
     nsflow-tracker --help      (what it does, its topics, every parameter with its default)
 
-Subscribes to the config's image0_topic (and image1_topic for stereo, paired within
-``stereo_sync_tolerance`` seconds) with sensor-data QoS (overridable through
-``qos_overrides.<topic>.subscription.*``), as sensor_msgs/Image or, with ``image_transport:=compressed``, as
-sensor_msgs/CompressedImage on ``<topic>/compressed``; optionally to its imu_topic (gyro prediction); and
-publishes
-
-* ``/feature_tracker/feature`` (sensor_msgs/PointCloud, reliable, depth 2000 like the estimator's queue),
-  header = the image header, in the VINS-Fusion or VINS-Mono layout;
-* ``/feature_tracker/restart`` (std_msgs/Bool, VINS-Mono layout) on a stamp gap > 1 s or time going back;
-* ``image_track`` (sensor_msgs/Image, bgr8) when show_track is on, drawn only while something subscribes
-  and at most ``track_image_rate`` times a second;
-* ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) with the status that is also logged every
-  ``status_period`` seconds: frames received / processed / dropped, features, latency.
-
-The node is a thin shell: the frame policy, the tracker and run-time parameter changes live in
-:class:`nsflow_ros.vins.session.FrontEndSession`. Images are decoded and paired in the subscription
-callbacks and handed to one worker thread through :class:`~nsflow_ros.ros.frame_queue.LatestFrames`, so
-the tracker works on the newest frames and every superseded frame is counted.
-
-A bad frame (unsupported encoding or compressed format, corrupt compressed data, wrong step, truncated data,
-wrong size, duplicate stamp) is logged once per cause, then counted, and skipped. A missing or malformed
-config or model file, or a parameter of the wrong type, stops the node at start-up with one line and exit
-code 1. SIGINT and SIGTERM stop it cleanly with exit code 0 after its summary line.
+The node is a thin shell around :class:`nsflow_ros.vins.session.FrontEndSession` (frame policy, tracker,
+run-time parameter changes). Images are decoded and paired in the subscription callbacks and handed to one
+worker thread through :class:`~nsflow_ros.ros.frame_queue.LatestFrames`, so the tracker works on the newest
+frames and every superseded frame is counted. A bad frame is logged once per cause, then counted and
+skipped; a bad config, model or parameter stops the node at start-up with one line and exit code 1;
+SIGINT and SIGTERM stop it with exit code 0 after its summary line.
 """
 
 from __future__ import annotations
@@ -56,12 +39,12 @@ from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.data.images import ImageDecodeError, compressed_for_tracker, image_for_tracker
+from nsflow_ros.data.messages import image_message, ros2_store
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.ros.counters import WINDOWED, NodeCounters
 from nsflow_ros.ros.errors import ParameterError
 from nsflow_ros.ros.frame_queue import LatestFrames
-from nsflow_ros.ros.image_conv import numpy_to_image_fields
 from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
 from nsflow_ros.ros.tracker_params import NODE_NAME, PARAMETERS, coerce, spec, usage
 from nsflow_ros.ros.transport import use_large_image_transport
@@ -76,7 +59,8 @@ from nsflow_ros.vins.session import FrameOutcome, FrontEndSession, Skip
 from nsflow_ros.vins.settings import SESSION_SETTINGS, Mode
 
 __all__ = [
-    "FEATURE_QOS", "IMAGE_TRANSPORTS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "resolve_config_path"
+    "FEATURE_QOS", "IMAGE_TRANSPORTS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "rclpy_image",
+    "resolve_config_path",
 ]
 
 FEATURE_QOS = QoSProfile(
@@ -120,6 +104,18 @@ def resolve_config_path(value: str) -> Path:
     raise ConfigError(f"VINS config {value!r} not found (looked at {', '.join(str(c) for c in candidates)})")
 
 
+def rclpy_image(image: np.ndarray, encoding: str | None = None) -> Image:
+    """The rclpy sensor_msgs/Image (header unset) that :func:`~nsflow_ros.data.messages.image_message` builds.
+
+    Raises:
+        DataError: the pixels do not match the encoding.
+    """
+    m = image_message(ros2_store(), 0, "", image, encoding)
+    msg = Image(height=m.height, width=m.width, encoding=m.encoding, is_bigendian=0, step=m.step)
+    msg.data = m.data.tobytes()
+    return msg
+
+
 @dataclass
 class _Frame:
     """A decoded frame waiting for the tracker."""
@@ -135,8 +131,7 @@ def _percentile(values: list[float], q: float) -> float | None:
 
 
 def _cpu_per_frame(cpu_s: float, frames: int) -> float | None:
-    """The node process's CPU time since start-up (all threads: decoding, tracking, publishing) per
-    processed frame, in ms."""
+    """The process's CPU time (all threads) per processed frame, in ms."""
     return cpu_s * 1e3 / frames if frames else None
 
 
@@ -148,8 +143,7 @@ class TrackerNode(Node):
         parameter_overrides: parameters to set at construction (tests, composition).
 
     Raises:
-        NSFlowError: ParameterError / ConfigError / EncoderError / CoreError when a parameter, the config,
-            the model or a setting is bad.
+        NSFlowError: a bad parameter, config, model or setting.
     """
 
     def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None) -> None:
@@ -242,7 +236,7 @@ class TrackerNode(Node):
             + f"; features on {self._feature_pub.topic_name}"
         )
 
-    # -- accessors kept for callers ----------------------------------------------------------------------
+    # -- accessors -------------------------------------------------------------------------------------
 
     @property
     def tracker(self) -> Any:
@@ -296,14 +290,7 @@ class TrackerNode(Node):
     # -- inputs ----------------------------------------------------------------------------------------
 
     def _bad(self, cause: str, message: str, *, image: bool = False) -> None:
-        """Log a bad image or frame once per cause; count every occurrence.
-
-        Args:
-            cause: short cause, the key of the count.
-            message: what is wrong, for the log.
-            image: an image that could not be decoded (before pairing) rather than a frame the session
-                refused.
-        """
+        """Log a bad image (undecodable) or frame (refused) once per ``cause``; count every occurrence."""
         if image:
             self.stats.images_undecodable += 1
         else:
@@ -411,11 +398,8 @@ class TrackerNode(Node):
     def _publish_track(
         self, header: Any, frame: FrameFeatures, img0: np.ndarray, img1: np.ndarray | None
     ) -> None:
-        fields = numpy_to_image_fields(draw_tracks(frame, img0, img1), "bgr8")
-        msg = Image(height=fields["height"], width=fields["width"], encoding="bgr8", is_bigendian=0,
-                    step=fields["step"])
+        msg = rclpy_image(draw_tracks(frame, img0, img1), "bgr8")
         msg.header = header
-        msg.data = fields["data"]
         self._track_pub.publish(msg)
         self.track_images_published += 1
 
@@ -558,11 +542,7 @@ class TrackerNode(Node):
 
 
 class _StampGaps:
-    """Frames that never reached the node, inferred from gaps in a regular camera's stamps.
-
-    The frame period is the median of the recent stamp intervals; an interval of k periods (k >= 2, to
-    the nearest period) means k - 1 frames were lost before the node (in the middleware or upstream).
-    """
+    """Frames lost before the node: an interval of k median periods (k >= 2) means k - 1 were lost."""
 
     def __init__(self, history: int = 50) -> None:
         self._intervals: deque[float] = deque(maxlen=history)
@@ -600,8 +580,7 @@ class _StatusWindow:
             self._features.append(features)
 
     def take(self, counters: NodeCounters) -> dict[str, Any]:
-        """The period's figures (the :data:`~nsflow_ros.ros.counters.WINDOWED` counts by their names,
-        features, latency); starts the next period."""
+        """The period's figures (the ``WINDOWED`` counts, features, latency); starts the next period."""
         with self._lock:
             lat, feats = self._latencies, self._features
             self._latencies, self._features = [], []
@@ -636,7 +615,7 @@ def _program(argv0: str | None) -> str:
 
 
 def _check_ros_args(ros_args: list[str]) -> None:
-    """Check what rcl would reject with a long message: a malformed -p, a params file that cannot be read.
+    """Reject, in one line where rcl would write many, a malformed -p or a params file that cannot be read.
 
     Raises:
         ParameterError: naming the argument or the file.
@@ -688,14 +667,10 @@ def _rcl_message(err: Exception) -> str:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point of ``ros2 run nsflow_ros tracker`` / ``nsflow-tracker``.
-
-    Args:
-        args: the command line including the program name (None = ``sys.argv``).
+    """Entry point of ``ros2 run nsflow_ros tracker`` / ``nsflow-tracker``; ``args`` include the program.
 
     Returns:
-        0 after a normal stop (SIGINT, SIGTERM, shutdown) or ``--help``; 1 on a start-up error; 2 on an
-        unknown command-line argument.
+        0 after a normal stop or ``--help``; 1 on a start-up error; 2 on an unknown argument.
     """
     argv = list(sys.argv if args is None else args)
     prog = _program(argv[0] if argv else None)

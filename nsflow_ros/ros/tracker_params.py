@@ -1,11 +1,7 @@
-"""The ``tracker`` node's parameters: a ROS view over the settings table.
+"""The ``tracker`` node's parameters: a ROS view over :data:`nsflow_ros.vins.settings.SETTINGS`.
 
-Every parameter is a row of :data:`nsflow_ros.vins.settings.SETTINGS`: the node declares each with its
-description (read-only unless its mode allows a change), ``nsflow-tracker --help`` prints them
-(:func:`usage`), ``config/tracker_params.yaml`` is :func:`render_params_yaml`'s output (a test keeps the
-shipped file equal to it) and :func:`coerce` checks a value's type as ROS hands it over.
-
-Imports no ROS package, so ``--help`` needs no middleware.
+``--help`` (:func:`usage`), ``config/tracker_params.yaml`` (:func:`render_params_yaml`) and the type check
+of a value ROS hands over (:func:`coerce`). Imports no ROS package, so ``--help`` needs no middleware.
 """
 
 from __future__ import annotations
@@ -16,7 +12,7 @@ from typing import Any
 
 from nsflow_ros.ros.errors import ParameterError
 from nsflow_ros.vins.errors import ConfigError
-from nsflow_ros.vins.settings import SETTINGS, Setting, Value, setting
+from nsflow_ros.vins.settings import KINDS, SETTINGS, Setting, Value, setting
 
 __all__ = ["NODE_NAME", "PARAMETERS", "coerce", "render_params_yaml", "spec", "usage"]
 
@@ -40,10 +36,7 @@ def spec(name: str) -> Setting:
 
 
 def coerce(p: Setting, value: Any) -> Value:
-    """Check a parameter value's type; an integer is accepted for a number (``-p F_threshold:=1``).
-
-    Node-only parameters with a minimum (queue_size, status_period) are range-checked here too; the
-    session checks the ranges of its own settings.
+    """Check a parameter value's type (an integer counts as a number) and a node-only parameter's range.
 
     Raises:
         ParameterError: naming the parameter, the value given and the type (or range) expected.
@@ -60,14 +53,11 @@ def coerce(p: Setting, value: Any) -> Value:
                 f"parameter {p.name}: got {value}, expected {_article(p.kind)} {p.kind} {p.bound}"
             )
         return value
-    got = "no value" if value is None else f"{value!r} ({_KINDS.get(type(value), type(value).__name__)})"
+    got = "no value" if value is None else f"{value!r} ({KINDS.get(type(value), type(value).__name__)})"
     example = _yaml_value(p.default if p.example is None else p.example)
     raise ParameterError(
         f"parameter {p.name}: got {got}, expected {_article(p.kind)} {p.kind} (e.g. -p {p.name}:={example})"
     )
-
-
-_KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
 
 
 def _article(word: str) -> str:

@@ -1,9 +1,8 @@
 """The DDS transport profile the package's ROS processes use unless the user chose one.
 
 Fast DDS's default shared-memory segment (0.5 MiB) cannot hold two back-to-back 752x480 images, so
-best-effort stereo images are lost even for a subscriber that keeps up. ``config/fastdds_large_images.xml``
-gives each participant a 16 MiB segment; :func:`use_large_image_transport` points Fast DDS at it before
-rclpy starts, unless the environment already names a profiles file or another RMW is selected.
+best-effort stereo images are lost even for a subscriber that keeps up; ``config/fastdds_large_images.xml``
+gives each participant 16 MiB.
 """
 
 from __future__ import annotations
@@ -19,13 +18,11 @@ PROFILE_ENV = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE"
 
 
 def use_large_image_transport() -> Path | None:
-    """Set ``FASTRTPS_DEFAULT_PROFILES_FILE`` to the shipped profile when nothing else is chosen.
-
-    Call it before ``rclpy.init``; child processes inherit the setting.
+    """Before ``rclpy.init``, point Fast DDS (and child processes) at the shipped profile.
 
     Returns:
-        the profile now in use, or None when the user's own setting (or a non-Fast DDS RMW) is kept or
-        the file is not installed.
+        the profile now in use, or None when the environment names a profiles file or another RMW, or the
+        file is not installed.
     """
     if any(os.environ.get(name) for name in PROFILE_ENV):
         return None

@@ -1,24 +1,8 @@
 """VINS-Fusion config folders from the calibrations a robot comes with: Kalibr outputs and ROS camera_info.
 
-Readers turn each source into one :class:`Calibration` (camodocal camera models, ``body_T_cam``, topics,
-IMU noise); :func:`write_vins_config` writes it as a VINS-Fusion config folder laid out as
-``config/euroc/``: the config YAML plus one camodocal camera file per camera.
-
-* Kalibr ``camchain-imucam.yaml`` (:func:`read_kalibr_camchain`): ``camera_model`` / ``distortion_model``
-  pinhole-radtan -> PINHOLE, pinhole-equidistant -> KANNALA_BRANDT (camodocal k2..k5 = Kalibr k1..k4),
-  omni-radtan -> MEI, and ``none`` distortion as zero coefficients; ``intrinsics`` ([fu, fv, pu, pv], omni
-  [xi, fu, fv, pu, pv]), ``resolution``, ``rostopic`` -> image topics, ``T_cam_imu`` inverted into
-  ``body_T_cam`` (without it: ``T_cn_cnm1`` chained from the previous camera, or extrinsics given
-  separately), cam0's ``timeshift_cam_imu`` -> ``td`` (both mean t_imu = t_cam + shift).
-* Kalibr ``imu.yaml`` (:func:`read_kalibr_imu`), flat or under ``imu0``: ``accelerometer_noise_density``,
-  ``gyroscope_noise_density``, ``accelerometer_random_walk``, ``gyroscope_random_walk`` -> acc_n, gyr_n,
-  acc_w, gyr_w; ``rostopic`` -> imu_topic.
-* ROS camera_info YAML (:func:`read_camera_info`): ``distortion_model`` plumb_bob [k1, k2, t1, t2, k3] ->
-  PINHOLE (k3 must be 0: camodocal's PINHOLE has no k3) and equidistant [k1..k4] -> KANNALA_BRANDT; no
-  extrinsics there, so they come separately (:func:`parse_transform`).
-
-Every missing key, unsupported model or bad value raises :class:`~nsflow_ros.vins.errors.ConfigError` with
-one line naming the file and the key.
+Readers (:func:`read_kalibr_camchain`, :func:`read_kalibr_imu`, :func:`read_camera_info`) turn each source
+into one :class:`Calibration`; :func:`write_vins_config` writes it laid out as ``config/euroc/``: the config
+YAML plus one camodocal camera file per camera. docs/calibration.md tabulates how each key maps.
 """
 
 from __future__ import annotations
@@ -106,7 +90,7 @@ class ImuCalibration:
     topic: str = ""
 
     def scaled(self, factor: float) -> ImuCalibration:
-        """Return the noise multiplied by ``factor`` (VINS configs usually inflate datasheet values)."""
+        """The noise multiplied by ``factor`` (VINS configs usually inflate datasheet values)."""
         return ImuCalibration(self.acc_n * factor, self.gyr_n * factor, self.acc_w * factor,
                               self.gyr_w * factor, self.topic)
 
@@ -289,19 +273,15 @@ def read_kalibr_camchain(
     """Read a Kalibr camchain (``camchain-imucam.yaml`` or ``camchain.yaml``).
 
     Args:
-        path: the camchain YAML.
-        body_T_cam: per camera, a 4x4 camera-to-body transform that replaces the file's (None: use the
-            file's). Cameras without ``T_cam_imu`` need one, except that ``T_cn_cnm1`` chains camera n from
-            camera n-1.
-        num_of_cam: read cam0 .. cam{num_of_cam-1} only (1 makes a mono config from a stereo chain);
-            None reads every camera.
+        body_T_cam: per camera, a 4x4 camera-to-body transform that replaces the file's (None: the file's).
+        num_of_cam: read the first ``num_of_cam`` cameras only (None: every camera).
 
     Returns:
         ``(cameras, td)``: the cameras in order, and cam0's ``timeshift_cam_imu`` (0 when absent).
 
     Raises:
-        ConfigError: a missing file or key, an unsupported model, a bad value, a resolution that differs
-            between the cameras, or more cameras than VINS-Fusion takes; the message names file and key.
+        ConfigError: a missing file or key, an unsupported model, a bad value, or more cameras than
+            VINS-Fusion takes; the message names file and key.
     """
     path = Path(path)
     data = _load_yaml(path, "Kalibr camchain")
@@ -337,12 +317,6 @@ def read_kalibr_camchain(
 def read_kalibr_imu(path: str | os.PathLike[str]) -> ImuCalibration:
     """Read a Kalibr IMU file (``imu.yaml`` as given to Kalibr, or the ``imu0`` block it writes).
 
-    Args:
-        path: the YAML file.
-
-    Returns:
-        The noise densities and random walks, and ``rostopic`` as the topic ("" when absent).
-
     Raises:
         ConfigError: a missing file or key, or a value that is not a positive number.
     """
@@ -359,14 +333,7 @@ def read_kalibr_imu(path: str | os.PathLike[str]) -> ImuCalibration:
 
 
 def read_camera_info(path: str | os.PathLike[str], index: int = 0) -> CameraModel:
-    """Read a ROS camera_info YAML (camera_calibration_parsers' layout) as a camodocal camera.
-
-    Args:
-        path: the YAML file.
-        index: the camera's place (names it ``cam<index>`` when the file has no ``camera_name``).
-
-    Returns:
-        A :class:`PinholeCamera` (plumb_bob) or :class:`KannalaBrandtCamera` (equidistant).
+    """Read a ROS camera_info YAML as a camodocal camera (``cam<index>`` unless it has a ``camera_name``).
 
     Raises:
         ConfigError: a missing file or key, an unsupported distortion model, a camera matrix with skew,
@@ -406,16 +373,11 @@ def read_camera_infos(
     body_T_cam: Sequence[np.ndarray | None],
     topics: Sequence[str] = (),
 ) -> tuple[CameraCalibration, ...]:
-    """Read one or two camera_info files as the cameras of a calibration.
+    """Read one or two camera_info files (cam0 first) as the cameras of a calibration.
 
     Args:
-        paths: cam0's file, then cam1's for stereo.
-        body_T_cam: per camera, the 4x4 camera-to-body transform (camera_info has no extrinsics); None
-            leaves it unset (allowed for cam0 with ``estimate_extrinsic`` 2 only).
+        body_T_cam: per camera, the 4x4 camera-to-body transform; None leaves it unset.
         topics: per camera, the image topic; missing ones are ``/cam<i>/image_raw``.
-
-    Returns:
-        The cameras, cam0 first.
 
     Raises:
         ConfigError: as :func:`read_camera_info`, or a bad topic name.
@@ -435,15 +397,8 @@ def read_camera_infos(
 def parse_transform(text: str, what: str = "transform") -> np.ndarray:
     """Parse a 4x4 rigid transform: 16 numbers row-major, or a file holding them.
 
-    Commas, brackets and whitespace separate the numbers; in a file, text before a ``data:`` key is skipped,
-    so the matrix block of a VINS config or a EuRoC ``sensor.yaml`` (``T_BS``) can be pasted as it is.
-
-    Args:
-        text: the numbers, or the path of a file with them.
-        what: the name used in error messages (e.g. ``--body-T-cam0``).
-
-    Returns:
-        The 4x4 float64 matrix.
+    In a file, text before a ``data:`` key is skipped, so a VINS config's matrix block or a EuRoC
+    ``sensor.yaml``'s ``T_BS`` can be pasted as it is; ``what`` names the value in error messages.
 
     Raises:
         ConfigError: not 16 numbers, an unreadable file, or not a rigid transform.
@@ -496,9 +451,7 @@ def _camera_file(index: int, camera: CameraModel) -> str:
 
 
 def render_vins_config(calibration: Calibration, *, output_path: str = "/tmp/vins_output/") -> str:
-    """Return the text of the VINS-Fusion config YAML for ``calibration`` (camera files named as written).
-
-    The tracker and estimator settings are those of the shipped EuRoC configs, then ``calibration.settings``.
+    """The VINS-Fusion config YAML for ``calibration``, with the shipped EuRoC configs' other settings.
 
     Raises:
         ConfigError: no camera or more than two, one camera without an IMU (VINS-Fusion needs one of
@@ -587,8 +540,6 @@ def write_vins_config(
 
     Args:
         folder: the folder (created when missing).
-        calibration: what to write.
-        name: the config file's name.
         output_path: VINS-Fusion's ``output_path`` (where it writes vio.csv).
         overwrite: replace files that exist (otherwise they are an error, and nothing is written).
 

@@ -1,18 +1,13 @@
-"""VINS-Fusion and VINS-Mono configuration files, read as they are.
-
-Both estimators keep their settings in one OpenCV FileStorage YAML file (``%YAML:1.0`` first line,
-``!!opencv-matrix`` maps). The two dialects differ in how they name the camera and where the intrinsics live:
+"""VINS-Fusion and VINS-Mono configuration files (OpenCV FileStorage YAML), read as they are.
 
 * VINS-Fusion: ``num_of_cam`` (1 or 2), ``image0_topic`` / ``image1_topic``, ``imu`` (0/1), camodocal camera
-  files ``cam0_calib`` / ``cam1_calib`` relative to the config's folder, extrinsics ``body_T_cam0`` /
-  ``body_T_cam1`` as 4x4 matrices.
-* VINS-Mono: one camera on ``image_topic`` whose camodocal keys (``model_type``, ``projection_parameters``,
-  ...) sit inline in the config; extrinsics as ``extrinsicRotation`` (3x3) and ``extrinsicTranslation``
-  (3x1); always with an IMU; ``freq``, ``equalize`` and ``fisheye`` tracker switches.
+  files ``cam0_calib`` / ``cam1_calib`` relative to the config's folder, ``body_T_cam0`` / ``body_T_cam1``.
+* VINS-Mono: one camera on ``image_topic`` with its camodocal keys inline, extrinsics as
+  ``extrinsicRotation`` / ``extrinsicTranslation``, always an IMU; ``freq``, ``equalize`` and ``fisheye``.
 
-Optional keys take the value VINS gives a missing key (0 / false), except the tracker settings
-with documented defaults (max_cnt 150, min_dist 30, F_threshold 1.0, freq 0 -> 100). Unlike VINS, a missing
-required key or a value of the wrong type is an error, naming the file and the key.
+Optional keys take the value VINS gives a missing key (0 / false), except the tracker settings with
+documented defaults (max_cnt 150, min_dist 30, F_threshold 1.0, freq 0 -> 100). Unlike VINS, a missing
+required key or a value of the wrong type is an error naming the file and the key.
 """
 
 from __future__ import annotations
@@ -115,7 +110,7 @@ class VinsConfig:
         return (self.image0_topic, self.image1_topic)[: self.num_of_cam]
 
     def tracker_settings(self) -> dict[str, int | float | bool]:
-        """Return the current value of every key in :data:`OVERRIDABLE_KEYS`."""
+        """The value of every key in :data:`OVERRIDABLE_KEYS`."""
         return {key: getattr(self, key) for key in OVERRIDABLE_KEYS}
 
 
@@ -293,14 +288,7 @@ def _read_mono(keys: _Keys) -> dict[str, Any]:
 
 
 def load_vins_config(path: str | os.PathLike[str]) -> VinsConfig:
-    """Read a VINS-Fusion or VINS-Mono config file.
-
-    Args:
-        path: the config file (OpenCV FileStorage YAML, ``%YAML:1.0`` first line). VINS-Fusion camera
-            files are looked up relative to its folder.
-
-    Returns:
-        The configuration, dialect detected from the keys present.
+    """Read a VINS-Fusion or VINS-Mono config file, the dialect detected from the keys present.
 
     Raises:
         ConfigError: the file (or a camera file) is missing or malformed, a required key is missing, or a
@@ -341,17 +329,12 @@ _BY_VINS_KEY = {s.vins_key: s for s in SETTINGS if s.vins_key is not None}
 
 
 def apply_overrides(config: VinsConfig, overrides: Mapping[str, Any]) -> VinsConfig:
-    """Return a copy of ``config`` with tracker settings replaced.
+    """A copy of ``config`` with tracker settings replaced.
 
     Args:
-        config: the configuration read from the VINS file.
-        overrides: values by VINS key, a subset of :data:`OVERRIDABLE_KEYS`. A value of ``None`` or
-            :data:`~nsflow_ros.vins.settings.KEEP` (-1, -1.0 for F_threshold) keeps the config's value:
-            ROS parameters use -1 for "from the VINS config". Types and ranges are the settings table's
-            (:data:`nsflow_ros.vins.settings.SETTINGS`); ``freq`` 0 means :data:`DEFAULT_FREQ`.
-
-    Returns:
-        A new :class:`VinsConfig`; ``config`` is unchanged.
+        overrides: values by VINS key (:data:`OVERRIDABLE_KEYS`), typed and ranged as the settings table
+            says; None or :data:`~nsflow_ros.vins.settings.KEEP` keeps the config's value, ``freq`` 0 means
+            :data:`DEFAULT_FREQ`.
 
     Raises:
         ConfigError: an unknown key, or a value of the wrong type or out of range; the message names the key.

@@ -1,16 +1,8 @@
-"""A VINS feature bag from a recorded stream: features plus IMU, no images.
+"""A VINS feature bag from a recorded stream: ``/feature_tracker/feature`` (VINS-Fusion layout) plus the IMU.
 
-The bag holds ``/feature_tracker/feature`` (the VINS-Fusion layout of
-:func:`nsflow_ros.vins.messages.encode_fusion`, header stamp = image stamp) and the IMU messages, so
-``rosbag play`` (ROS 1) or ``ros2 bag play`` feeds a stock VINS-Fusion estimator without a live front-end.
-
-Frames go through the node's frame policy (:class:`~nsflow_ros.vins.session.FrontEndSession` in the
-VINS-Fusion layout: a repeated stamp is skipped, time going backwards restarts the tracks) and the node's
-stereo pairing (:class:`~nsflow_ros.vins.pairing.StereoPairer`); unlike the node, no frame is dropped for
-speed, so the result depends only on the data, the config, the method and the perturbation seed.
-
-The bag is built under a hidden name beside the output and renamed when complete; when the source is
-damaged part-way, the frames before the damage are still written and the error is raised afterwards.
+``rosbag play`` or ``ros2 bag play`` then feeds a stock VINS-Fusion estimator without a live front-end.
+Frames go through the node's frame policy and stereo pairing but none is dropped for speed, so the result
+depends only on the data, the config, the method and the perturbation seed.
 """
 
 from __future__ import annotations
@@ -52,12 +44,8 @@ class FeatureBagSummary:
     """What :func:`write_feature_bag` wrote.
 
     Attributes:
-        path: the bag written.
-        format: ``ros1`` or ``ros2``.
-        frames: feature messages written (one per tracked image stamp).
-        features: features written, summed over frames.
-        imu: IMU messages written.
-        unpaired: stereo images dropped because the other camera has no image of the same stamp.
+        frames: feature messages written.
+        unpaired: stereo images dropped because the other camera had no image within the tolerance.
     """
 
     path: Path
@@ -76,7 +64,7 @@ class FeatureBagSummary:
 
 
 def bag_format(path: str | Path, requested: str | None = None) -> BagFormat:
-    """The format to write: ``requested`` if given, else ROS 1 for a ``.bag`` path and ROS 2 otherwise.
+    """``requested``, else ROS 1 for a ``.bag`` path and ROS 2 otherwise.
 
     Raises:
         DataError: for an unknown format, or ROS 1 asked for a path without ``.bag``.
@@ -109,25 +97,18 @@ def write_feature_bag(
 ) -> FeatureBagSummary:
     """Track every image of a stream and write the features and IMU as a new bag.
 
+    The bag is built under a hidden name beside ``out`` and renamed when complete.
+
     Args:
-        records: the stream in time order (images of the config's camera topics, IMU samples);
-            see :func:`feature_bag_topics`.
-        out: the bag to create (must not exist): a ``.bag`` file for ROS 1, a folder for ROS 2 (mcap).
-        config: the VINS config (cameras, topics, max_cnt, min_dist, ...; stereo when ``num_of_cam: 2``).
-        method: tracker method, e.g. ``nsflow`` or ``klt``.
+        records: the stream in time order (see :func:`feature_bag_topics`).
+        out: the bag to create: a ``.bag`` file for ROS 1, a folder for ROS 2 (mcap).
         fmt: ``ros1`` or ``ros2``; None = from the suffix of ``out``.
         overrides: further TrackerSettings fields, fixed for the run.
-        progress: show a progress bar.
-        opencv_threads: OpenCV's threads while tracking (:func:`nsflow_ros.threads.opencv_threads`),
-            restored afterwards; None = the node's ``opencv_threads`` default.
-
-    Returns:
-        what was written.
+        opencv_threads: OpenCV's threads while tracking; None = the node's ``opencv_threads`` default.
 
     Raises:
-        NSFlowError: an existing output, a bad source (DataError), config (ConfigError) or model
-            (EncoderError), or a frame the tracker refuses. When the source is damaged part-way, the bag
-            with the frames before the damage is written first.
+        NSFlowError: an existing output, a bad source, config or model, or a frame the tracker refuses.
+            When the source is damaged part-way, the bag with the frames before the damage is written first.
     """
     from nsflow_ros.progress import progress_bar
 

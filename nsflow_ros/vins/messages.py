@@ -12,10 +12,8 @@ Feature ids travel as float32 channel values, exact only below 2^24, so both enc
 :data:`ID_MODULUS` (VINS-Mono: modulo ``ID_MODULUS // num_of_cam``, so that ``id * num_of_cam + camera``
 stays below 2^24 too), which keeps ids unique within any window an estimator holds however long the run.
 
-The decoders mirror the estimators' feature callbacks (they read channels by position, never by name) and
-return what the estimator builds: ``{feature_id: [(camera_id, [x, y, z, u, v, vx, vy]), ...]}``.
-
-No ROS types here: the node copies these arrays into the message; tests and tools decode them.
+The decoders mirror the estimators' feature callbacks (channels by position, never by name) and return what
+the estimator builds: ``{feature_id: [(camera_id, [x, y, z, u, v, vx, vy]), ...]}``.
 """
 
 from __future__ import annotations
@@ -82,15 +80,10 @@ class FeatureMessageError(NSFlowError):
 
 @dataclass(frozen=True)
 class FeatureCloud:
-    """The content of one sensor_msgs/PointCloud, as arrays.
-
-    Attributes:
-        points: (x, y, 1) per feature.
-        channels: one array of values per channel, each of length N.
-        names: the channel names.
+    """The content of one sensor_msgs/PointCloud as arrays.
 
     Shape:
-        points: (N, 3) float32. channels: (C, N) float32.
+        points: (N, 3) float32, (x, y, 1). channels: (C, N) float32, named by ``names``.
     """
 
     points: np.ndarray
@@ -112,15 +105,10 @@ def _cloud(un: np.ndarray, columns: list[np.ndarray], names: tuple[str, ...]) ->
 
 
 def published_ids(ids: np.ndarray, layout: Layout, num_of_cam: int = 1) -> np.ndarray:
-    """Map tracker ids to the ids a message of ``layout`` carries (before VINS-Mono's camera packing).
+    """The int64 ids a message of ``layout`` carries for tracker ids (before VINS-Mono's camera packing).
 
     Args:
-        ids: tracker feature ids (non-negative integers).
         layout: "fusion" (modulo :data:`ID_MODULUS`) or "mono" (modulo ``ID_MODULUS // num_of_cam``).
-        num_of_cam: VINS ``NUM_OF_CAM`` of the mono layout.
-
-    Returns:
-        the wrapped ids, int64.
 
     Shape:
         ids: (N,) -> (N,).
@@ -137,16 +125,7 @@ def published_ids(ids: np.ndarray, layout: Layout, num_of_cam: int = 1) -> np.nd
 
 
 def encode_fusion(frame: FrameFeatures) -> FeatureCloud:
-    """Encode a frame in the VINS-Fusion layout (nine channels; ids ascending, camera 0 first).
-
-    Ids are published modulo :data:`ID_MODULUS` and sorted by that published id.
-
-    Args:
-        frame: the tracker's output.
-
-    Returns:
-        the message content.
-    """
+    """Encode a frame in the VINS-Fusion layout: nine channels, published ids ascending, camera 0 first."""
     cams = frame.cameras
     ids = published_ids(np.concatenate([c.ids for c in cams]), "fusion")
     cam_ids = np.concatenate([np.full(len(c), c.camera_id, np.int64) for c in cams])
@@ -159,16 +138,10 @@ def encode_fusion(frame: FrameFeatures) -> FeatureCloud:
 
 
 def encode_mono(frame: FrameFeatures, num_of_cam: int = 1) -> FeatureCloud:
-    """Encode a frame in the VINS-Mono layout (five channels; only points with track count > 1).
-
-    Ids are published modulo ``ID_MODULUS // num_of_cam``, so the packed channel value stays below 2^24.
+    """Encode a frame in the VINS-Mono layout: five channels, points with track count > 1, camera by camera.
 
     Args:
-        frame: the tracker's output.
         num_of_cam: VINS ``NUM_OF_CAM``, the multiplier of the id channel (1 for VINS-Mono).
-
-    Returns:
-        the message content, camera by camera, in the tracker's order within a camera.
     """
     if num_of_cam < len(frame.cameras):
         n = len(frame.cameras)
@@ -212,13 +185,6 @@ def _check(points: np.ndarray, channels: np.ndarray, minimum: int) -> tuple[np.n
 def decode_fusion(points: np.ndarray, channels: np.ndarray) -> FeatureFrame:
     """Decode like VINS-Fusion's feature callback: channels by position, ids and camera ids truncated.
 
-    Args:
-        points: the message's points.
-        channels: the message's channel values, channel-major.
-
-    Returns:
-        ``{feature_id: [(camera_id, [x, y, z, u, v, vx, vy]), ...]}`` in message order.
-
     Raises:
         FeatureMessageError: on fewer than six channels, six to eight channels (the stock estimator
             reads channels 6-8 as soon as there are more than five), or a point with z != 1.
@@ -239,9 +205,6 @@ def decode_fusion(points: np.ndarray, channels: np.ndarray) -> FeatureFrame:
 
 def decode_mono(points: np.ndarray, channels: np.ndarray, num_of_cam: int = 1) -> FeatureFrame:
     """Decode like VINS-Mono's estimator: v = int(channel0 + 0.5), id = v / NUM_OF_CAM, cam = v % NUM_OF_CAM.
-
-    Returns:
-        ``{feature_id: [(camera_id, [x, y, z, u, v, vx, vy]), ...]}`` in message order.
 
     Shape:
         points: (N, 3). channels: (C, N), C >= 5.

@@ -1,17 +1,9 @@
 """Offline tracking: the VINS frame policy over a recorded source (bag or ASL folder), no ROS middleware.
 
-Output files (in the output folder):
-
-* ``features.csv`` — one row per published feature, VINS-Fusion layout with the track count added:
-  ``stamp_ns,camera_id,feature_id,u,v,x,y,velocity_x,velocity_y,track_count`` (u, v distorted pixels;
-  x, y undistorted normalised coordinates);
-* ``tracks.png`` — a contact sheet of debug images (circles blue -> red with track length, lines to the
-  previous positions);
-* ``summary.json`` — the figures of :class:`OfflineSummary`.
-
-Each file is written under a temporary name and renamed when complete, so an interrupted run never
-leaves a file that looks finished. When the data is a project sample sequence, the tracking error of
-every tracked feature is measured against the exact ground-truth optical flow.
+Writes ``features.csv`` (one row per published feature, :data:`CSV_HEADER`; u, v distorted pixels, x, y
+undistorted normalised coordinates), ``tracks.png`` (a contact sheet of debug images) and ``summary.json``
+(:class:`OfflineSummary`), each renamed into place when complete. On a project sample sequence the error
+of every tracked feature is measured against the exact optical flow.
 """
 
 from __future__ import annotations
@@ -23,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from nsflow_ros import threads as process_threads
 from nsflow_ros.data.records import ImageRecord
 from nsflow_ros.data.replay import ReplayOptions, replay_records
 from nsflow_ros.data.scoring import TrackStats
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
-from nsflow_ros.threads import set_opencv_threads
 from nsflow_ros.vins.draw import draw_tracks
 from nsflow_ros.vins.session import FrontEndSession, Skip
 from nsflow_ros.vins.settings import setting
@@ -63,11 +55,6 @@ class OfflineSummary:
         )
 
 
-def _opencv_threads(threads: int | None) -> int:
-    """OpenCV's threads for a run: ``threads``, or the node's ``opencv_threads`` default."""
-    return int(setting("opencv_threads").default) if threads is None else threads
-
-
 def _sample_of(path: Path) -> Any:
     """The SampleSequence a path belongs to, or None."""
     from nsflow_ros.data.errors import DataError
@@ -96,22 +83,17 @@ def run_offline(
     """Track a recorded sequence with the core tracker and write features, a contact sheet and a summary.
 
     Args:
-        opts: what to read (path, topics, window, perturbation); the tracker uses camera 0 (mono).
+        opts: what to read; the tracker uses camera 0 (mono).
         out_dir: output folder (created).
         config: VINS config file (default: the shipped EuRoC mono config).
-        method: ``nsflow``, ``classical`` or ``klt`` (see :data:`nsflow_ros.core.methods.METHODS`).
+        method: a key of :data:`nsflow_ros.core.methods.METHODS`.
         overrides: further tracker settings.
         sheet_frames: debug images in the contact sheet, spread over the sequence.
-        progress: show a progress bar.
-        opencv_threads: OpenCV's threads during the run (:func:`nsflow_ros.threads.set_opencv_threads`),
-            restored afterwards; None = the node's ``opencv_threads`` default.
-
-    Returns:
-        the summary (also written as summary.json).
+        opencv_threads: OpenCV's threads during the run; None = the node's ``opencv_threads`` default.
 
     Raises:
-        NSFlowError: a bad source (DataError), config (ConfigError) or model (EncoderError); outputs of
-            the frames processed before a damaged part of a bag are still written.
+        NSFlowError: a bad source, config or model; the outputs of the frames before a damaged part of a
+            bag are still written.
     """
     from nsflow_ros.progress import progress_bar
     from nsflow_ros.resources import DEFAULT_CONFIG, share_file
@@ -128,33 +110,33 @@ def run_offline(
     sheet: list[tuple[int, np.ndarray]] = []
     error: NSFlowError | None = None
     bar = progress_bar(desc=f"offline {method}", unit="frame", enabled=progress)
-    cv_before = set_opencv_threads(_opencv_threads(opencv_threads))
-    try:
-        for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
-            if not isinstance(rec, ImageRecord):
-                continue
-            outcome = session.process(rec.stamp_ns * 1e-9, rec.for_tracker())
-            if outcome.skipped is Skip.TRACKER:
-                raise NSFlowError(f"frame at {rec.stamp_ns} ns: {outcome.note}")
-            feats = outcome.features
-            bar.update(1)
-            if feats is None:
-                continue
-            cf = feats.cameras[0]
-            stats.add_frame(rec.stamp_ns, {int(i): p for i, p in zip(cf.ids, cf.pixels, strict=True)})
-            for j in range(len(cf.ids)):
-                rows.append(
-                    f"{rec.stamp_ns},0,{cf.ids[j]},{cf.pixels[j, 0]:.4f},{cf.pixels[j, 1]:.4f},"
-                    f"{cf.undistorted[j, 0]:.6f},{cf.undistorted[j, 1]:.6f},{cf.velocities[j, 0]:.6f},"
-                    f"{cf.velocities[j, 1]:.6f},{cf.track_counts[j]}"
-                )
-            if stats.frames % 10 == 5 and len(sheet) < 4 * sheet_frames:
-                sheet.append((stats.frames, draw_tracks(feats, rec.gray())))
-    except NSFlowError as err:
-        error = err  # keep what was processed; report after writing
-    finally:
-        bar.close()
-        set_opencv_threads(cv_before)
+    cv = int(setting("opencv_threads").default) if opencv_threads is None else opencv_threads
+    with process_threads.opencv_threads(cv):
+        try:
+            for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
+                if not isinstance(rec, ImageRecord):
+                    continue
+                outcome = session.process(rec.stamp_ns * 1e-9, rec.for_tracker())
+                if outcome.skipped is Skip.TRACKER:
+                    raise NSFlowError(f"frame at {rec.stamp_ns} ns: {outcome.note}")
+                feats = outcome.features
+                bar.update(1)
+                if feats is None:
+                    continue
+                cf = feats.cameras[0]
+                stats.add_frame(rec.stamp_ns, {int(i): p for i, p in zip(cf.ids, cf.pixels, strict=True)})
+                for j in range(len(cf.ids)):
+                    rows.append(
+                        f"{rec.stamp_ns},0,{cf.ids[j]},{cf.pixels[j, 0]:.4f},{cf.pixels[j, 1]:.4f},"
+                        f"{cf.undistorted[j, 0]:.6f},{cf.undistorted[j, 1]:.6f},{cf.velocities[j, 0]:.6f},"
+                        f"{cf.velocities[j, 1]:.6f},{cf.track_counts[j]}"
+                    )
+                if stats.frames % 10 == 5 and len(sheet) < 4 * sheet_frames:
+                    sheet.append((stats.frames, draw_tracks(feats, rec.gray())))
+        except NSFlowError as err:
+            error = err  # keep what was processed; report after writing
+        finally:
+            bar.close()
     atomic_write(out / "features.csv", lambda p: p.write_text(CSV_HEADER + "\n" + "\n".join(rows) + "\n"))
     if sheet:
         pick = [sheet[round(i)] for i in np.linspace(0, len(sheet) - 1, min(sheet_frames, len(sheet)))]

@@ -1,13 +1,8 @@
-"""Stereo pairing within a stamp tolerance, as VINS-Fusion pairs its image topics: one pairer for node and
-feature bag.
+"""Stereo pairing within a stamp tolerance, as VINS-Fusion pairs its image topics (node and feature bag).
 
-Images of the two cameras arrive one at a time; an image waits until an image of the other camera whose
-stamp is within the tolerance arrives (the nearest of those waiting wins), then the pair is a frame. Cameras
-that stamp left and right separately are a few milliseconds apart, hence VINS-Fusion's 3 ms
-(:data:`STEREO_SYNC_TOLERANCE`). Each camera's images arrive in stamp order, so when a pair forms, the
-images that arrived before its two members can no longer pair: they are dropped and counted once in
-:attr:`StereoPairer.unpaired`, as are images pushed out when more than ``max_pending`` of one camera wait,
-and those waiting at :meth:`StereoPairer.flush`.
+An image waits for the nearest image of the other camera within the tolerance (cameras that stamp left and
+right separately differ by a few milliseconds). Each camera's images come in stamp order, so images older
+than a pair's members can no longer pair: they are dropped and counted in :attr:`StereoPairer.unpaired`.
 """
 
 from __future__ import annotations
@@ -65,16 +60,7 @@ class StereoPairer(Generic[T]):
         self._tolerance_ns = round(seconds * 1e9)
 
     def add(self, camera: int, stamp_ns: int, item: T) -> tuple[T, T | None] | None:
-        """Add one camera's item.
-
-        Args:
-            camera: 0 or 1.
-            stamp_ns: the image's stamp in nanoseconds.
-            item: what to pair.
-
-        Returns:
-            ``(camera-0 item, camera-1 item or None for mono)`` when a frame is complete, else None.
-        """
+        """Add a camera's item; returns (camera-0 item, camera-1 item or None) once a frame is whole."""
         if self.cameras == 1:
             return item, None
         mine, others = self._pending[camera], self._pending[1 - camera]

@@ -1,8 +1,6 @@
-"""The VINS front-end's frame policy around a tracker, without middleware.
+"""The VINS front-end's frame policy around a tracker, shared by the node, offline run and feature bag.
 
-A :class:`FrontEndSession` is what sits between "an image (pair) arrived" and "publish these features": the
-ROS node, the offline run and anything else that feeds a VINS estimator share it, so the policy is written
-and tested once. Per frame (:meth:`FrontEndSession.process`) it
+Per frame (:meth:`FrontEndSession.process`) a session
 
 * skips a frame whose stamp repeats the previous one;
 * in the VINS-Fusion layout, resets the tracks when time goes backwards;
@@ -10,12 +8,9 @@ and tested once. Per frame (:meth:`FrontEndSession.process`) it
   estimator restart on a stamp gap > 1 s or time going backwards, throttles publishing to ``freq`` Hz (the
   throttled frames are still tracked, without detecting new corners) and skips the first published frame;
 * after ``max_cnt`` is lowered, publishes only the longest ``max_cnt`` tracks (never an id it cut);
-* predicts the flow from the gyro samples given to :meth:`FrontEndSession.add_gyro` when that is on;
-* counts what it did (:attr:`FrontEndSession.counters`).
+* predicts the flow from the gyro samples of :meth:`FrontEndSession.add_gyro` when that is on.
 
-:meth:`FrontEndSession.update` is where settings changed at run time land.
-
-Imports neither rclpy nor torch.
+Settings changed at run time land in :meth:`FrontEndSession.update`.
 """
 
 from __future__ import annotations
@@ -119,18 +114,16 @@ class FrontEndSession:
     """A tracker plus the VINS front-end frame policy (see the module docstring).
 
     Args:
-        config: the VINS config (cameras, topics and the file's tracker settings).
         settings: values by name from :data:`~nsflow_ros.vins.settings.SESSION_SETTINGS`; -1, None or ""
-            keep the default (the VINS config's value; for ``reject_with_f`` on in the VINS-Mono layout,
-            off in VINS-Fusion's).
+            keep the default.
         layout: feature message layout, ``fusion`` or ``mono``; None = the config's dialect.
         fisheye_mask: mask image for a config with ``fisheye: 1``; None = where VINS-Mono keeps it.
         tracker_overrides: further :class:`~nsflow_ros.core.tracker.TrackerSettings` fields, fixed for the
             session (e.g. ``{"stereo": False}`` to track camera 0 of a stereo config).
 
     Raises:
-        ConfigError: an unknown setting, a bad value or layout (the message names it).
-        NSFlowError: CoreError / EncoderError when the tracker cannot be built.
+        ConfigError: an unknown setting, a bad value or layout.
+        NSFlowError: the tracker cannot be built.
     """
 
     def __init__(
@@ -201,23 +194,17 @@ class FrontEndSession:
         return int(self.config.freq)
 
     def update(self, **settings: Any) -> list[str]:
-        """Change settings of the running session; all or nothing.
+        """Change settings of the running session, all or nothing, as each one's :class:`Mode` says.
 
-        What a change does is its :class:`~nsflow_ros.vins.settings.Mode` in the settings table: a live
-        one replaces the running tracker's settings, a rebuild one builds a new tracker (tracks restart;
-        ids keep counting up), a read-only one is refused.
-
-        Args:
-            **settings: names from :data:`~nsflow_ros.vins.settings.SESSION_SETTINGS`; -1, None or ""
-                restore the default.
+        A live change updates the running tracker, a rebuild builds a new tracker (tracks restart, ids keep
+        counting up), a read-only one is refused; -1, None or "" restore the default.
 
         Returns:
-            what changed, one sentence per change, for the log ([] when nothing changed).
+            one sentence per change, for the log.
 
         Raises:
-            ConfigError: an unknown name, a bad value or a read-only setting changed; NSFlowError
-                (CoreError, EncoderError) when the new tracker cannot be built. The session is unchanged
-                when it raises.
+            ConfigError: an unknown name, a bad value or a read-only setting changed; NSFlowError when the
+                new tracker cannot be built. The session is unchanged when it raises.
         """
         self._check_names(settings)
         merged = {**self._settings, **settings}
@@ -278,10 +265,7 @@ class FrontEndSession:
         self._init_pub = False
 
     def add_gyro(self, stamp: float, rate: tuple[float, float, float] | np.ndarray) -> None:
-        """Store one gyro sample (rad/s, IMU frame); ignored unless ``use_imu_prediction`` is on.
-
-        Safe to call from another thread than :meth:`process`.
-        """
+        """Store one gyro sample (rad/s, IMU frame) when ``use_imu_prediction`` is on; thread-safe."""
         if self.gyro is not None:
             with self._gyro_lock:
                 self.gyro.add(stamp, rate)
@@ -317,15 +301,10 @@ class FrontEndSession:
     def process(
         self, stamp: float, image0: np.ndarray, image1: np.ndarray | None = None
     ) -> FrameOutcome:
-        """Apply the frame policy to one frame and track it.
-
-        Args:
-            stamp: the frame's time in seconds.
-            image0: camera-0 image, uint8 (H, W) or (H, W, 3).
-            image1: camera-1 image of the same stamp (stereo).
+        """Apply the frame policy to one frame (``stamp`` in seconds, uint8 images) and track it.
 
         Returns:
-            what to publish and what happened (:class:`FrameOutcome`); counted in :attr:`counters`.
+            what to publish and what happened; counted in :attr:`counters`.
         """
         out = self._process(stamp, image0, image1)
         c = self.counters
@@ -380,8 +359,7 @@ class FrontEndSession:
     def _trim(self, frame: FrameFeatures) -> FrameFeatures:
         """At most ``max_cnt`` features, the longest tracks first, after ``max_cnt`` was lowered.
 
-        The tracker keeps tracking what it had (VINS only stops detecting), so the excess is cut here, and
-        an id cut once is never published again: the estimator assumes an id's observations are contiguous.
+        An id cut once is never published again: the estimator assumes an id's observations are contiguous.
         """
         cam0 = frame.cameras[0]
         limit = self.tracker.settings.max_cnt

@@ -1,15 +1,11 @@
 """The front-end's settings: one typed table that every other view of them is derived from.
 
-:data:`SETTINGS` lists every setting of the ``tracker`` node with its type (the type of its default),
-default, unit, when it may change (:class:`Mode`), the VINS config key it overrides and its description.
-From it come the node's declared parameters and ``--help`` (:mod:`nsflow_ros.ros.tracker_params`), the
-params file ``config/tracker_params.yaml``, the VINS-config overrides
-(:func:`nsflow_ros.vins.config.apply_overrides`), the tracker's settings
-(:func:`tracker_settings`) and what :class:`~nsflow_ros.vins.session.FrontEndSession` does with a change
-at run time.
-
-A setting with a VINS key takes :data:`KEEP` (-1) for "the VINS config's value"; switches are integers
-(-1 / 0 / 1) for that reason. Imports neither rclpy nor torch, so ``--help`` needs no middleware.
+From :data:`SETTINGS` come the node's parameters, ``--help`` and ``config/tracker_params.yaml``
+(:mod:`nsflow_ros.ros.tracker_params`), the VINS-config overrides
+(:func:`nsflow_ros.vins.config.apply_overrides`), the tracker's settings and what
+:class:`~nsflow_ros.vins.session.FrontEndSession` does with a change at run time. A setting with a VINS key
+takes :data:`KEEP` (-1) for "the VINS config's value", which is why switches are integers (-1 / 0 / 1).
+Imports neither rclpy nor torch, so ``--help`` needs no middleware.
 """
 
 from __future__ import annotations
@@ -30,6 +26,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "KEEP",
+    "KINDS",
     "SESSION_SETTINGS",
     "SETTINGS",
     "TRACKER_SETTINGS",
@@ -48,7 +45,8 @@ Value = bool | int | float | str
 KEEP = -1
 """A setting's value meaning "the default": the VINS config's value for a setting with a VINS key."""
 
-_KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
+KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
+"""A value type in words, as help texts and error messages name it."""
 
 
 class Mode(Enum):
@@ -106,7 +104,7 @@ class Setting:
     @property
     def kind(self) -> str:
         """The type in words: boolean, integer, number or string."""
-        return _KINDS[self.type]
+        return KINDS[self.type]
 
     @property
     def full_description(self) -> str:
@@ -122,13 +120,9 @@ class Setting:
         return f"{text} {when}"
 
     def check(self, value: Any) -> Value:
-        """Check the type and range of a value that overrides the VINS config (not :data:`KEEP`).
+        """The value that overrides the VINS config (not :data:`KEEP`) as int, bool (switch) or float.
 
-        Args:
-            value: the value given; a switch takes true/false or 0/1, a number setting an integer too.
-
-        Returns:
-            the value: int for integers, bool for switches, float for numbers.
+        A switch takes true/false or 0/1, a number an integer too.
 
         Raises:
             ConfigError: naming the setting, the value and what is expected.
@@ -346,14 +340,7 @@ def setting(name: str) -> Setting:
 
 
 def config_tracker_fields(config: VinsConfig) -> dict[str, Any]:
-    """The TrackerSettings fields a VINS config sets: its settings with a VINS key, and ``stereo``.
-
-    Args:
-        config: the VINS config (with any overrides applied: :func:`~nsflow_ros.vins.config.apply_overrides`).
-
-    Returns:
-        keyword arguments of :class:`~nsflow_ros.core.tracker.TrackerSettings`, by field name.
-    """
+    """The TrackerSettings fields a VINS config sets: its settings with a VINS key, and ``stereo``."""
     out: dict[str, Any] = {}
     for s in SETTINGS:
         if s.tracker and s.vins_key is not None:
@@ -364,18 +351,10 @@ def config_tracker_fields(config: VinsConfig) -> dict[str, Any]:
 
 
 def session_tracker_fields(values: Mapping[str, Any], layout: str) -> dict[str, Any]:
-    """The TrackerSettings fields of the tracker settings without a VINS key, from setting values.
+    """The TrackerSettings fields of the settings without a VINS key, from setting values by name.
 
-    An unset value (:func:`is_unset`) takes the setting's default and :attr:`Setting.none_value` becomes
-    None; ``reject_with_f`` unset follows the layout: on for VINS-Mono's (which runs it), off for
-    VINS-Fusion's.
-
-    Args:
-        values: setting values by name; other names are ignored.
-        layout: the feature message layout, ``mono`` or ``fusion``.
-
-    Returns:
-        keyword arguments of :class:`~nsflow_ros.core.tracker.TrackerSettings`, by field name.
+    An unset value (:func:`is_unset`) takes the default and :attr:`Setting.none_value` becomes None;
+    ``reject_with_f`` unset is on for the ``mono`` layout (VINS-Mono runs it), off for ``fusion``.
     """
     out: dict[str, Any] = {}
     for s in SETTINGS:

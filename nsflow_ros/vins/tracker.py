@@ -1,8 +1,7 @@
 """A :class:`~nsflow_ros.core.tracker.FeatureTracker` built the VINS way: from a config file's settings.
 
-The VINS file conventions live here, not in the core: which config keys become tracker settings (the
-settings table, :mod:`nsflow_ros.vins.settings`), ``body_T_cam0`` as the gyro prediction's extrinsic, and
-VINS-Mono's fisheye mask file beside the config.
+The VINS file conventions live here, not in the core: the config keys that become tracker settings,
+``body_T_cam0`` as the gyro prediction's extrinsic, and VINS-Mono's fisheye mask file beside the config.
 """
 
 from __future__ import annotations
@@ -28,8 +27,7 @@ FISHEYE_MASK_NAME = "fisheye_mask.jpg"
 
 
 def find_fisheye_mask(config_path: str | os.PathLike[str]) -> Path:
-    """Where VINS-Mono keeps the fisheye mask for a config: ``fisheye_mask.jpg`` in the config's folder or
-    its parent (VINS-Mono: ``config/fisheye_mask.jpg`` beside ``config/<dataset>/<name>.yaml``).
+    """VINS-Mono's fisheye mask for a config: ``fisheye_mask.jpg`` in the config's folder or its parent.
 
     Raises:
         ConfigError: naming the places looked at when neither exists.
@@ -68,22 +66,12 @@ def tracker_from_config(
     fisheye_mask: str | os.PathLike[str] | None = None,
     encoder: Encoder | None = None,
 ) -> FeatureTracker:
-    """Build a tracker from a VINS config.
-
-    The config supplies the cameras, ``body_T_cam0`` and the tracker settings it has a key for (max_cnt,
-    min_dist, F_threshold, flow_back, equalize; stereo when num_of_cam == 2); ``overrides`` replaces any
-    :class:`~nsflow_ros.core.tracker.TrackerSettings` field afterwards; the other fields keep their
-    defaults.
+    """Build a tracker from a VINS config's cameras, ``body_T_cam0`` and the settings it has a key for.
 
     Args:
-        config: the VINS config.
         overrides: TrackerSettings fields to replace, e.g. ``{"method": "classical", "max_cnt": 200}``.
-        fisheye_mask: the mask image for a config with ``fisheye: 1``; None = look for it where VINS-Mono
-            keeps it (:func:`find_fisheye_mask`). Ignored when the config's fisheye is 0.
+        fisheye_mask: the mask image for a config with ``fisheye: 1``; None = :func:`find_fisheye_mask`.
         encoder: descriptor encoder instead of the one the method selects (tests, benchmarks).
-
-    Returns:
-        the tracker.
 
     Raises:
         ConfigError: when ``fisheye: 1`` and no usable mask is found.

@@ -24,7 +24,6 @@ from nsflow_ros.data.messages import (
     ros2_store,
     serialize,
 )
-from nsflow_ros.ros.image_conv import numpy_to_image_fields
 
 RNG = np.random.default_rng(0)
 BGR = RNG.integers(0, 256, (5, 7, 3), dtype=np.uint8)
@@ -89,15 +88,6 @@ def test_bad_messages_name_the_problem(mutate, cause, match):
     with pytest.raises(ImageDecodeError, match=match) as info:
         image_for_tracker(m)
     assert info.value.cause == cause
-
-
-def test_round_trip_through_the_field_helper():
-    fields = numpy_to_image_fields(BGR)
-    assert fields["encoding"] == "bgr8" and fields["step"] == 21
-    m = Image(**{k: v for k, v in fields.items() if k != "data"})
-    m.data = fields["data"]
-    np.testing.assert_array_equal(image_for_tracker(m), BGR)
-    assert cv2.cvtColor(image_for_tracker(m), cv2.COLOR_BGR2GRAY).shape == (5, 7)
 
 
 @pytest.mark.parametrize(

@@ -22,9 +22,8 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CompressedImage, Image, PointCloud
 from std_msgs.msg import Bool
 
-from nsflow_ros.data.images import encode_compressed
-from nsflow_ros.ros.image_conv import numpy_to_image_fields
-from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode
+from nsflow_ros.data.images import encode_compressed, image_for_tracker
+from nsflow_ros.ros.tracker_node import FEATURE_QOS, TrackerNode, rclpy_image
 from nsflow_ros.vins.errors import ConfigError
 from nsflow_ros.vins.messages import decode_fusion, decode_mono
 
@@ -64,16 +63,21 @@ def write_config(folder: Path, prefix: str, *, stereo: bool = False, dialect: st
 
 
 def image_msg(arr: np.ndarray, t: float, **changes) -> Image:
-    fields = numpy_to_image_fields(arr)
-    msg = Image(height=fields["height"], width=fields["width"], encoding=fields["encoding"],
-                is_bigendian=0, step=fields["step"])
-    msg.data = fields["data"]
+    msg = rclpy_image(arr)
     sec = int(t)
     msg.header.stamp = Time(sec=sec, nanosec=round((t - sec) * 1e9))
     msg.header.frame_id = "cam0"
     for key, value in changes.items():
         setattr(msg, key, value)
     return msg
+
+
+def test_rclpy_image_round_trips_through_the_decoder():
+    bgr = np.random.default_rng(0).integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    msg = rclpy_image(bgr)
+    assert (msg.encoding, msg.step, msg.is_bigendian) == ("bgr8", 21, 0)
+    np.testing.assert_array_equal(image_for_tracker(msg), bgr)
+    assert cv2.cvtColor(image_for_tracker(msg), cv2.COLOR_BGR2GRAY).shape == (5, 7)
 
 
 def compressed_msg(arr: np.ndarray, t: float, codec: str = "png") -> CompressedImage:
@@ -265,7 +269,7 @@ def test_garbage_frames_are_skipped_and_features_keep_coming(tmp_path, prefix, p
         stats = h.tracker.stats
         assert stats.bad["encoding:bayer_rggb8"] == 2 and stats.bad["step"] == 2
         assert stats.bad["truncated"] == 2
-        assert stats.bad["duplicate_stamp"] == 1 and stats.bad_frames == 10
+        assert stats.bad["duplicate_stamp"] == 1 and stats.images_undecodable + stats.frames_refused == 10
     finally:
         h.close()
 
