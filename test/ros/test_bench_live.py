@@ -8,9 +8,15 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.ros.bench_live import format_live_table, run_live_benchmark
 
 
-def test_klt_node_keeps_up_with_a_short_stereo_replay(tmp_path):
+@pytest.fixture(scope="module")
+def sample_dir(tmp_path_factory):
+    """One rendered sample for the module's node runs (rendering costs more than a 1 s run)."""
+    return tmp_path_factory.mktemp("live_sample")
+
+
+def test_klt_node_keeps_up_with_a_short_stereo_replay(sample_dir):
     # with a light background load and the node's queue of one passed through
-    res = run_live_benchmark(1.0, ["klt"], cache_dir=tmp_path, background_load=0.3, params={"queue_size": 1})
+    res = run_live_benchmark(1.0, ["klt"], cache_dir=sample_dir, background_load=0.3, params={"queue_size": 1})
     assert res["setup"]["background_load_cores"] == 0.3 and res["setup"]["params"] == {"queue_size": 1}
     fig = res["klt"]
     assert fig["frames_sent"] == 20
@@ -27,8 +33,8 @@ def test_klt_node_keeps_up_with_a_short_stereo_replay(tmp_path):
     assert "background load 0.3 core, queue_size 1" in table
 
 
-def test_png_compressed_node_run_reproduces_the_raw_features(tmp_path):
-    res = run_live_benchmark(1.0, ["klt"], cache_dir=tmp_path, compress=("none", "png"))
+def test_png_compressed_node_run_reproduces_the_raw_features(sample_dir):
+    res = run_live_benchmark(1.0, ["klt"], cache_dir=sample_dir, compress=("none", "png"))
     raw, png = res["klt"], res["klt/png"]
     assert png["frames_sent"] == 20 and png["tracker_processed"] >= 18
     agree = png["agreement"]
