@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from nsflow_ros.train.errors import TrainError
 
-__all__ = ["PAPER", "PAPER_OPEN", "RECIPES", "recipe_defaults"]
+__all__ = ["PAPER", "PAPER_DATA", "PAPER_OPEN", "RECIPES", "recipe_defaults"]
 
 PAPER: dict[str, object] = {
     "size": (640, 480),
@@ -26,6 +26,9 @@ PAPER: dict[str, object] = {
     "levels": 1,
 }
 """The option values ``--recipe paper`` sets (argparse destinations); options given explicitly win."""
+
+PAPER_DATA = "tartanair"
+"""The ``--data`` kind ``--recipe paper`` needs."""
 
 PAPER_OPEN: tuple[tuple[str, str], ...] = (
     ("training length: '1000 epochs' of an unstated epoch size, about a day on one RTX 4090",

@@ -15,8 +15,9 @@ carries the illumination perturbation the training applies to every source
 :class:`PairStream` turns a source into an indexed stream: pair ``i`` depends only on the seed and ``i``,
 so every process of a distributed run, every data-loader worker and a resumed run see the same pairs.
 
-``--data KIND:PATH:WEIGHT`` on the command line is parsed by :func:`parse_data_spec` and built by
-:func:`build_source`.
+``--data KIND:PATH:WEIGHT`` on the command line is parsed by :func:`parse_data_spec`; the kind is looked
+up once in :data:`SOURCES`, whose class splits the entry into its training and held-out parts
+(:meth:`PairSource.split`).
 """
 
 from __future__ import annotations
@@ -24,8 +25,10 @@ from __future__ import annotations
 import itertools
 import re
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -44,6 +47,7 @@ from nsflow_ros.train.errors import TrainError
 
 __all__ = [
     "DATA_KINDS",
+    "SOURCES",
     "DataSpec",
     "FootageSource",
     "MixedSource",
@@ -51,21 +55,77 @@ __all__ = [
     "PairStream",
     "PhotoSource",
     "SceneSource",
+    "SourceOptions",
     "TartanAirSource",
-    "build_source",
     "parse_data_spec",
     "read_footage",
     "tartanair_environments",
 ]
 
-DATA_KINDS = ("photos", "scenes", "tartanair", "footage")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
-class PairSource(ABC):
-    """Something that draws training pairs with exact flow."""
+@dataclass(frozen=True)
+class SourceOptions:
+    """What splitting a ``--data`` entry may read beside its path (each kind reads its own fields).
 
-    kind: str = ""
+    Attributes:
+        seed: seed of the scene pool.
+        cache: the scene pool's cache folder when the entry names none.
+        color: TartanAir frames as RGB.
+        tartanair_val: TartanAir environments held out for validation; None = the last by name when
+            there are two or more.
+        topics: footage camera topics (None = the default ones).
+        holdout: footage share held out at the end.
+    """
+
+    seed: int = 0
+    cache: Path = Path("cache")
+    color: bool = False
+    tartanair_val: tuple[str, ...] | None = None
+    topics: list[str] | None = None
+    holdout: float = 0.2
+
+
+Split = tuple["PairSource", "PairSource | None"]
+
+
+class PairSource(ABC):
+    """Something that draws training pairs with exact flow.
+
+    A kind of ``--data`` entry is a subclass registered in :data:`SOURCES`; its :meth:`split` is the one
+    place that turns an entry into sources, so no caller branches on a kind.
+    """
+
+    kind: ClassVar[str] = ""
+    path_use: ClassVar[Literal["required", "optional", "none"]] = "none"
+    """Whether a ``--data`` entry of this kind needs, may have or takes no path."""
+
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        """The training source a ``--data`` entry of this kind names, and its held-out validation source.
+
+        Args:
+            path: the entry's path (None when it names none).
+            opts: settings beside the path.
+
+        Returns:
+            (training source, validation source or None when nothing is held out).
+
+        Raises:
+            TrainError: the data cannot be read or split (the message names the path).
+        """
+        raise NotImplementedError  # pragma: no cover - every registered kind overrides it
+
+    def evaluation_frames(self) -> list[np.ndarray]:
+        """Frames the end-of-run footage comparison scores models on when this is a validation source;
+        empty = validated during training only."""
+        return []
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        """A :meth:`describe` result in words for the model card (its share excluded)."""
+        raise NotImplementedError  # pragma: no cover - every registered kind overrides it
 
     @abstractmethod
     def sample(self, rng: np.random.Generator, cfg: PairConfig, strength: float) -> Pair:
@@ -108,6 +168,14 @@ class PhotoSource(PairSource):
     def describe(self) -> dict[str, object]:
         return {"kind": self.kind, "images": list(self.images)}
 
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        return cls(), None
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        return "homography pairs of the bundled photos"
+
 
 class SceneSource(PairSource):
     """Crops of stereo and temporal pairs rendered from the sample scenes (exact flow).
@@ -118,6 +186,7 @@ class SceneSource(PairSource):
     """
 
     kind = "scenes"
+    path_use = "optional"
 
     def __init__(self, cache: Path, seed: int = 0) -> None:
         from nsflow_ros.train.scenes import SCENE_SEEDS, ScenePool
@@ -133,6 +202,14 @@ class SceneSource(PairSource):
 
     def describe(self) -> dict[str, object]:
         return {"kind": self.kind, "sequence_seeds": list(self.seeds), "rendered_pairs": len(self.pool)}
+
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        return cls(path or opts.cache, seed=opts.seed), None
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        return f"crops of rendered sample-scene pairs (sequence seeds {description.get('sequence_seeds')})"
 
 
 # -- TartanAir --------------------------------------------------------------------------------------------
@@ -191,6 +268,7 @@ class TartanAirSource(PairSource):
     """
 
     kind = "tartanair"
+    path_use = "required"
 
     def __init__(self, root: str | Path, environments: list[str] | None = None, color: bool = False) -> None:
         self.root = Path(root)
@@ -281,6 +359,34 @@ class TartanAirSource(PairSource):
             "color": self.color,
         }
 
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        """Hold out ``opts.tartanair_val`` (default: the last environment when another is left to train on).
+
+        Raises:
+            TrainError: a held-out environment is not in the folder, or every environment is held out.
+        """
+        assert path is not None
+        envs = tartanair_environments(path)
+        if opts.tartanair_val is not None:
+            held = list(opts.tartanair_val)
+        else:
+            held = envs[-1:] if len(envs) > 1 else []
+        unknown = [e for e in held if e not in envs]
+        if unknown:
+            raise TrainError(f"validation environments {unknown} not in {path} (present: {envs})")
+        train_envs = [e for e in envs if e not in held]
+        if not train_envs:
+            raise TrainError(f"every environment of {path} is held out for validation: {held}")
+        train = cls(path, train_envs, color=opts.color)
+        return train, cls(path, held, color=opts.color) if held else None
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        envs = ", ".join(str(e) for e in description.get("environments", []))  # type: ignore[attr-defined]
+        pairs = description.get("pairs")
+        return f"TartanAir `{description.get('path')}`, environments {envs} ({pairs} pairs)"
+
 
 # -- the user's footage -----------------------------------------------------------------------------------
 
@@ -359,6 +465,7 @@ class FootageSource(PairSource):
     """
 
     kind = "footage"
+    path_use = "required"
 
     def __init__(
         self,
@@ -401,6 +508,22 @@ class FootageSource(PairSource):
             "heldout_frames": len(self.held),
             "size": [w, h],
         }
+
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        assert path is not None
+        train = cls(path, opts.topics, holdout=opts.holdout)
+        return train, train.heldout()
+
+    def evaluation_frames(self) -> list[np.ndarray]:
+        return self.frames
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        return (
+            f"footage `{description.get('path')}`, {description.get('frames')} frames as random homography "
+            f"pairs ({description.get('heldout_frames')} later frames held out)"
+        )
 
 
 # -- mixing and indexing ----------------------------------------------------------------------------------
@@ -472,8 +595,14 @@ class PairStream:
         )
 
 
-# -- command line -----------------------------------------------------------------------------------------
+# -- the registry and the command line --------------------------------------------------------------------
 
+SOURCES: Mapping[str, type[PairSource]] = {
+    cls.kind: cls for cls in (PhotoSource, SceneSource, TartanAirSource, FootageSource)
+}
+"""Every ``--data`` kind and the source class that builds and splits it."""
+
+DATA_KINDS = tuple(SOURCES)
 
 @dataclass(frozen=True)
 class DataSpec:
@@ -488,6 +617,10 @@ class DataSpec:
     kind: str
     path: Path | None = None
     weight: float = 1.0
+
+    def split(self, opts: SourceOptions) -> Split:
+        """The training source this entry names and its held-out validation source (None without one)."""
+        return SOURCES[self.kind].split(self.path, opts)
 
 
 def parse_data_spec(text: str) -> DataSpec:
@@ -510,39 +643,9 @@ def parse_data_spec(text: str) -> DataSpec:
     if not (weight > 0 and np.isfinite(weight)):
         raise TrainError(f"--data {text!r}: weight must be finite and > 0, got {weight}")
     path = Path(path_text) if path_text else None
-    if kind in ("tartanair", "footage") and path is None:
+    use = SOURCES[kind].path_use
+    if use == "required" and path is None:
         raise TrainError(f"--data {text!r}: {kind} needs a path ({kind}:PATH[:WEIGHT])")
-    if kind == "photos" and path is not None:
-        raise TrainError(f"--data {text!r}: photos takes no path (photos[:WEIGHT])")
+    if use == "none" and path is not None:
+        raise TrainError(f"--data {text!r}: {kind} takes no path ({kind}[:WEIGHT])")
     return DataSpec(kind, path, weight)
-
-
-def build_source(
-    spec: DataSpec,
-    *,
-    seed: int = 0,
-    cache: Path = Path("cache"),
-    color: bool = False,
-    environments: list[str] | None = None,
-    topics: list[str] | None = None,
-    holdout: float = 0.2,
-) -> PairSource:
-    """The source a :class:`DataSpec` names.
-
-    Args:
-        spec: the parsed ``--data`` argument.
-        seed: seed of the scene pool.
-        cache: the scene pool's cache folder when the spec names none.
-        color: TartanAir frames as RGB.
-        environments: TartanAir environments to read (None = all).
-        topics: footage camera topics.
-        holdout: footage share held out at the end.
-    """
-    if spec.kind == "photos":
-        return PhotoSource()
-    if spec.kind == "scenes":
-        return SceneSource(spec.path or cache, seed=seed)
-    assert spec.path is not None
-    if spec.kind == "tartanair":
-        return TartanAirSource(spec.path, environments, color=color)
-    return FootageSource(spec.path, topics, holdout=holdout)

@@ -38,15 +38,12 @@ from nsflow_ros.train.ops import pyramid
 from nsflow_ros.train.runlog import TENSORBOARD_HINT, Progress, StepLog, run_record
 from nsflow_ros.train.sources import (
     DataSpec,
-    FootageSource,
     MixedSource,
     PairSource,
     PairStream,
     PhotoSource,
     SceneSource,
-    TartanAirSource,
-    build_source,
-    tartanair_environments,
+    SourceOptions,
 )
 
 __all__ = [
@@ -390,35 +387,20 @@ def make_data(cfg: TrainConfig) -> TrainData:
         return TrainData(MixedSource(parts))
     parts = []
     validation: dict[str, PairSource] = {}
-    color = cfg.spec.in_channels == 3
-    topics = list(cfg.footage_topics) if cfg.footage_topics else None
+    opts = SourceOptions(
+        seed=cfg.seed,
+        cache=cache,
+        color=cfg.spec.in_channels == 3,
+        tartanair_val=cfg.tartanair_val,
+        topics=list(cfg.footage_topics) if cfg.footage_topics else None,
+        holdout=cfg.footage_holdout,
+    )
     for k, spec in enumerate(cfg.data):
         tag = f"{spec.kind}{k}" if sum(s.kind == spec.kind for s in cfg.data) > 1 else spec.kind
-        if spec.kind == "tartanair":
-            assert spec.path is not None
-            envs = tartanair_environments(spec.path)
-            if cfg.tartanair_val is not None:
-                held = list(cfg.tartanair_val)
-            else:  # the last environment, when another one is left to train on
-                held = envs[-1:] if len(envs) > 1 else []
-            unknown = [e for e in held if e not in envs]
-            if unknown:
-                raise TrainError(f"validation environments {unknown} not in {spec.path} (present: {envs})")
-            train_envs = [e for e in envs if e not in held]
-            if not train_envs:
-                raise TrainError(f"every environment of {spec.path} is held out for validation: {held}")
-            parts.append((TartanAirSource(spec.path, train_envs, color=color), spec.weight))
-            if held:
-                validation[tag] = TartanAirSource(spec.path, held, color=color)
-        elif spec.kind == "footage":
-            src = build_source(spec, topics=topics, holdout=cfg.footage_holdout)
-            assert isinstance(src, FootageSource)
-            parts.append((src, spec.weight))
-            held_src = src.heldout()
-            if held_src is not None:
-                validation[tag] = held_src
-        else:
-            parts.append((build_source(spec, seed=cfg.seed, cache=cache), spec.weight))
+        train_src, held = spec.split(opts)
+        parts.append((train_src, spec.weight))
+        if held is not None:
+            validation[tag] = held
     return TrainData(MixedSource(parts), validation)
 
 
