@@ -20,6 +20,7 @@ evaluation.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -37,6 +38,7 @@ __all__ = [
     "Pair",
     "PairConfig",
     "initial_flow",
+    "inside",
     "load_image",
     "make_pair",
     "perturb_frames",
@@ -46,6 +48,16 @@ __all__ = [
 
 
 INIT_MODES = ("normal", "uniform", "zero")
+
+
+def inside(points: Any, width: int, height: int, radius: int) -> Any:
+    """Which points keep a window of ``radius`` inside a ``width`` x ``height`` image (NumPy or torch).
+
+    Shape:
+        points: (N, 2). Returns (N,) bool.
+    """
+    x, y = points[:, 0], points[:, 1]
+    return (x >= radius) & (x <= width - 1 - radius) & (y >= radius) & (y <= height - 1 - radius)
 
 
 def load_image(name: str) -> np.ndarray:
@@ -257,14 +269,8 @@ def make_pair(
     f1, f2 = perturb_frames(f1, f2, rng, strength)
     pts = detect_corners(f1, cfg.max_points, min_distance=cfg.min_distance)
     target = cv2.perspectiveTransform(pts[None], p)[0] if len(pts) else pts.copy()
-    r = cfg.window // 2
-
-    def inside(q: np.ndarray) -> np.ndarray:
-        return (
-            (q[:, 0] >= r) & (q[:, 0] <= cfg.width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= cfg.height - 1 - r)
-        )
-
-    keep = inside(pts) & inside(target)
+    frame = (cfg.width, cfg.height, cfg.window // 2)
+    keep = inside(pts, *frame) & inside(target, *frame)
     pts, target = pts[keep], target[keep]
     gt = target - pts
     return Pair(f1, f2, pts, gt, initial_flow(gt, rng, cfg, init_error), p)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from nsflow_ros.core.detector import detect_corners
-from nsflow_ros.train.data import Pair, PairConfig, initial_flow, perturb_frames
+from nsflow_ros.train.data import Pair, PairConfig, initial_flow, inside, perturb_frames
 from nsflow_ros.train.errors import TrainError
 
 __all__ = ["SCENE_SEEDS", "RenderedPair", "ScenePool", "make_scene_pair"]
@@ -138,14 +138,8 @@ def make_scene_pair(
     f2 = src.image2[y0 : y0 + cfg.height, x0 : x0 + cfg.width]
     f1, f2 = perturb_frames(f1, f2, rng, strength)
     pts = src.points - (x0, y0)
-    r = cfg.window // 2
-
-    def inside(q: np.ndarray) -> np.ndarray:
-        return (
-            (q[:, 0] >= r) & (q[:, 0] <= cfg.width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= cfg.height - 1 - r)
-        )
-
-    keep = np.flatnonzero(inside(pts) & inside(pts + src.flow))
+    frame = (cfg.width, cfg.height, cfg.window // 2)
+    keep = np.flatnonzero(inside(pts, *frame) & inside(pts + src.flow, *frame))
     if len(keep) > cfg.max_points:
         keep = np.sort(rng.choice(keep, cfg.max_points, replace=False))
     pts, gt = pts[keep], src.flow[keep]

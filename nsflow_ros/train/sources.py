@@ -39,6 +39,7 @@ from nsflow_ros.train.data import (
     Pair,
     PairConfig,
     initial_flow,
+    inside,
     load_image,
     make_pair,
     perturb_frames,
@@ -140,10 +141,6 @@ class PairSource(ABC):
     @abstractmethod
     def describe(self) -> dict[str, object]:
         """What the source reads, for the run folder and the model card (JSON-able)."""
-
-
-def _inside(q: np.ndarray, width: int, height: int, r: int) -> np.ndarray:
-    return (q[:, 0] >= r) & (q[:, 0] <= width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= height - 1 - r)
 
 
 class PhotoSource(PairSource):
@@ -339,12 +336,12 @@ class TartanAirSource(PairSource):
         yy, xx = np.mgrid[0 : cfg.height, 0 : cfg.width]
         target = np.stack([xx + fl[..., 0], yy + fl[..., 1]], -1).reshape(-1, 2)
         r = cfg.window // 2
-        ok = (mk == 0).reshape(-1) & np.isfinite(target).all(1) & _inside(target, cfg.width, cfg.height, r)
+        ok = (mk == 0).reshape(-1) & np.isfinite(target).all(1) & inside(target, cfg.width, cfg.height, r)
         valid = ok.reshape(cfg.height, cfg.width).astype(np.uint8) * 255
         f1, f2 = perturb_frames(f1, f2, rng, strength)
         gray = cv2.cvtColor(f1, cv2.COLOR_RGB2GRAY) if self.color else f1
         pts = detect_corners(gray, cfg.max_points, min_distance=cfg.min_distance, mask=valid)
-        pts = pts[_inside(pts, cfg.width, cfg.height, r)]
+        pts = pts[inside(pts, cfg.width, cfg.height, r)]
         ij = np.rint(pts).astype(np.int64)
         pts = ij.astype(np.float64)
         gt = fl[ij[:, 1], ij[:, 0]] if len(ij) else np.zeros((0, 2))
