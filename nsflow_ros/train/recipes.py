@@ -1,9 +1,7 @@
 """Training presets (``--recipe``): the settings a paper states, and the choices made where it is silent.
 
-``paper`` is the training section of the NSFlow paper: TartanAir colour pairs at 640x480, one pair per
-batch, up to 200 keypoints per image, the LK layer run for up to 50 iterations in an 11x11 window, Adam
-at 1e-3, the encoder of 1,003 parameters (RGB in, 3 descriptor channels, width 8, ReLU head). What the
-paper leaves open is listed in :data:`PAPER_OPEN` with the choice made here; the model card repeats it.
+``paper`` is the training section of the NSFlow paper; what it leaves open is listed in
+:data:`PAPER_OPEN` with the choice made here, and the model card repeats it.
 """
 
 from __future__ import annotations
@@ -52,11 +50,7 @@ RECIPES = {"paper": PAPER}
 
 
 def recipe_defaults(name: str) -> dict[str, object]:
-    """The option defaults a recipe sets.
-
-    Raises:
-        TrainError: an unknown recipe.
-    """
+    """The option defaults a recipe sets; TrainError for an unknown recipe."""
     if name not in RECIPES:
         raise TrainError(f"unknown recipe {name!r}; known: {sorted(RECIPES)}")
     return dict(RECIPES[name])

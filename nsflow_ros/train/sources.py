@@ -1,23 +1,9 @@
-"""Training data sources behind one interface: every source gives pairs with exact ground-truth flow.
+"""Training data sources behind one interface: every source gives perturbed pairs with exact flow.
 
-A :class:`PairSource` draws one :class:`~nsflow_ros.train.data.Pair` from a random generator; the pair
-carries the illumination perturbation the training applies to every source
-(:func:`~nsflow_ros.train.data.perturb_frames`) and GFTT keypoints of frame 1 whose exact flow is known.
-
-* :class:`PhotoSource` - homographies of the bundled photos (:mod:`~nsflow_ros.train.data`);
-* :class:`SceneSource` - crops of rendered sample-scene pairs (:mod:`~nsflow_ros.train.scenes`);
-* :class:`TartanAirSource` - consecutive frames of TartanAir trajectories with their flow ``.npy`` files;
-  keypoints only where the flow mask marks the pixel valid and the target lies inside frame 2;
-* :class:`FootageSource` - frames of the user's own bag, ASL folder or image folder, made into pairs by
-  random homographies as the photos are (no ground truth needed), with held-out frames at the end;
-* :class:`MixedSource` - several sources drawn by weight.
-
-:class:`PairStream` turns a source into an indexed stream: pair ``i`` depends only on the seed and ``i``,
-so every process of a distributed run, every data-loader worker and a resumed run see the same pairs.
-
-``--data KIND:PATH:WEIGHT`` on the command line is parsed by :func:`parse_data_spec`; the kind is looked
-up once in :data:`SOURCES`, whose class splits the entry into its training and held-out parts
-(:meth:`PairSource.split`).
+The ``--data`` kinds are registered in :data:`SOURCES` (photos, scenes, TartanAir, the user's footage);
+:class:`MixedSource` draws from several by weight, and :class:`PairStream` indexes a source so that pair
+``i`` depends only on the seed and ``i`` (every process, data-loader worker and resumed run sees the
+same pairs).
 """
 
 from __future__ import annotations
@@ -130,13 +116,7 @@ class PairSource(ABC):
 
     @abstractmethod
     def sample(self, rng: np.random.Generator, cfg: PairConfig, strength: float) -> Pair:
-        """One pair (possibly with few or no points).
-
-        Args:
-            rng: random generator (which frames, geometry, perturbation, initial flow).
-            cfg: frame size, keypoints, window and initial-flow settings.
-            strength: illumination perturbation strength in [0, 1].
-        """
+        """One pair (possibly with few or no points), ``strength`` the illumination change in [0, 1]."""
 
     @abstractmethod
     def describe(self) -> dict[str, object]:
@@ -144,11 +124,7 @@ class PairSource(ABC):
 
 
 class PhotoSource(PairSource):
-    """Random homography pairs of the bundled photos (the shipped model's data).
-
-    Args:
-        images: photo names (:func:`~nsflow_ros.train.data.load_image`).
-    """
+    """Random homography pairs of the bundled photos (:func:`~nsflow_ros.train.data.make_pair`)."""
 
     kind = "photos"
 
@@ -175,7 +151,7 @@ class PhotoSource(PairSource):
 
 
 class SceneSource(PairSource):
-    """Crops of stereo and temporal pairs rendered from the sample scenes (exact flow).
+    """Crops of stereo and temporal pairs rendered from the sample scenes (:mod:`~nsflow_ros.train.scenes`).
 
     Args:
         cache: folder of the scenes' sample-sequence metadata (made once, reused).
@@ -245,19 +221,15 @@ def tartanair_environments(root: str | Path) -> list[str]:
 class TartanAirSource(PairSource):
     """Consecutive frame pairs of TartanAir trajectories with their ground-truth flow.
 
-    Layout (TartanAir's tools): ``<root>/<env>/<Easy|Hard>/<Pxxx>/image_left/NNNNNN_left.png`` and
-    ``flow/NNNNNN_MMMMMM_flow.npy`` (float32 (H, W, 2), frame N to M = N + 1) with
-    ``flow/NNNNNN_MMMMMM_mask.npy`` (uint8 (H, W), 0 = valid; other values mark occluded and dynamic
-    pixels). Each pair is a random crop of ``cfg.width`` x ``cfg.height`` (the same crop of both frames,
-    so the flow stays exact); keypoints are GFTT corners of frame 1 restricted to pixels whose flow is
-    valid and whose target lies inside frame 2 (window margin included). Corners sit on integer pixels,
-    where the flow file holds the exact value.
+    Layout (TartanAir's tools): ``<root>/<env>/<Easy|Hard>/<Pxxx>/image_left/NNNNNN_left.png``,
+    ``flow/NNNNNN_MMMMMM_flow.npy`` (float32 (H, W, 2), M = N + 1) and ``flow/NNNNNN_MMMMMM_mask.npy``
+    (uint8 (H, W), 0 = valid). A pair is the same random crop of both frames; its keypoints are GFTT
+    corners on integer pixels (where the flow file is exact) whose flow is valid and lands inside frame 2.
 
     Args:
         root: the folder holding the environments.
-        environments: the environments to use (None = all); the split by environment keeps validation
-            away from every training environment.
-        color: frames as RGB (the model's 3-channel input) instead of gray.
+        environments: the environments to use (None = all).
+        color: frames as RGB instead of gray.
 
     Raises:
         TrainError: the root holds no environment, an environment named is missing, a trajectory has a
@@ -395,18 +367,15 @@ def _image_folder(path: Path) -> list[Path]:
 def read_footage(
     path: str | Path, topics: list[str] | None = None, stride: int = 1, max_frames: int = 400
 ) -> list[np.ndarray]:
-    """Gray frames of a bag, an ASL folder or a folder of images, in time order.
+    """(H, W) uint8 frames of a bag, an ASL folder or a folder of images, in time order.
 
     Args:
-        path: ROS 1 / ROS 2 bag, ASL folder (as ``nsflow_ros.data.sources.SensorSource`` reads them) or
-            a folder of image files (read in name order).
+        path: ROS 1 / ROS 2 bag or ASL folder (``nsflow_ros.data.sources.SensorSource``), or a folder of
+            image files (read in name order).
         topics: camera topics of a bag or ASL folder (None = ``/cam0/image_raw`` and ``/cam1/image_raw``,
             those present).
         stride: keep every ``stride``-th frame.
         max_frames: at most this many frames, spread evenly over the kept ones.
-
-    Returns:
-        (H, W) uint8 frames.
 
     Raises:
         TrainError: the path is none of these, a topic is missing, or no frame is found.
@@ -446,11 +415,9 @@ def read_footage(
 
 
 class FootageSource(PairSource):
-    """Random homography pairs of the user's own frames (exact flow without ground truth).
+    """Random homography pairs of the user's own frames, made as the photo pairs are (exact flow).
 
-    Each pair is made from one frame exactly as the photo pairs are (random similarity crop, random
-    homography, independent illumination changes on both views). The last ``holdout`` share of the
-    frames (in time order) is kept apart for validation and evaluation (:meth:`heldout`).
+    The last ``holdout`` share of the frames (in time order) is kept apart (:meth:`heldout`).
 
     Args:
         path: bag, ASL folder or image folder (:func:`read_footage`).
@@ -527,12 +494,9 @@ class FootageSource(PairSource):
 
 
 class MixedSource(PairSource):
-    """Several sources, one drawn per pair with probability proportional to its weight.
+    """Several sources, one drawn per pair with probability proportional to its weight (> 0).
 
-    A single source is used without a draw (its pairs are those it gives alone).
-
-    Args:
-        parts: (source, weight) pairs, weights > 0.
+    A single source is used without a draw, so its pairs are those it gives alone.
     """
 
     kind = "mixed"
@@ -563,15 +527,7 @@ class MixedSource(PairSource):
 class PairStream:
     """An indexed stream of training pairs: pair ``i`` depends only on ``seed`` and ``i``.
 
-    A pair with fewer than ``min_points`` keypoints is redrawn (``attempts`` times at most, also indexed),
-    so the stream never holds an empty pair.
-
-    Args:
-        source: where the pairs come from.
-        cfg: pair settings.
-        seed: the run's seed.
-        min_points: fewest keypoints a pair must have.
-        attempts: draws per index before giving up.
+    A pair with fewer than ``min_points`` keypoints is redrawn, ``attempts`` times at most.
     """
 
     source: PairSource
@@ -603,13 +559,7 @@ DATA_KINDS = tuple(SOURCES)
 
 @dataclass(frozen=True)
 class DataSpec:
-    """One ``--data KIND[:PATH][:WEIGHT]`` argument.
-
-    Attributes:
-        kind: one of :data:`DATA_KINDS`.
-        path: the folder / bag (tartanair, footage; an optional cache folder for scenes), or None.
-        weight: relative weight in the mix.
-    """
+    """One ``--data KIND[:PATH][:WEIGHT]`` argument: a kind of :data:`SOURCES`, its path, its weight."""
 
     kind: str
     path: Path | None = None
