@@ -56,14 +56,8 @@ class BackwardMode(enum.Enum):
 
 @dataclass(frozen=True)
 class LKOutput:
-    """Result of :func:`lk_track`.
-
-    Attributes:
-        flow: estimated flow u*, differentiable w.r.t. both descriptor maps, shape (N, 2), float64.
-        status: True where the point counts as tracked (same rule as the NumPy solver), shape (N,).
-        cost: final S(u*) = 1/2 ||f||^2, shape (N,), no gradient.
-        iterations: LM iterations per point, shape (N,), int64.
-    """
+    """Result of :func:`lk_track`: the (N, 2) float64 flow u*, differentiable w.r.t. both maps; the (N,)
+    status by the NumPy solver's rule, final cost 1/2 ||f||^2 (no gradient) and LM iterations."""
 
     flow: torch.Tensor
     status: torch.Tensor
@@ -73,16 +67,9 @@ class LKOutput:
 
 @dataclass(frozen=True)
 class LKPyramidOutput:
-    """Result of :func:`lk_track_pyramid`.
-
-    Attributes:
-        flow: the finest level's flow u*, level-0 pixels, differentiable, shape (N, 2), float64.
-        status: the NumPy solver's rule at level 0 (full-resolution windows), shape (N,).
-        cost: final level-0 S(u*), shape (N,), no gradient.
-        iterations: LM iterations summed over levels, shape (N,), int64.
-        levels: each level's :class:`LKOutput`, level 0 first, with ``flow`` scaled to level-0 pixels
-            (differentiable w.r.t. that level's maps) and ``status`` the same rule on that level's image.
-    """
+    """Result of :func:`lk_track_pyramid`: level 0's flow, status and cost as in :class:`LKOutput`, the
+    iterations summed over levels, and each level's :class:`LKOutput` (level 0 first, flow in level-0
+    pixels)."""
 
     flow: torch.Tensor
     status: torch.Tensor
@@ -103,14 +90,8 @@ def stack_level(desc: torch.Tensor) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class Template:
-    """The frame-1 side of a solve: what every residual and Jacobian of a point is taken against.
-
-    Attributes:
-        values: D1 over each point's window, flattened, (M, C window^2).
-        grad: for :attr:`Jacobian.ESM` D1's Scharr x / y derivatives there, (M, 2, C window^2); else None.
-        channels: C.
-        zero_mean: residuals and Jacobians lose their window means per channel (``LMConfig.zero_mean``).
-    """
+    """The frame-1 side of a solve: D1 over each point's window (M, C window^2), with ESM its x / y
+    derivatives there (M, 2, C window^2), and whether residuals and Jacobians lose their window means."""
 
     values: torch.Tensor
     grad: torch.Tensor | None
@@ -184,19 +165,7 @@ def optimality_condition(
     jacobian: Jacobian = Jacobian.FORWARD,
     zero_mean: bool = False,
 ) -> torch.Tensor:
-    """F(D1, D2, u) = J(u)^T f(u) per point, zero at a converged solution of the LM solver.
-
-    Args:
-        desc1: frame-1 descriptor map.
-        desc2: frame-2 descriptor map (F depends on it through both f and J).
-        points: keypoints x in frame 1.
-        flow: flow u.
-        window: odd window side.
-        jacobian: the J of the solver's step.
-        zero_mean: f and J centred per window and channel (``LMConfig.zero_mean``).
-
-    Returns:
-        F in the maps' dtype.
+    """F(D1, D2, u) = J(u)^T f(u) per point in the maps' dtype, zero at a converged solution of the solver.
 
     Shape:
         desc1, desc2: (C, H, W). points, flow: (N, 2). Returns (N, 2).
@@ -415,8 +384,8 @@ def lk_track(
         desc2: frame-2 descriptor map, same shape.
         points: keypoints x in frame 1, (x, y) pixels.
         flow0: initial flow (zeros when None); it receives no gradient.
-        config: solver settings; must be single level (``levels=1``). ``LMConfig(levels=1)`` when None.
-        mode: the backward, :attr:`BackwardMode.IMPLICIT` (default) or :attr:`BackwardMode.UNROLL`.
+        config: single-level solver settings; ``LMConfig(levels=1)`` when None.
+        mode: the backward.
         residual_tol: IMPLICIT only: points whose ||F(u*)||_inf exceeds this get no gradient (the theorem
             holds only at a stationary point); None = every tracked point gets one.
         min_curvature: IMPLICIT only: a point gets a gradient only if the symmetric part of its dF/du
@@ -454,21 +423,9 @@ def lk_track_pyramid(
 ) -> LKPyramidOutput:
     """Track coarse to fine through the descriptor pyramid, as ``nsflow_ros.track`` does, differentiably.
 
-    Args:
-        desc1: frame-1 full-resolution descriptor map; its coarser levels are built here.
-        desc2: frame-2 map, same shape.
-        points: keypoints x in frame 1, level-0 pixels.
-        flow0: initial flow in level-0 pixels (zeros when None); no gradient.
-        config: solver settings, ``config.levels`` levels (fewer if the image is too small, as in the
-            core); ``LMConfig()`` when None.
-        mode: the backward (IMPLICIT detaches each level's start; UNROLL records the whole chain).
-        residual_tol: as in :func:`lk_track`, per level.
-        min_curvature: as in :func:`lk_track`, per level.
-        smoothing: the pyramid's Gaussian smoothing (:func:`nsflow_ros.train.ops.pyramid`); None = none.
-
-    Returns:
-        an :class:`LKPyramidOutput`; ``flow`` matches ``nsflow_ros.track(..., config)`` on pyramids
-        built with the same smoothing.
+    Args are those of :func:`lk_track` (full-resolution maps, per level), ``config`` holding the levels
+    (``LMConfig()`` when None) and ``smoothing`` the pyramid's (:func:`nsflow_ros.train.ops.pyramid`).
+    ``flow`` matches ``nsflow_ros.track(..., config)`` on pyramids built with the same smoothing.
 
     Raises:
         TrainError: on mismatched maps or wrong point/flow shapes.
