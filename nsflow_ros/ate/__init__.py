@@ -1,19 +1,12 @@
 """Offline trajectory scoring: ATE/RPE against ground truth, UMA-VI drift, batch tables, plots.
 
-Reads EuRoC ground truth (or an ASL sequence folder), TUM, and VINS-Fusion / VINS-Mono csv files; associates
-stamps (nearest within ``max_diff``, optional offset), aligns by Umeyama (SE(3), Sim(3) or none, over all or
-the first N poses) and reports rmse, mean, median, std, min, max and n of the position error, following
-evo's conventions. Batch mode turns a directory of runs into the paper's EuRoC table.
-
-Typical use::
+Reads EuRoC / ASL, TUM and VINS trajectories, associates stamps, aligns by Umeyama and reports the
+position error's statistics following evo's conventions; batch mode turns a directory of runs into the
+paper's EuRoC table. Typical use::
 
     from nsflow_ros.ate import read_trajectory, evaluate_ape
     result = evaluate_ape(read_trajectory("MH_01"), read_trajectory("out/vio.csv"), align="se3")
     print(result.stats.rmse)
-
-The association, alignment and statistics are pure NumPy (no I/O); files are handled in
-:mod:`nsflow_ros.ate.formats`, plots in :mod:`nsflow_ros.ate.plot` (matplotlib imported on use), and the
-command line in :mod:`nsflow_ros.ate.cli`.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
 """Least-squares alignment of an estimate onto a reference: Umeyama SE(3) / Sim(3), or none.
 
-The estimate's positions p are mapped to ``p' = s R p + t`` (``s = 1`` for SE(3)) minimising
-``sum ||q_i - (s R p_i + t)||^2`` over matched reference positions q_i, by Umeyama's closed form (1991):
-SVD of the cross-covariance, with the sign of the last singular direction flipped when the determinants
-disagree, so R is always a proper rotation and never a reflection. The fit may use all pairs or only the
-first N. Pure computation, no I/O.
+Umeyama's closed form maps the estimate's positions p to ``s R p + t`` minimising the squared distance to
+the matched reference positions; R is always a proper rotation, never a reflection.
 """
 
 from __future__ import annotations
@@ -26,14 +23,8 @@ _MIN_POINTS = 3
 
 @dataclass(frozen=True, eq=False)
 class Alignment:
-    """A similarity transform ``p' = scale * rotation @ p + translation``.
-
-    Attributes:
-        rotation: proper rotation matrix.
-        translation: translation in metres.
-        scale: scale factor (1 for SE(3) and none).
-        method: ``"se3"``, ``"sim3"`` or ``"none"``.
-        n_points: number of point pairs the transform was fitted to (0 for none).
+    """A similarity transform ``p' = scale * rotation @ p + translation`` (metres), the ``method`` of
+    :data:`ALIGN_METHODS` it was fitted by, on ``n_points`` point pairs (0 for none).
 
     Shape:
         rotation (3, 3), translation (3,).
@@ -46,24 +37,14 @@ class Alignment:
     n_points: int = 0
 
     def matrix(self) -> np.ndarray:
-        """Return the 4 x 4 homogeneous matrix ``[[s R, t], [0, 1]]``.
-
-        Shape:
-            (4, 4).
-        """
+        """The 4 x 4 homogeneous matrix ``[[s R, t], [0, 1]]``."""
         out = np.eye(4)
         out[:3, :3] = self.scale * np.asarray(self.rotation)
         out[:3, 3] = self.translation
         return out
 
     def apply(self, points: np.ndarray) -> np.ndarray:
-        """Transform points.
-
-        Args:
-            points: positions in the estimate's frame.
-
-        Returns:
-            The positions in the reference frame.
+        """Positions of the estimate's frame in the reference frame.
 
         Shape:
             points (N, 3) -> (N, 3).
@@ -77,7 +58,7 @@ class Alignment:
         return self.scale * pts @ np.asarray(self.rotation).T + np.asarray(self.translation)
 
     def as_dict(self) -> dict[str, object]:
-        """Return the transform as JSON-ready lists and numbers."""
+        """The transform as JSON-ready lists and numbers."""
         return {
             "method": self.method,
             "scale": float(self.scale),
@@ -96,15 +77,7 @@ def _check_points(name: str, pts: np.ndarray) -> None:
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, *, with_scale: bool = False) -> Alignment:
-    """Fit the similarity (or rigid) transform that best maps ``source`` points onto ``target`` points.
-
-    Args:
-        source: points to move (estimate positions).
-        target: points to reach (reference positions), paired row by row with ``source``.
-        with_scale: fit a scale factor too (Sim(3)); otherwise the scale is 1 (SE(3)).
-
-    Returns:
-        The transform; ``method`` is ``"sim3"`` or ``"se3"``.
+    """The similarity (Sim(3) ``with_scale``, else SE(3)) that best maps ``source`` onto ``target`` rows.
 
     Shape:
         source (N, 3), target (N, 3), N >= 3.
@@ -148,16 +121,13 @@ def umeyama(source: np.ndarray, target: np.ndarray, *, with_scale: bool = False)
 def align_trajectory(
     est: Trajectory, ref: Trajectory, method: str = "se3", n_first: int | None = None
 ) -> tuple[Trajectory, Alignment]:
-    """Align a matched estimate onto its matched reference.
+    """Align a matched estimate onto its matched reference: (the transformed estimate, the transform).
 
     Args:
-        est: estimate poses, paired index by index with ``ref`` (see :func:`~nsflow_ros.ate.associate`).
+        est: estimate poses, paired index by index with ``ref``.
         ref: reference poses.
-        method: ``"se3"``, ``"sim3"`` or ``"none"``.
-        n_first: fit on the first N pairs only (``None``: all pairs); the transform is applied to all poses.
-
-    Returns:
-        (the transformed estimate, the transform).
+        method: one of :data:`ALIGN_METHODS`.
+        n_first: fit on the first N pairs only (``None``: all); the transform is applied to all poses.
 
     Raises:
         ATEError: for an unknown method, different lengths, an ``n_first`` outside [3, len], or any error

@@ -1,10 +1,8 @@
-"""Time association of two trajectories: nearest stamp within ``max_diff``, with an optional offset.
+"""Time association of two trajectories, evo's nearest-time convention.
 
-For each pose of the shorter trajectory (the estimate when both have the same length) the pose of the other
-with the nearest stamp is taken, provided the two stamps differ by at most ``max_diff`` seconds after
-``offset`` has been added to the estimate's stamps (``t_est + offset ~ t_ref``); on an exact tie the earlier
-pose wins. A pose of the longer trajectory may serve several poses of the shorter one. This is the
-convention of evo's nearest-time association (REFERENCE.md section 7). Pure computation, no I/O.
+Each pose of the shorter trajectory (the estimate on equal lengths) takes the other's pose of nearest
+stamp within ``max_diff`` seconds after ``offset`` is added to the estimate's stamps; on a tie the earlier
+pose wins, and a pose of the longer trajectory may serve several.
 """
 
 from __future__ import annotations
@@ -23,12 +21,7 @@ __all__ = ["Association", "associate", "match_stamps"]
 def match_stamps(
     stamps: np.ndarray, candidates: np.ndarray, max_diff: float = 0.01
 ) -> tuple[np.ndarray, np.ndarray]:
-    """For each of ``stamps``, find the nearest of ``candidates`` within ``max_diff``.
-
-    Args:
-        stamps: stamps to match, in any order.
-        candidates: stamps to choose from, in any order.
-        max_diff: largest accepted absolute difference, in the stamps' unit (>= 0).
+    """For each of ``stamps``, the nearest of ``candidates`` within ``max_diff`` (any order, >= 0).
 
     Returns:
         (indices into ``stamps``, indices into ``candidates``) of the matched pairs, ordered by the stamps
@@ -72,19 +65,8 @@ def match_stamps(
 
 @dataclass(frozen=True, eq=False)
 class Association:
-    """Two trajectories reduced to their matched poses.
-
-    Attributes:
-        ref: matched reference poses, in time order.
-        est: matched estimate poses (own stamps kept, no offset applied), paired index by index with ``ref``.
-        ref_indices: index of each matched pose in the original reference.
-        est_indices: index of each matched pose in the original estimate.
-        max_diff: the tolerance used, seconds.
-        offset: the offset used, seconds (added to the estimate's stamps).
-
-    Shape:
-        ref, est: M poses; ref_indices, est_indices (M,).
-    """
+    """Two trajectories reduced to their matched poses, paired index by index (the estimate keeps its
+    own stamps), with each pose's index in its original trajectory and the tolerance and offset used."""
 
     ref: Trajectory
     est: Trajectory
@@ -100,16 +82,13 @@ class Association:
 def associate(
     ref: Trajectory, est: Trajectory, *, max_diff: float = 0.01, offset: float = 0.0
 ) -> Association:
-    """Pair the poses of an estimate with those of a reference by nearest stamp.
+    """Pair the poses of an estimate with those of a reference by nearest stamp (at least one pair).
 
     Args:
         ref: reference (ground-truth) trajectory.
         est: estimated trajectory.
-        max_diff: largest accepted stamp difference in seconds (default 0.01 s).
+        max_diff: largest accepted stamp difference in seconds.
         offset: seconds added to the estimate's stamps before matching.
-
-    Returns:
-        The matched pairs (at least one).
 
     Raises:
         ATEError: when a trajectory is empty, ``max_diff``/``offset`` are invalid, or no stamps overlap (the

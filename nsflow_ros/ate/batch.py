@@ -1,35 +1,14 @@
 """Batch scoring: a directory of runs becomes the paper's EuRoC table, in Markdown and CSV.
 
-Directory layout (every level is a folder; hidden folders and ``mav0`` are skipped)::
+Directory layout (hidden folders and ``mav0`` are skipped)::
 
     <root>/<sequence>/<level>/<method>/<rep>/vio.csv
 
-* ``<sequence>``: e.g. ``MH_01`` .. ``V2_03`` (table rows, natural order);
-* ``<level>``: perturbation level, e.g. ``none``, ``small``, ``large`` (column groups; ``none``, ``small``,
-  ``medium``, ``large`` come first in that order, other names follow alphabetically);
-* ``<method>``: e.g. ``vins_klt``, ``nsflow`` (columns within a group, alphabetical unless given);
-* ``<rep>``: one repetition: a folder holding the estimate (``vio.csv``, ``vins_result_no_loop.csv``, a
-  single ``vins_result_*.csv``, ``trajectory.tum|txt|csv``; see
-  :data:`~nsflow_ros.ate.formats.ESTIMATE_NAMES`) or directly a trajectory file (``*.csv``, ``*.txt``,
-  ``*.tum``) named after the repetition.
-
-Ground truth of ``<sequence>`` is looked for under ``gt_root`` (default: ``<root>``), first match wins:
-``<gt_root>/<sequence>/groundtruth.{csv,txt,tum}``, ``<gt_root>/<sequence>/mav0/state_groundtruth_estimate0/
-data.csv`` (an ASL sequence folder, e.g. the data set itself or a sample sequence),
-``<gt_root>/<sequence>.{csv,txt,tum}``. Formats are detected (or named).
-
-Failure criteria (a failed repetition is an "F"); the reason is kept per run:
-
-* ``empty``: the repetition holds no estimate file, or the file has no poses;
-* ``unreadable``: a malformed row (the message names the line);
-* ``too short``: no stamp overlap with the ground truth, fewer than 3 matched poses, or matched poses that
-  span less than ``min_coverage`` (default 0.5) of the ground truth's duration;
-* ``diverged``: NaN/inf in the estimate, a degenerate (collapsed) estimate, or an ATE RMSE above
-  ``max_rmse`` (default 10 m).
-
-A cell (sequence, level, method) shows ``mean/median`` of the per-run ATE RMSE over its successful
-repetitions, and "F" according to ``fail_if``: ``any`` (default: one failed repetition fails the cell),
-``majority`` (more than half failed) or ``all``. A cell without any repetition shows "-".
+Sequences are the table's rows, perturbation levels its column groups (:data:`LEVEL_ORDER` first), methods
+the columns within a group; a repetition is a folder holding an estimate
+(:data:`~nsflow_ros.ate.formats.ESTIMATE_NAMES`) or a trajectory file named after it. A failed
+repetition is ``empty``, ``unreadable``, ``too short`` or ``diverged`` (:class:`FailureCriteria`); a cell
+shows ``mean/median`` of the successful repetitions' ATE RMSE, "F" per ``fail_if``, or "-" without runs.
 """
 
 from __future__ import annotations
@@ -96,10 +75,11 @@ def _level_key(level: str) -> tuple[int, list[object]]:
 class FailureCriteria:
     """When a repetition counts as failed, and when a cell shows "F".
 
-    Attributes:
-        min_coverage: fewest share (0..1) of the ground truth's duration that the matched poses must span.
-        max_rmse: largest ATE RMSE in metres before a run counts as diverged.
-        fail_if: ``"any"``, ``"majority"`` or ``"all"`` failed repetitions make the cell "F".
+    A run is ``empty`` without an estimate or poses, ``unreadable`` with a malformed row, ``too short``
+    without overlap, with fewer than 3 matched poses or spanning less than ``min_coverage`` of the ground
+    truth's duration, ``diverged`` with NaN / inf, a collapsed estimate or an ATE RMSE above ``max_rmse``
+    (metres). ``fail_if``: ``"any"``, ``"majority"`` (more than half) or ``"all"`` failed repetitions
+    make the cell "F".
     """
 
     min_coverage: float = 0.5
@@ -117,15 +97,7 @@ class FailureCriteria:
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One repetition found on disk.
-
-    Attributes:
-        sequence: sequence name (table row).
-        level: perturbation level (column group).
-        method: method name (column).
-        rep: repetition name.
-        path: the repetition folder or trajectory file.
-    """
+    """One repetition found on disk: its row, column group, column, name and folder or file."""
 
     sequence: str
     level: str
@@ -141,8 +113,7 @@ class RunResult:
     Attributes:
         spec: where it came from.
         stats: APE statistics (``None`` when the run failed before scoring).
-        reason: empty when the run succeeded, else ``"<category>: <detail>"`` with category ``empty``,
-            ``unreadable``, ``too short`` or ``diverged``.
+        reason: empty when the run succeeded, else ``"<category>: <detail>"``.
         coverage: share of the ground truth's duration spanned by the matched poses (0 when unknown).
         estimate: the estimate file read, if any.
     """
@@ -166,13 +137,8 @@ class RunResult:
 
 @dataclass(frozen=True)
 class Cell:
-    """The repetitions of one (sequence, level, method) and their summary.
-
-    Attributes:
-        runs: the repetitions.
-        failed: whether the cell shows "F" (per the failure policy).
-        values: ATE RMSE of the successful repetitions (m).
-    """
+    """The repetitions of one (sequence, level, method), whether the cell shows "F", and the ATE RMSE of
+    the successful ones (m)."""
 
     runs: tuple[RunResult, ...]
     failed: bool
@@ -191,16 +157,8 @@ class Cell:
 
 @dataclass(frozen=True)
 class BatchResult:
-    """Every run of a batch, and the table layout.
-
-    Attributes:
-        sequences: table rows, in order.
-        levels: column groups, in order.
-        methods: columns within each group, in order.
-        runs: all scored repetitions.
-        criteria: the failure criteria used.
-        align: the alignment used (``se3``, ``sim3``, ``none``).
-    """
+    """Every run of a batch, the table layout (rows, column groups, columns in order), the failure
+    criteria and the alignment used."""
 
     sequences: tuple[str, ...]
     levels: tuple[str, ...]
@@ -210,16 +168,7 @@ class BatchResult:
     align: str
 
     def cell(self, sequence: str, level: str, method: str) -> Cell | None:
-        """Summarise the repetitions of one cell.
-
-        Args:
-            sequence: row.
-            level: column group.
-            method: column.
-
-        Returns:
-            The cell, or ``None`` when no repetition exists for it.
-        """
+        """The cell of a row, column group and column, or ``None`` without a repetition."""
         runs = tuple(
             r
             for r in self.runs
@@ -251,14 +200,8 @@ def _subdirs(path: Path) -> list[Path]:
 
 
 def discover_runs(root: str | Path) -> list[RunSpec]:
-    """List the repetitions under ``root`` (layout in the module docstring).
-
-    Args:
-        root: the batch folder.
-
-    Returns:
-        One spec per repetition, in table order (sequences natural, levels per :data:`LEVEL_ORDER`,
-        methods and repetitions natural); sequences without any repetition are left out.
+    """The repetitions under ``root`` in table order (sequences, methods and repetitions in natural order,
+    levels per :data:`LEVEL_ORDER`).
 
     Raises:
         ATEError: when ``root`` is not a directory.
@@ -282,14 +225,9 @@ def discover_runs(root: str | Path) -> list[RunSpec]:
 
 
 def find_ground_truth(gt_root: str | Path, sequence: str) -> Path:
-    """Locate the ground truth of a sequence.
-
-    Args:
-        gt_root: folder holding one entry per sequence.
-        sequence: sequence name.
-
-    Returns:
-        The ground-truth file.
+    """The ground-truth file of a sequence under ``gt_root``, first match of
+    ``<sequence>/groundtruth.{csv,txt,tum}``, an ASL folder ``<sequence>/mav0/...`` and
+    ``<sequence>.{csv,txt,tum}``.
 
     Raises:
         ATEError: naming every place searched when none exists.
@@ -371,23 +309,19 @@ def score_batch(
     """Score every repetition under ``root`` against its sequence's ground truth.
 
     Args:
-        root: batch folder (layout in the module docstring).
-        gt_root: where the ground truth of each sequence lives (default: ``root``).
-        align: ``"se3"``, ``"sim3"`` or ``"none"``.
+        root: batch folder.
+        gt_root: where the ground truth of each sequence lives (:func:`find_ground_truth`; default
+            ``root``).
+        align: one of :data:`~nsflow_ros.ate.align.ALIGN_METHODS`.
         n_align: fit the alignment on the first N matched poses only.
         max_diff: association tolerance in seconds.
         offset: seconds added to the estimates' stamps.
         criteria: failure criteria (default :class:`FailureCriteria()`).
-        methods: columns, in this order (default: all found, alphabetical); runs of other methods are
-            ignored.
-        levels: column groups, in this order (default: all found, :data:`LEVEL_ORDER` first).
+        methods: columns, in this order (default: all found); runs of other methods are ignored.
+        levels: column groups, in this order (default: all found).
         gt_format: ground-truth format (default: detected).
         est_format: estimate format (default: detected).
-        plot_dir: when given, a top-view PNG per successfully scored run is written there, named
-            ``<sequence>_<level>_<method>_<rep>.png``.
-
-    Returns:
-        All runs and the table layout.
+        plot_dir: when given, a top-view PNG per scored run is written there.
 
     Raises:
         ATEError: when ``root`` holds no repetition, a sequence has no ground truth or it cannot be read,
@@ -438,20 +372,8 @@ def _fmt(value: float, digits: int) -> str:
 
 
 def batch_markdown(result: BatchResult, digits: int = 3, bold_best: bool = True) -> str:
-    """Render the table like the paper's EuRoC table, plus the list of failed runs.
-
-    Rows are sequences; columns are ``<level>: <method>``, grouped by level; each cell is
-    ``mean/median`` of the ATE RMSE over repetitions, "F" for a failed cell, "-" for no run. With
-    ``bold_best`` the lowest mean of each (sequence, level) group is bold.
-
-    Args:
-        result: a :func:`score_batch` result.
-        digits: decimals shown.
-        bold_best: embolden the best cell of each group.
-
-    Returns:
-        Markdown text.
-    """
+    """The Markdown table in the paper's EuRoC layout plus the list of failed runs, with ``digits``
+    decimals and, with ``bold_best``, the lowest mean of each (sequence, level) group in bold."""
     crit = result.criteria
     lines = [
         f"ATE RMSE [m], alignment {result.align}; each cell: mean/median over repetitions; "
@@ -487,18 +409,8 @@ def batch_markdown(result: BatchResult, digits: int = 3, bold_best: bool = True)
 
 
 def batch_csv(result: BatchResult, digits: int = 6) -> str:
-    """Render the table as CSV in the same layout: one row per sequence, two columns per cell.
-
-    Columns: ``sequence``, then ``<level>:<method>:mean`` and ``<level>:<method>:median`` for each cell;
-    values are metres, ``F`` for a failed cell, empty for no run.
-
-    Args:
-        result: a :func:`score_batch` result.
-        digits: decimals written.
-
-    Returns:
-        CSV text.
-    """
+    """The table as CSV: a row per sequence, ``<level>:<method>:mean`` and ``:median`` columns per cell
+    (metres, ``F`` for a failed cell, empty for no run)."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     header = ["sequence"]
@@ -522,18 +434,8 @@ def batch_csv(result: BatchResult, digits: int = 6) -> str:
 
 
 def runs_csv(result: BatchResult, digits: int = 6) -> str:
-    """One CSV row per repetition: where it is, its status and all its statistics.
-
-    Columns: sequence, level, method, rep, status (``ok`` or the failure category), rmse, mean, median,
-    std, min, max, n, coverage, reason, estimate.
-
-    Args:
-        result: a :func:`score_batch` result.
-        digits: decimals written.
-
-    Returns:
-        CSV text.
-    """
+    """One CSV row per repetition: where it is, its status (``ok`` or the failure category), its
+    statistics, coverage, reason and estimate file."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     keys = STAT_KEYS[:-1]  # all but n, which is written as an integer
@@ -564,13 +466,7 @@ def runs_csv(result: BatchResult, digits: int = 6) -> str:
 def write_batch_tables(
     result: BatchResult, out_dir: str | Path, stem: str = "ate_table", digits: int = 3
 ) -> dict[str, Path]:
-    """Write ``<stem>.md``, ``<stem>.csv`` and ``<stem>_runs.csv`` into ``out_dir`` (created if needed).
-
-    Args:
-        result: a :func:`score_batch` result.
-        out_dir: destination folder.
-        stem: file name stem.
-        digits: decimals in the Markdown table (the CSV files keep 6).
+    """Write ``<stem>.md`` (``digits`` decimals), ``<stem>.csv`` and ``<stem>_runs.csv`` into ``out_dir``.
 
     Returns:
         ``{"markdown": path, "csv": path, "runs": path}``.

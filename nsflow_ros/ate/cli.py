@@ -88,11 +88,7 @@ def _add_common(p: argparse.ArgumentParser, aligns: tuple[str, ...], default_ali
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Build the argument parser (exposed for documentation and tests).
-
-    Returns:
-        The parser with the ``ape``, ``drift`` and ``batch`` subcommands.
-    """
+    """The argument parser with the ``ape``, ``drift`` and ``batch`` subcommands."""
     parser = argparse.ArgumentParser(
         prog=program_name(PROG),
         description="Score trajectories against ground truth: ATE (APE) with optional RPE, UMA-VI drift, "
@@ -288,14 +284,7 @@ def _run_batch(ns: argparse.Namespace) -> int:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the CLI.
-
-    Args:
-        args: command-line arguments without the program name (default: ``sys.argv[1:]``).
-
-    Returns:
-        The exit status: 0 success, 1 known error (message on stderr), 2 usage error.
-    """
+    """Run the CLI on ``args`` (default ``sys.argv[1:]``); returns the exit status."""
     argv = list(sys.argv[1:] if args is None else args)
     if argv and argv[0] not in (*_SUBCOMMANDS, "-h", "--help", "--version"):
         argv.insert(0, "ape")

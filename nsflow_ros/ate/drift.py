@@ -1,21 +1,8 @@
 """UMA-VI style drift for sequences whose ground truth covers only the start and the end.
 
-UMA-VI (like TUM-VI) records ground truth only while the sensor is inside the motion-capture area, at the
-start and at the end of each sequence, so a full-trajectory ATE is meaningless. Instead:
-
-1. the ground truth is split into segments at time gaps longer than ``min_gap`` seconds; the first is the
-   start segment, the last the end segment (there must be at least two);
-2. the estimate is associated with each segment and aligned to it separately (SE(3) or Sim(3)), giving
-   T_start and T_end;
-3. the drift is reported as
-
-   * ``alignment_error``: ``sqrt(mean_i ||T_start p_i - T_end p_i||^2)`` over all estimate positions p_i
-     (the alignment error of TUM-VI / UMA-VI),
-   * ``end_drift``: the RMSE of the end segment when the estimate is aligned on the start segment only,
-   * ``rotation_drift_deg``: the angle between the two alignment rotations,
-   * ``drift_percent``: ``alignment_error`` as a percentage of the estimate's path length.
-
-Pure computation, no I/O.
+UMA-VI (like TUM-VI) has ground truth only inside the motion-capture area, so a full-trajectory ATE is
+meaningless; instead the estimate is aligned separately to the first and the last ground-truth segment
+(split at gaps longer than ``min_gap``) and the two alignments are compared (:class:`DriftResult`).
 """
 
 from __future__ import annotations
@@ -47,14 +34,8 @@ DRIFT_KEYS: tuple[str, ...] = (
 
 
 def split_segments(stamps: np.ndarray, min_gap: float = 1.0) -> list[np.ndarray]:
-    """Split stamps into runs separated by gaps longer than ``min_gap``.
-
-    Args:
-        stamps: ground-truth stamps in seconds, any order.
-        min_gap: a gap strictly longer than this (seconds) separates two segments.
-
-    Returns:
-        For each segment in time order, the indices of its stamps (in time order).
+    """The indices of each run of ``stamps`` (seconds, any order) between gaps longer than ``min_gap``,
+    segments and indices in time order.
 
     Shape:
         stamps (N,) -> list of int64 arrays.
@@ -79,7 +60,8 @@ class DriftResult:
     """Start/end segment alignment drift.
 
     Attributes:
-        alignment_error: RMS distance between the estimate under the two alignments (m).
+        alignment_error: RMS distance between the estimate under the two alignments (m), the alignment
+            error of TUM-VI / UMA-VI.
         end_drift: RMSE over the end segment with the start alignment (m).
         rotation_drift_deg: angle between the two alignment rotations (degrees).
         path_length: length of the estimate's path after the start alignment (m).
@@ -105,7 +87,7 @@ class DriftResult:
     end_fit: ErrorStats
 
     def as_dict(self) -> dict[str, object]:
-        """Return the scalar results (:data:`DRIFT_KEYS`) plus the two fits, JSON-ready."""
+        """The scalar results (:data:`DRIFT_KEYS`) plus the two fits, JSON-ready."""
         out: dict[str, object] = {key: getattr(self, key) for key in DRIFT_KEYS}
         out["start_fit"] = self.start_fit.as_dict()
         out["end_fit"] = self.end_fit.as_dict()
@@ -126,13 +108,10 @@ def evaluate_drift(
     Args:
         ref: ground truth covering (at least) a start and an end segment.
         est: estimate covering the whole run.
-        align: ``"se3"`` or ``"sim3"`` (each segment is aligned separately).
+        align: ``"se3"`` or ``"sim3"``.
         max_diff: association tolerance in seconds.
         offset: seconds added to the estimate's stamps for the association.
         min_gap: ground-truth gap (seconds) that separates segments.
-
-    Returns:
-        The drift figures and both alignments.
 
     Raises:
         ATEError: for an alignment other than se3/sim3, ground truth without a gap longer than

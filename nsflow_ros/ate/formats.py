@@ -4,21 +4,13 @@ Formats (``fmt`` names):
 
 ``euroc``
     EuRoC / ASL ground truth ``mav0/state_groundtruth_estimate0/data.csv``: a ``#`` header line, then
-    comma-separated rows ``t_ns, px, py, pz, qw, qx, qy, qz[, vx, vy, vz, bwx, bwy, bwz, bax, bay, baz]``.
-    Only the first eight columns are used. The project's own sample sequences write their ground truth in
-    exactly this format, and a path to an ASL sequence folder (one holding ``mav0/``) is accepted wherever a
-    trajectory file is.
+    rows ``t_ns, px, py, pz, qw, qx, qy, qz[, ...]`` (the first eight columns are used). An ASL sequence
+    folder is accepted wherever a trajectory file is.
 ``tum``
     TUM RGB-D: space-separated ``t x y z qx qy qz qw`` with ``t`` in seconds, ``#`` comments allowed.
 ``vins``
     VINS-Fusion ``vio.csv`` / ``vio_loop.csv`` and VINS-Mono ``vins_result_*.csv``: no header, rows
     ``t_ns, px, py, pz, qw, qx, qy, qz[, vx, vy, vz],`` with integer nanoseconds and a trailing comma.
-
-Detection (:func:`detect_format`) looks at the first data line: space-separated with 8 fields is ``tum``;
-comma-separated is ``euroc`` when a header line with commas precedes it or it has 17 or more fields, and
-``vins`` otherwise (both share the column layout of their first eight fields, so the two readings agree).
-
-Every reading error names the file, and for malformed rows the line number and the offending text.
 """
 
 from __future__ import annotations
@@ -43,7 +35,7 @@ __all__ = [
 ]
 
 FORMATS: tuple[str, ...] = ("euroc", "tum", "vins")
-"""Names accepted for ``fmt`` (``None`` or ``"auto"`` means: detect)."""
+"""Names accepted for ``fmt`` (``None`` or ``"auto"``: detect)."""
 
 ASL_GROUND_TRUTH: tuple[str, ...] = (
     "mav0/state_groundtruth_estimate0/data.csv",
@@ -90,16 +82,8 @@ def _split(text: str) -> list[str]:
 
 
 def resolve_trajectory_path(path: str | Path) -> Path:
-    """Turn a file or a directory into the trajectory file to read.
-
-    A directory is searched for :data:`ASL_GROUND_TRUTH` (an ASL sequence folder or its ``mav0/``), then for
-    :data:`ESTIMATE_NAMES` (a run folder), then for exactly one ``vins_result_*.csv``.
-
-    Args:
-        path: a trajectory file or a folder holding one.
-
-    Returns:
-        The path of the file.
+    """The trajectory file a path names: the file itself, or in a directory the first of
+    :data:`ASL_GROUND_TRUTH`, then :data:`ESTIMATE_NAMES`, then the one ``vins_result_*.csv``.
 
     Raises:
         ATEError: when the path does not exist, or a directory holds no known trajectory file, or several
@@ -126,11 +110,7 @@ def resolve_trajectory_path(path: str | Path) -> Path:
 
 
 def _read_lines(path: Path) -> tuple[list[str], list[tuple[int, str]]]:
-    """Return (header lines, numbered data lines); blank lines are dropped.
-
-    Lines starting with ``#`` are headers; so is a first non-comment line made only of non-numbers (a
-    header written without ``#``).
-    """
+    """(header lines, numbered data lines): ``#`` lines and a first line of non-numbers are headers."""
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -167,6 +147,8 @@ def _read_lines(path: Path) -> tuple[list[str], list[tuple[int, str]]]:
 
 
 def _detect(path: Path, headers: list[str], data: list[tuple[int, str]]) -> str:
+    """The format of the first data line: 8 space-separated fields are TUM; comma-separated ones EuRoC
+    after a header with commas or with 17 or more fields, else VINS (whose first eight fields agree)."""
     if not data:
         raise ATEError(f"{path}: empty trajectory file (no data rows)", reason="empty")
     lineno, first = data[0]
@@ -194,13 +176,7 @@ def _check_format(fmt: str | None) -> str | None:
 
 
 def detect_format(path: str | Path) -> str:
-    """Detect the format of a trajectory file (or of the file a directory resolves to).
-
-    Args:
-        path: a trajectory file, an ASL sequence folder or a run folder.
-
-    Returns:
-        One of :data:`FORMATS`.
+    """The :data:`FORMATS` name of a trajectory file (or of the file a directory resolves to).
 
     Raises:
         ATEError: when the file is missing, empty, or its first data line fits no format.
@@ -272,16 +248,12 @@ def _parse(path: Path, fmt: str, data: list[tuple[int, str]], name: str) -> Traj
 
 
 def read_trajectory(path: str | Path, fmt: str | None = None, name: str | None = None) -> Trajectory:
-    """Read a trajectory file in any supported format.
+    """Read the poses of a trajectory file in file order, stamps in seconds.
 
     Args:
-        path: a trajectory file, an ASL sequence folder (its ground truth is read) or a run folder (see
-            :func:`resolve_trajectory_path`).
+        path: a trajectory file or a folder holding one (:func:`resolve_trajectory_path`).
         fmt: one of :data:`FORMATS`, or ``None`` / ``"auto"`` to detect it.
         name: label of the trajectory; default: the resolved file path.
-
-    Returns:
-        The poses in file order, stamps in seconds.
 
     Raises:
         ATEError: for a missing or empty file, an unknown format name, an undetectable format, or a
@@ -301,18 +273,10 @@ def _g(value: float) -> str:
 
 
 def write_trajectory(trajectory: Trajectory, path: str | Path, fmt: str) -> Path:
-    """Write a trajectory in one of :data:`FORMATS` (parent folders are created).
+    """Write a trajectory in one of :data:`FORMATS` (parent folders are created); returns the path.
 
-    ``euroc`` writes the full 17-column layout with velocities and biases set to zero; ``vins`` writes
-    11 columns with zero velocities and the trailing comma; stamps are rounded to whole nanoseconds in both.
-
-    Args:
-        trajectory: the poses to write.
-        path: destination file.
-        fmt: one of :data:`FORMATS`.
-
-    Returns:
-        The path written.
+    ``euroc`` writes 17 columns and ``vins`` 11 with the trailing comma, velocities and biases zero and
+    stamps rounded to whole nanoseconds.
 
     Raises:
         ATEError: for an unknown format, or when the file cannot be written.

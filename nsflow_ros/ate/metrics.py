@@ -1,14 +1,5 @@
-"""Absolute and relative pose error: per-pose errors, their statistics, and the full APE pipeline.
-
-APE (absolute trajectory error) is the distance ``||p_ref - p_est'||`` between each matched reference
-position and the aligned estimate position; its statistics are rmse, mean, median, std (population,
-ddof 0), min, max and the number of matched poses n, as evo reports them.
-
-RPE (relative pose error) compares motions over ``delta`` matched poses: for each pair (i, i + delta),
-``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` with Q the reference and P the estimate poses; its translation norm (m)
-and rotation angle (degrees) are reported. Pairs are consecutive (i = 0, delta, 2 delta, ...) or, with
-``all_pairs``, every i. Pure computation, no I/O.
-"""
+"""Absolute and relative pose error (APE, RPE): per-pose errors, their statistics as evo reports them,
+and the full APE pipeline."""
 
 from __future__ import annotations
 
@@ -45,17 +36,7 @@ MIN_MATCHES = 3
 
 @dataclass(frozen=True)
 class ErrorStats:
-    """Summary of a set of non-negative errors.
-
-    Attributes:
-        rmse: root mean square.
-        mean: arithmetic mean.
-        median: median.
-        std: population standard deviation (ddof 0).
-        min: smallest error.
-        max: largest error.
-        n: number of errors.
-    """
+    """Summary of a set of non-negative errors (``std`` is the population standard deviation)."""
 
     rmse: float
     mean: float
@@ -66,18 +47,12 @@ class ErrorStats:
     n: int
 
     def as_dict(self) -> dict[str, float | int]:
-        """Return the statistics keyed by :data:`STAT_KEYS`."""
+        """The statistics keyed by :data:`STAT_KEYS`."""
         return {key: getattr(self, key) for key in STAT_KEYS}
 
 
 def error_statistics(errors: np.ndarray) -> ErrorStats:
-    """Compute rmse, mean, median, std, min, max and n of an error vector.
-
-    Args:
-        errors: one error per pose or pose pair.
-
-    Returns:
-        The statistics.
+    """The :class:`ErrorStats` of one error per pose or pose pair.
 
     Shape:
         errors (N,), N >= 1.
@@ -114,14 +89,7 @@ def _check_pair(ref: Trajectory, est: Trajectory) -> None:
 
 
 def position_errors(ref: Trajectory, est: Trajectory) -> np.ndarray:
-    """Distance between paired positions.
-
-    Args:
-        ref: reference poses.
-        est: estimate poses, paired index by index with ``ref`` (already aligned).
-
-    Returns:
-        ``||p_ref_i - p_est_i||`` in metres.
+    """``||p_ref_i - p_est_i||`` in metres of poses paired index by index (the estimate aligned).
 
     Shape:
         (N,) for N pairs.
@@ -154,13 +122,13 @@ def _relative(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 def rpe_errors(
     ref: Trajectory, est: Trajectory, delta: int = 1, all_pairs: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Relative pose errors over ``delta`` poses.
+    """Relative pose errors ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` over j = i + ``delta`` matched poses.
 
     Args:
-        ref: reference poses.
-        est: estimate poses, paired index by index with ``ref``.
+        ref: reference poses Q.
+        est: estimate poses P, paired index by index with ``ref``.
         delta: pose-index distance of each pair (>= 1).
-        all_pairs: use every start index instead of consecutive, non-overlapping pairs.
+        all_pairs: use every start index i instead of i = 0, delta, 2 delta, ...
 
     Returns:
         (translation errors in metres, rotation errors in degrees), one per pair.
@@ -191,14 +159,7 @@ def rpe_errors(
 
 @dataclass(frozen=True)
 class RPEResult:
-    """Relative pose error statistics.
-
-    Attributes:
-        delta: pose-index distance of the pairs.
-        all_pairs: whether every start index was used.
-        translation: statistics of the translation error (m).
-        rotation_deg: statistics of the rotation error (degrees).
-    """
+    """Relative pose error statistics of the translation (m) and rotation (degrees) errors."""
 
     delta: int
     all_pairs: bool
@@ -206,7 +167,7 @@ class RPEResult:
     rotation_deg: ErrorStats
 
     def as_dict(self) -> dict[str, object]:
-        """Return JSON-ready nested dictionaries."""
+        """JSON-ready nested dictionaries."""
         return {
             "delta": self.delta,
             "all_pairs": self.all_pairs,
@@ -218,39 +179,15 @@ class RPEResult:
 def relative_pose_error(
     ref: Trajectory, est: Trajectory, delta: int = 1, all_pairs: bool = False
 ) -> RPEResult:
-    """Summarise :func:`rpe_errors`.
-
-    Args:
-        ref: reference poses.
-        est: estimate poses, paired index by index with ``ref``.
-        delta: pose-index distance of each pair.
-        all_pairs: use every start index.
-
-    Returns:
-        The translation and rotation statistics.
-
-    Raises:
-        ATEError: as :func:`rpe_errors`.
-    """
+    """The statistics of :func:`rpe_errors` (which raises)."""
     trans, rot = rpe_errors(ref, est, delta, all_pairs)
     return RPEResult(int(delta), bool(all_pairs), error_statistics(trans), error_statistics(rot))
 
 
 @dataclass(frozen=True, eq=False)
 class APEResult:
-    """Outcome of :func:`evaluate_ape`.
-
-    Attributes:
-        stats: statistics of the position error (m).
-        errors: position error of each matched pose (m).
-        alignment: the transform applied to the estimate.
-        ref: matched reference poses.
-        est: matched estimate poses after alignment.
-        rpe: relative pose error, when requested.
-
-    Shape:
-        errors (n,); ref and est hold n poses.
-    """
+    """Outcome of :func:`evaluate_ape`: the statistics and (n,) per-pose position errors (m), the
+    alignment, the n matched reference and aligned estimate poses, and the RPE when requested."""
 
     stats: ErrorStats
     errors: np.ndarray
@@ -284,9 +221,6 @@ def evaluate_ape(
         rpe_delta: also compute the relative pose error over this many matched poses (``None``: skip).
         rpe_all_pairs: use every start index for the RPE.
         min_matches: fewest matched poses accepted (at least 3).
-
-    Returns:
-        Statistics, per-pose errors, the alignment and the matched trajectories.
 
     Raises:
         ATEError: for empty trajectories, no overlapping stamps, fewer than ``min_matches`` matched poses,

@@ -1,7 +1,6 @@
 """Top-view (x-y) trajectory plot coloured by the position error, written as PNG.
 
-matplotlib is imported inside the function and drawn through its Agg canvas directly, so importing this
-module costs nothing and no global backend is switched (it works without a display).
+matplotlib is imported on use and drawn through its Agg canvas, so no global backend is switched.
 """
 
 from __future__ import annotations
@@ -17,20 +16,14 @@ __all__ = ["plot_top_view"]
 
 
 def plot_top_view(result: APEResult, path: str | Path, title: str | None = None, dpi: int = 120) -> Path:
-    """Draw the aligned estimate over the reference, seen from above, coloured by APE.
-
-    The reference is a grey line; the estimate is a line whose colour follows the position error of each
-    matched pose (colour bar in metres); start and end are marked.
+    """Draw the aligned estimate over the reference, seen from above, coloured by APE; returns the path.
 
     Args:
-        result: an :func:`~nsflow_ros.ate.evaluate_ape` result (matched, aligned poses and errors).
+        result: an :func:`~nsflow_ros.ate.evaluate_ape` result.
         path: PNG file to write (parent folders are created).
-        title: first title line; default: the last parts of the estimate's path. A second line gives
-            the RMSE, the number of poses and the alignment.
+        title: first title line (default: the last parts of the estimate's path); the second gives the
+            RMSE, the number of poses and the alignment.
         dpi: resolution.
-
-    Returns:
-        The path written.
 
     Raises:
         ATEError: when the result holds fewer than two poses or the file cannot be written.

@@ -1,8 +1,5 @@
-"""Unit quaternions (w, x, y, z) and rotation matrices, vectorised over leading axes.
-
-The scoring tools keep orientations as Hamilton quaternions with the scalar first, as the EuRoC and VINS
-files do; TUM files store the scalar last and are reordered when read or written.
-"""
+"""Unit quaternions (w, x, y, z: Hamilton, scalar first as in EuRoC and VINS files) and rotation
+matrices, vectorised over leading axes."""
 
 from __future__ import annotations
 
@@ -13,12 +10,6 @@ __all__ = ["matrix_to_quaternion", "quaternion_multiply", "quaternion_to_matrix"
 
 def quaternion_to_matrix(quaternions: np.ndarray) -> np.ndarray:
     """Convert quaternions (w, x, y, z) to rotation matrices; they are normalised first.
-
-    Args:
-        quaternions: quaternions, scalar first.
-
-    Returns:
-        The rotation matrices.
 
     Shape:
         quaternions (..., 4) -> (..., 3, 3).
@@ -47,13 +38,7 @@ def quaternion_to_matrix(quaternions: np.ndarray) -> np.ndarray:
 def matrix_to_quaternion(rotations: np.ndarray) -> np.ndarray:
     """Convert rotation matrices to unit quaternions (w, x, y, z) with w >= 0.
 
-    Uses the largest of the four diagonal combinations for numerical stability.
-
-    Args:
-        rotations: proper rotation matrices.
-
-    Returns:
-        The quaternions, scalar first, unit norm.
+    Each matrix is solved from the largest of its four diagonal combinations, for numerical stability.
 
     Shape:
         rotations (..., 3, 3) -> (..., 4).
@@ -77,6 +62,15 @@ def matrix_to_quaternion(rotations: np.ndarray) -> np.ndarray:
         ],
         axis=1,
     )
+    # 4 * (product of components j and k) for each pair j < k, from the off-diagonal entries
+    pairs = {
+        (0, 1): m[:, 2, 1] - m[:, 1, 2],
+        (0, 2): m[:, 0, 2] - m[:, 2, 0],
+        (0, 3): m[:, 1, 0] - m[:, 0, 1],
+        (1, 2): m[:, 0, 1] + m[:, 1, 0],
+        (1, 3): m[:, 0, 2] + m[:, 2, 0],
+        (2, 3): m[:, 1, 2] + m[:, 2, 1],
+    }
     best = np.argmax(cand, axis=1)
     q = np.empty((m.shape[0], 4))
     for k in range(4):
@@ -84,61 +78,16 @@ def matrix_to_quaternion(rotations: np.ndarray) -> np.ndarray:
         if not np.any(sel):
             continue
         s = np.sqrt(np.maximum(cand[sel, k], 0.0)) * 2.0  # = 4 * |component k|
-        a = m[sel]
-        if k == 0:
-            q[sel] = np.stack(
-                [
-                    s / 4.0,
-                    (a[:, 2, 1] - a[:, 1, 2]) / s,
-                    (a[:, 0, 2] - a[:, 2, 0]) / s,
-                    (a[:, 1, 0] - a[:, 0, 1]) / s,
-                ],
-                axis=1,
-            )
-        elif k == 1:
-            q[sel] = np.stack(
-                [
-                    (a[:, 2, 1] - a[:, 1, 2]) / s,
-                    s / 4.0,
-                    (a[:, 0, 1] + a[:, 1, 0]) / s,
-                    (a[:, 0, 2] + a[:, 2, 0]) / s,
-                ],
-                axis=1,
-            )
-        elif k == 2:
-            q[sel] = np.stack(
-                [
-                    (a[:, 0, 2] - a[:, 2, 0]) / s,
-                    (a[:, 0, 1] + a[:, 1, 0]) / s,
-                    s / 4.0,
-                    (a[:, 1, 2] + a[:, 2, 1]) / s,
-                ],
-                axis=1,
-            )
-        else:
-            q[sel] = np.stack(
-                [
-                    (a[:, 1, 0] - a[:, 0, 1]) / s,
-                    (a[:, 0, 2] + a[:, 2, 0]) / s,
-                    (a[:, 1, 2] + a[:, 2, 1]) / s,
-                    s / 4.0,
-                ],
-                axis=1,
-            )
+        q[sel] = np.stack(
+            [s / 4.0 if c == k else pairs[min(c, k), max(c, k)][sel] / s for c in range(4)], axis=1
+        )
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 0] < 0] *= -1.0
     return q.reshape(*lead, 4)
 
 
 def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b of quaternions (w, x, y, z), broadcast over leading axes.
-
-    Args:
-        a: left factors.
-        b: right factors.
-
-    Returns:
-        The products (rotation b first, then a).
+    """Hamilton product a * b of quaternions (w, x, y, z): rotation b first, then a.
 
     Shape:
         a (..., 4), b (..., 4) -> (..., 4) (broadcast).
@@ -161,14 +110,8 @@ def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def rotation_angle(rotations: np.ndarray) -> np.ndarray:
     """Angle in radians of rotation matrices, in [0, pi].
 
-    Computed as atan2(|sin|, cos) from the skew and the trace parts, which stays accurate near 0 and pi
-    (an arccos of the trace loses half the digits near 0).
-
-    Args:
-        rotations: rotation matrices.
-
-    Returns:
-        The angles.
+    atan2(|sin|, cos) of the skew and trace parts stays accurate near 0, where an arccos of the trace
+    loses half the digits.
 
     Shape:
         rotations (..., 3, 3) -> (...).

@@ -1,9 +1,5 @@
-"""The :class:`Trajectory` container: stamped 3-D poses as plain NumPy arrays.
-
-A trajectory is what every reader returns and every metric consumes: stamps in seconds (float64), positions
-in metres and orientations as unit quaternions (w, x, y, z). It is immutable; the operations that change
-poses (subsetting, rigid or similarity transforms) return new trajectories.
-"""
+"""The :class:`Trajectory` container: stamped 3-D poses as plain NumPy arrays, what every reader returns
+and every metric consumes."""
 
 from __future__ import annotations
 
@@ -34,20 +30,19 @@ def _check_finite(name: str, what: str, array: np.ndarray) -> None:
 
 @dataclass(frozen=True, eq=False)
 class Trajectory:
-    """Stamped poses of one estimator run or one ground truth.
+    """Stamped poses of one estimator run or one ground truth; immutable (operations return new ones).
 
     Attributes:
         stamps: time of each pose in seconds.
         positions: position of each pose in metres.
-        quaternions: orientation of each pose, unit quaternion (w, x, y, z); normalised on construction.
+        quaternions: orientation of each pose, (w, x, y, z), normalised on construction.
         name: label used in error messages and plots (usually the file it came from).
 
     Shape:
         stamps (N,), positions (N, 3), quaternions (N, 4); N may be 0.
 
     Raises:
-        ATEError: on construction, when the shapes disagree (expected vs actual is named), when a value is
-            NaN or infinite, or when a quaternion has (near) zero norm.
+        ATEError: on construction, for disagreeing shapes, a NaN or infinite value, or a zero quaternion.
     """
 
     stamps: np.ndarray
@@ -92,63 +87,34 @@ class Trajectory:
         return float(np.max(self.stamps) - np.min(self.stamps))
 
     def path_length(self) -> float:
-        """Length of the polyline through the positions, in metres.
-
-        Returns:
-            The sum of the distances between consecutive positions (0 for fewer than two poses).
-        """
+        """Length of the polyline through the positions, in metres (0 for fewer than two poses)."""
         if len(self) < 2:
             return 0.0
         return float(np.sum(np.linalg.norm(np.diff(self.positions, axis=0), axis=1)))
 
     def take(self, indices: np.ndarray | list[int]) -> Trajectory:
-        """Return the poses at the given indices, in that order (repeats allowed).
-
-        Args:
-            indices: integer indices into this trajectory.
-
-        Returns:
-            A new trajectory with the same name.
-
-        Shape:
-            indices (M,) -> trajectory of M poses.
-        """
+        """The poses at the given (M,) indices, in that order (repeats allowed), under the same name."""
         idx = np.asarray(indices, dtype=np.int64)
         return Trajectory(self.stamps[idx], self.positions[idx], self.quaternions[idx], self.name)
 
     def sorted_by_time(self) -> Trajectory:
-        """Return the poses ordered by stamp (stable, so equal stamps keep their file order)."""
+        """The poses ordered by stamp (equal stamps keep their file order)."""
         return self.take(np.argsort(self.stamps, kind="stable"))
 
     def renamed(self, name: str) -> Trajectory:
-        """Return the same poses under another name."""
+        """The same poses under another name."""
         return Trajectory(self.stamps, self.positions, self.quaternions, name)
 
     def shifted(self, offset: float) -> Trajectory:
-        """Return the trajectory with ``offset`` seconds added to every stamp."""
+        """The trajectory with ``offset`` seconds added to every stamp."""
         return Trajectory(self.stamps + float(offset), self.positions, self.quaternions, self.name)
 
     def rotation_matrices(self) -> np.ndarray:
-        """Orientations as rotation matrices.
-
-        Returns:
-            The body-to-world rotations.
-
-        Shape:
-            (N, 3, 3).
-        """
+        """Orientations as (N, 3, 3) body-to-world rotation matrices."""
         return quaternion_to_matrix(self.quaternions)
 
     def transformed(self, rotation: np.ndarray, translation: np.ndarray, scale: float = 1.0) -> Trajectory:
-        """Apply the similarity p' = scale * R p + t to the positions and R to the orientations.
-
-        Args:
-            rotation: proper rotation matrix R.
-            translation: translation t in metres.
-            scale: positive scale factor.
-
-        Returns:
-            The transformed trajectory (same stamps and name).
+        """The similarity p' = scale * R p + t applied to the positions and R to the orientations.
 
         Shape:
             rotation (3, 3), translation (3,).

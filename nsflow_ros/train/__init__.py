@@ -1,29 +1,9 @@
 """nsflow_ros.train: training the NSFlow encoder through a differentiable LK layer, or by distillation.
 
-This is the only part of the project that imports torch (``pip install 'nsflow_ros[train]'``); the core
-and the ROS nodes never do. Modules, one concept each:
-
-* :mod:`~nsflow_ros.train.ops` - Scharr derivative maps, exact bilinear window sampling and the
-  descriptor pyramid (``cv2.pyrDown`` twin) in torch;
-* :mod:`~nsflow_ros.train.lk_layer` - the LM Lucas-Kanade layer with implicit or unrolled backward, at one
-  level or coarse to fine through the pyramid;
-* :mod:`~nsflow_ros.train.model` - the encoder CNN;
-* :mod:`~nsflow_ros.train.data` - homography pairs of real photos with exact flow and illumination changes;
-* :mod:`~nsflow_ros.train.scenes` - stereo and temporal pairs rendered from the sample scenes, exact flow;
-* :mod:`~nsflow_ros.train.sources` - every data source (photos, scenes, TartanAir, the user's footage)
-  behind one interface, mixed by weight, as an indexed pair stream;
-* :mod:`~nsflow_ros.train.device` - the device and the LK layer's map dtype;
-* :mod:`~nsflow_ros.train.distributed` - data-parallel training under ``torchrun``;
-* :mod:`~nsflow_ros.train.runlog` - step log (CSV, TensorBoard), progress and the run record;
-* :mod:`~nsflow_ros.train.recipes` - presets (``--recipe paper``);
-* :mod:`~nsflow_ros.train.footage_eval` - models side by side on held-out frames of the user's footage;
-* :mod:`~nsflow_ros.train.loss` - the robust endpoint-error loss;
-* :mod:`~nsflow_ros.train.distill` - distillation of a narrower encoder from a trained one's maps;
-* :mod:`~nsflow_ros.train.trainer` - the training loop; :mod:`~nsflow_ros.train.cli` - ``nsflow-train``;
-* :mod:`~nsflow_ros.train.export` - ONNX export; :mod:`~nsflow_ros.train.evaluate` - NSFlow vs classical;
-* :mod:`~nsflow_ros.train.figures` - loss / validation PNGs; :mod:`~nsflow_ros.train.card` - the model card.
-
-Without torch, importing this package raises :class:`TrainError` naming the install command.
+The only part of the project that imports torch (``pip install 'nsflow_ros[train]'``); without torch,
+importing it raises :class:`TrainError` naming the install command. ``nsflow-train`` is
+:mod:`~nsflow_ros.train.cli`, the loop :mod:`~nsflow_ros.train.trainer`, the layer
+:mod:`~nsflow_ros.train.lk_layer` and the data :mod:`~nsflow_ros.train.sources`.
 """
 
 from __future__ import annotations

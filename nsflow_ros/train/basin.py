@@ -1,14 +1,9 @@
 """The basin loss: where the solver's first step lands when it starts away from the answer.
 
-The implicit backward of the LK layer (:mod:`~nsflow_ros.train.lk_layer`) differentiates the flow the
-solver converged to: it moves that minimum, but it cannot see whether the solver would have reached it
-from farther away, i.e. how wide the basin of convergence is. This loss looks at the basin directly:
-for every point and pyramid level, start at the ground truth plus a random offset (length uniform in
-[0, radius] level pixels, random direction), take one step of Algorithm 1 exactly as the solver's first
-iteration does (J and f at the start, (J^T J + lambda^(0) I) du = -J^T f with the solver's lambda^(0)),
-and penalise the distance from where the step lands to the ground truth with the robust loss. It is
-differentiable end to end (one window sample per point and level, autograd through the sampling and the
-2x2 solve), and a small landing error from far starts is what a wide basin and few iterations mean.
+The implicit backward of the LK layer moves the minimum the solver converged to but cannot see how wide
+its basin is; this loss looks at the basin directly: for every point and pyramid level, start at the
+ground truth plus a random offset (length uniform in [0, radius] level pixels), take the solver's first
+LM step, and penalise the robust distance from where it lands to the ground truth.
 """
 
 from __future__ import annotations
@@ -17,6 +12,7 @@ import torch
 
 from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import LMConfig
+from nsflow_ros.train.data import inside
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.lk_layer import residual_and_jacobian, stack_level, template_windows
 from nsflow_ros.train.loss import flow_loss
@@ -35,10 +31,10 @@ def first_step(
         desc2: frame-2 map of the same level.
         points: keypoints in that level's pixels.
         start: starting flows in that level's pixels (no gradient).
-        config: window, Jacobian and lambda^(0) rule (``lambda_init``, ``lambda_scale``).
+        config: window, Jacobian and lambda^(0) rule.
 
     Returns:
-        du, the step, in the maps' dtype promoted to float64.
+        the step du, float64.
 
     Shape:
         desc1, desc2: (C, H, W). points, start: (N, 2). Returns (N, 2).
@@ -78,13 +74,12 @@ def basin_loss(
         desc2: frame-2 full-resolution map.
         points: keypoints, level-0 pixels.
         flow_gt: ground-truth flow, level-0 pixels.
-        config: ``levels`` (as the solver builds them), windows (``at_level``), Jacobian and lambda^(0)
-            rule.
+        config: levels, windows, Jacobian and lambda^(0) rule of the solver.
         radius: largest start offset in each level's own pixels.
         delta: robust scale, in each level's pixels.
-        rho: robust penalty (see :func:`~nsflow_ros.train.loss.flow_loss`).
+        rho: robust penalty (:func:`~nsflow_ros.train.loss.flow_loss`).
         generator: torch random generator of the offsets (None = the global one).
-        smoothing: the pyramid's Gaussian smoothing (:func:`~nsflow_ros.train.ops.pyramid`); None = none.
+        smoothing: the pyramid's Gaussian smoothing; None = none.
 
     Returns:
         the loss (a scalar with a graph; 0 when no point is usable).
@@ -111,12 +106,7 @@ def basin_loss(
         length = torch.rand(n, generator=generator, dtype=torch.float64, device=pts.device) * radius
         start = gt_l + length[:, None] * torch.stack([torch.cos(ang), torch.sin(ang)], 1)
         h, w = m1.shape[1:]
-        target = p_l + gt_l
-        valid = (
-            (p_l[:, 0] >= r) & (p_l[:, 0] <= w - 1 - r) & (p_l[:, 1] >= r) & (p_l[:, 1] <= h - 1 - r)
-            & (target[:, 0] >= r) & (target[:, 0] <= w - 1 - r)
-            & (target[:, 1] >= r) & (target[:, 1] <= h - 1 - r)
-        )  # fmt: skip
+        valid = inside(p_l, w, h, r) & inside(p_l + gt_l, w, h, r)
         if not bool(valid.any()):
             continue
         du = first_step(m1, m2, p_l[valid], start[valid], lcfg)

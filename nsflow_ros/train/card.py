@@ -163,17 +163,7 @@ ALL points: a point the solver reports lost counts as a failure (infinite error)
 
 def _source_text(source: dict[str, object]) -> str:
     """One training data source in words, with its share."""
-    kind = source.get("kind")
+    from nsflow_ros.train.sources import SOURCES
+
     share = f"{float(source.get('share', 1.0)):.0%}"  # type: ignore[arg-type]
-    if kind == "tartanair":
-        envs = ", ".join(str(e) for e in source.get("environments", []))  # type: ignore[attr-defined]
-        return f"{share}: TartanAir `{source.get('path')}`, environments {envs} ({source.get('pairs')} pairs)"
-    if kind == "footage":
-        return (
-            f"{share}: footage `{source.get('path')}`, {source.get('frames')} frames as random homography "
-            f"pairs ({source.get('heldout_frames')} later frames held out)"
-        )
-    if kind == "scenes":
-        seeds = source.get("sequence_seeds")
-        return f"{share}: crops of rendered sample-scene pairs (sequence seeds {seeds})"
-    return f"{share}: homography pairs of the bundled photos"
+    return f"{share}: {SOURCES[str(source['kind'])].words(source)}"

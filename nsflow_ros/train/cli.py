@@ -289,12 +289,12 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     from nsflow_ros.train.footage_eval import evaluate_footage, format_footage_table, plot_footage
     from nsflow_ros.train.lk_layer import BackwardMode
     from nsflow_ros.train.model import EncoderSpec, count_flops, count_parameters
-    from nsflow_ros.train.recipes import PAPER_OPEN
-    from nsflow_ros.train.sources import FootageSource, parse_data_spec
+    from nsflow_ros.train.recipes import PAPER_DATA, PAPER_OPEN
+    from nsflow_ros.train.sources import parse_data_spec
     from nsflow_ros.train.trainer import TrainConfig, make_data, train
 
     data = tuple(parse_data_spec(s) for s in opts.data or ())
-    if opts.recipe == "paper" and not any(d.kind == "tartanair" for d in data):
+    if opts.recipe == "paper" and PAPER_DATA not in {d.kind for d in data}:
         raise TrainError("--recipe paper trains on TartanAir: give --data tartanair:DIR")
     if opts.window < 3 or opts.window % 2 == 0:
         raise TrainError(f"--window must be odd and >= 3, got {opts.window}")
@@ -392,15 +392,15 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         curves, "held-out pairs, NumPy solver (3 levels), 5 px start", out / "eval_heldout.png"
     )
     for name, src in train_data.validation.items():
-        if isinstance(src, FootageSource):
-            # the held-out end of the user's footage: this run beside the shipped model
+        frames = src.evaluation_frames()
+        if frames:  # this run beside the shipped model
             rows = evaluate_footage(
-                {"this run": encoder, "shipped": load_encoder()}, src.frames, opts.footage_eval_per_frame
+                {"this run": encoder, "shipped": load_encoder()}, frames, opts.footage_eval_per_frame
             )
             footage_table = format_footage_table(rows)
             (out / f"eval_{name}.md").write_text(footage_table + "\n")
             plot_footage(rows, out / f"eval_{name}.png")
-            print(f"held-out frames of {src.path}:\n{footage_table}")
+            print(f"held-out frames of {src.describe()['path']}:\n{footage_table}")
     files = {"loss": result.files["loss_png"], "val": result.files["val_png"], "eval": eval_png}
     if opts.install:
         models = Path(opts.models_dir)

@@ -1,25 +1,16 @@
 """Training and validation pairs with exact ground-truth flow, made from real photos (nothing downloaded).
 
-A pair is two views of one photo (scikit-image's and matplotlib's bundled images): frame 1 is a random
-similarity crop of the photo, frame 2 the same crop seen through a random homography P of frame-1 pixel
-coordinates (corner jitter plus translation), both rendered with ``cv2.warpPerspective`` from the
-full-resolution photo. A frame-1 point x moves to P(x), so the ground-truth flow is exact.
-
-Illumination perturbation (the paper's absolute and relative intensity changes driven by random
-variables, plus local shading, gamma and sensor noise) is applied to each frame independently, so the
-brightness-constancy assumption of classical LK is broken between the two frames. The project's shared
-``nsflow_ros.data.perturb.perturb_pair`` is used (the shipped model was trained and evaluated with it);
-:func:`perturb_illumination` here is a stand-alone alternative for single frames (pairs do not use it).
-
-Source images are split once and for all (in the torch-free :mod:`nsflow_ros.data.photos`, shared with
-the evaluation suite): :data:`TRAIN_IMAGES` for training, :data:`HELDOUT_IMAGES` (coffee, chelsea,
-grace_hopper: scenes that appear in no training image) for validation and for the NSFlow-vs-classical
-evaluation.
+A pair is two views of one bundled photo: frame 1 a random similarity crop, frame 2 the same crop seen
+through a random homography P of frame-1 pixels, so a frame-1 point x moves exactly to P(x). Each frame
+gets its own illumination change (``nsflow_ros.data.perturb.perturb_pair``), which breaks the brightness
+constancy classical LK assumes. The photos are split once (:mod:`nsflow_ros.data.photos`):
+:data:`TRAIN_IMAGES` for training, :data:`HELDOUT_IMAGES` for validation and evaluation.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -37,10 +28,10 @@ __all__ = [
     "Pair",
     "PairConfig",
     "initial_flow",
+    "inside",
     "load_image",
     "make_pair",
     "perturb_frames",
-    "perturb_illumination",
     "render_views",
 ]
 
@@ -48,14 +39,24 @@ __all__ = [
 INIT_MODES = ("normal", "uniform", "zero")
 
 
+def inside(points: Any, width: int, height: int, radius: int) -> Any:
+    """Which points keep a window of ``radius`` inside a ``width`` x ``height`` image (NumPy or torch).
+
+    Shape:
+        points: (N, 2). Returns (N,) bool.
+    """
+    x, y = points[:, 0], points[:, 1]
+    return (x >= radius) & (x <= width - 1 - radius) & (y >= radius) & (y <= height - 1 - radius)
+
+
 def load_image(name: str) -> np.ndarray:
-    """Load a bundled photo as an (H, W) uint8 gray image (:func:`nsflow_ros.data.photos.load_photo`).
+    """A bundled photo as an (H, W) uint8 gray image, cached: do not modify it in place.
 
     Args:
         name: a scikit-image data file stem (e.g. "astronaut") or "grace_hopper" (matplotlib).
 
-    Returns:
-        the gray image (cached: do not modify it in place).
+    Raises:
+        TrainError: an unknown photo.
     """
     try:
         return load_photo(name)
@@ -75,11 +76,8 @@ class PairConfig:
         min_distance: GFTT minimum distance between corners.
         window: solver window; points whose window (in frame 1 or at the GT target) leaves the image drop.
         init_sigma: size of the initial error in pixels (its meaning depends on ``init_mode``).
-        init_mode: how training pairs' initial flow is made: "normal" = GT + N(0, init_sigma^2) per axis
-            (the shipped model's); "uniform" = GT + an error whose length is uniform in [0, init_sigma]
-            in a random direction (each point is solved on its own, so this is zero flow on
-            displacements up to init_sigma, spread evenly over that range); "zero" = zero flow (the
-            displacement is the homography's: set ``translation`` for the range).
+        init_mode: training pairs' initial flow: "normal" = GT + N(0, init_sigma^2) per axis; "uniform" =
+            GT + an error of length uniform in [0, init_sigma] in a random direction; "zero" = zero flow.
     """
 
     width: int = 320
@@ -107,8 +105,8 @@ class Pair:
         image1, image2: (H, W) uint8 frames (after perturbation).
         points: (N, 2) float64 GFTT corners of frame 1.
         flow_gt: (N, 2) float64 exact flow.
-        flow0: (N, 2) float64 initial flow (GT + noise).
-        homography: (3, 3) P mapping frame-1 pixels to frame-2 pixels.
+        flow0: (N, 2) float64 initial flow.
+        homography: (3, 3) P mapping frame-1 pixels to frame-2 pixels (NaN when the motion is not one).
     """
 
     image1: np.ndarray
@@ -122,16 +120,7 @@ class Pair:
 def render_views(
     src: np.ndarray, rng: np.random.Generator, cfg: PairConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render an unperturbed pair of views of a photo.
-
-    Args:
-        src: (H, W) uint8 photo.
-        rng: random generator.
-        cfg: frame size and motion ranges.
-
-    Returns:
-        (frame1, frame2, P): uint8 (height, width) frames and the 3x3 homography x1 -> x2.
-    """
+    """An unperturbed pair of views of an (H, W) uint8 photo: (frame1, frame2, homography x1 -> x2)."""
     w, h = cfg.width, cfg.height
     sh, sw = src.shape[:2]
     fit = min(sw / w, sh / h)  # source pixels per frame pixel at which the frame just fits
@@ -157,51 +146,11 @@ def render_views(
     return f1, f2, p
 
 
-def perturb_illumination(image: np.ndarray, rng: np.random.Generator, strength: float) -> np.ndarray:
-    """Change the illumination of one frame.
-
-    Relative change (gain a), absolute change (offset b), a smooth local shading field (a linear ramp
-    plus a Gaussian light spot), a gamma curve and Gaussian sensor noise, all drawn at random with
-    ranges scaled by ``strength`` (0 = unchanged, 1 = strong).
-
-    Args:
-        image: (H, W) uint8 frame.
-        rng: random generator.
-        strength: perturbation strength in [0, 1+].
-
-    Returns:
-        the perturbed (H, W) uint8 frame.
-    """
-    if strength <= 0:
-        return image.copy()
-    h, w = image.shape
-    x = image.astype(np.float32) / 255.0
-    gain = rng.uniform(1.0 - 0.5 * strength, 1.0 + 0.5 * strength)
-    offset = rng.uniform(-0.15, 0.15) * strength
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    xx, yy = xx / w - 0.5, yy / h - 0.5
-    ramp = rng.normal(0, 1, 2) * 0.35 * strength
-    spot_c = rng.uniform(-0.5, 0.5, 2)
-    spot_r = rng.uniform(0.15, 0.5)
-    spot = (
-        rng.uniform(-0.5, 0.5)
-        * strength
-        * np.exp(-((xx - spot_c[0]) ** 2 + (yy - spot_c[1]) ** 2) / spot_r**2)
-    )
-    shading = np.clip(1.0 + ramp[0] * xx + ramp[1] * yy + spot, 0.2, 3.0)
-    x = np.clip((gain * x + offset) * shading, 0.0, 1.0)
-    gamma = float(np.exp(rng.uniform(-0.5, 0.5) * strength))
-    x = x**gamma
-    noise = rng.uniform(0.0, 4.0 / 255.0) * strength
-    x = x + rng.normal(0.0, 1.0, x.shape).astype(np.float32) * noise
-    return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
-
-
 def perturb_frames(
     img1: np.ndarray, img2: np.ndarray, rng: np.random.Generator, strength: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Perturb both frames independently with ``nsflow_ros.data.perturb.perturb_pair`` (the project's shared
-    training perturbation), strength clipped to [0, 1]."""
+    """Both frames perturbed independently (``nsflow_ros.data.perturb.perturb_pair``), strength clipped to
+    [0, 1]."""
     strength = float(np.clip(strength, 0.0, 1.0))
     return perturb_pair(img1, img2, rng, strength)
 
@@ -214,12 +163,9 @@ def initial_flow(
     Args:
         gt: (N, 2) ground-truth flow.
         rng: random generator.
-        cfg: ``init_mode`` and ``init_sigma`` (see :class:`PairConfig`).
+        cfg: ``init_mode`` and ``init_sigma``.
         init_error: when given, GT plus an error of exactly this length in a random direction
             (evaluation), whatever ``cfg`` says.
-
-    Returns:
-        (N, 2) float64 initial flow.
     """
     if init_error is None and cfg.init_mode == "normal":
         return gt + rng.normal(0.0, cfg.init_sigma, gt.shape)
@@ -244,11 +190,13 @@ def make_pair(
         rng: random generator (geometry, perturbation, points' initial error).
         cfg: pair settings; ``PairConfig()`` when None.
         strength: illumination perturbation strength (0 = none).
-        init_error: when given, the initial flow is GT plus an error of exactly this length in a random
-            direction (evaluation); otherwise as ``cfg.init_mode`` says (training).
+        init_error: as in :func:`initial_flow`.
 
     Returns:
         the :class:`Pair` (possibly with zero points).
+
+    Raises:
+        TrainError: ``src`` is not an (H, W) uint8 image.
     """
     cfg = cfg or PairConfig()
     if src.ndim != 2 or src.dtype != np.uint8:
@@ -257,14 +205,8 @@ def make_pair(
     f1, f2 = perturb_frames(f1, f2, rng, strength)
     pts = detect_corners(f1, cfg.max_points, min_distance=cfg.min_distance)
     target = cv2.perspectiveTransform(pts[None], p)[0] if len(pts) else pts.copy()
-    r = cfg.window // 2
-
-    def inside(q: np.ndarray) -> np.ndarray:
-        return (
-            (q[:, 0] >= r) & (q[:, 0] <= cfg.width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= cfg.height - 1 - r)
-        )
-
-    keep = inside(pts) & inside(target)
+    frame = (cfg.width, cfg.height, cfg.window // 2)
+    keep = inside(pts, *frame) & inside(target, *frame)
     pts, target = pts[keep], target[keep]
     gt = target - pts
     return Pair(f1, f2, pts, gt, initial_flow(gt, rng, cfg, init_error), p)

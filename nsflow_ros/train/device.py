@@ -1,10 +1,7 @@
 """Where training runs: the torch device and the dtype of the descriptor maps in the LK layer.
 
-The encoder always runs in float32. The LK layer samples the maps in their own dtype and keeps only the
-per-point LM state (flow, damping, 2x2 normal equations) in float64, a few numbers per keypoint; so
-``float32`` maps (the default, and what a GPU should use: consumer GPUs run float64 at a small fraction
-of their float32 rate) put all the heavy work in float32, and ``float64`` maps are the CPU reference the
-finite-difference gradient tests use.
+The LK layer keeps only its per-point LM state in float64, so ``float32`` maps put all the heavy work in
+float32 (what a GPU should use); ``float64`` maps are the CPU reference of the gradient tests.
 """
 
 from __future__ import annotations
@@ -21,12 +18,12 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 def resolve_device(text: str, local_rank: int | None = None) -> torch.device:
-    """``auto``, ``cpu``, ``cuda`` or ``cuda:K`` -> a device that exists here.
+    """``auto`` (the GPU when torch sees one), ``cpu``, ``cuda`` or ``cuda:K`` -> a device that exists here.
 
     Args:
-        text: the ``--device`` value; ``auto`` is the GPU when torch sees one, else the CPU.
-        local_rank: this process's rank on its machine in a distributed run (``LOCAL_RANK``): with
-            ``auto`` or ``cuda`` each process then takes GPU ``local_rank``.
+        text: the ``--device`` value.
+        local_rank: this process's rank on its machine (default ``LOCAL_RANK``): ``auto`` and ``cuda``
+            then take GPU ``local_rank``.
 
     Raises:
         TrainError: an unknown value, or a GPU asked for that torch does not see.
@@ -53,11 +50,7 @@ def resolve_device(text: str, local_rank: int | None = None) -> torch.device:
 
 
 def resolve_dtype(text: str) -> torch.dtype:
-    """``float32`` or ``float64`` -> the torch dtype of the maps in the LK layer.
-
-    Raises:
-        TrainError: another value.
-    """
+    """``float32`` or ``float64`` -> the torch dtype; TrainError for another value."""
     if text not in DTYPES:
         raise TrainError(f"dtype must be one of {tuple(DTYPES)}, got {text!r}")
     return DTYPES[text]

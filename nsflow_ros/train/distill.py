@@ -1,16 +1,9 @@
-"""Distillation: train a smaller encoder to reproduce a trained encoder's descriptor maps.
+"""Distillation: train a narrower (cheaper) encoder to reproduce a trained encoder's descriptor maps.
 
-The encoder's cost at deployment is its width (see :mod:`nsflow_ros.train.model`); what the LK layer
-taught a wide encoder, a narrower one can learn by regression on the wide one's output, which needs no
-solver in the loop and so takes minutes instead of the hours of end-to-end training. The loss matches
-what the solver reads from a descriptor map: its values (the residual f) and its x / y differences (the
-Jacobian J), both as mean squared differences over the whole image:
-
-    L = mean (S - T)^2 + mean (dx S - dx T)^2 + mean (dy S - dy T)^2
-
-with S the student's and T the teacher's (d, H, W) maps and dx, dy forward differences. The teacher runs
-through the deployed onnxruntime path (:class:`~nsflow_ros.core.encoder.OnnxEncoder`), so the student
-learns exactly the maps the tracker uses today.
+Regression on the teacher's maps needs no solver in the loop, so it takes minutes instead of the hours of
+end-to-end training. The loss matches what the solver reads from a map, its values (the residual) and
+its x / y differences (the Jacobian); the teacher runs through the deployed onnxruntime path, so the
+student learns exactly the maps the tracker uses.
 """
 
 from __future__ import annotations
@@ -22,11 +15,9 @@ import torch
 
 from nsflow_ros.core.encoder import OnnxEncoder
 from nsflow_ros.core.errors import CoreError
-from nsflow_ros.train.data import Pair
 from nsflow_ros.train.errors import TrainError
-from nsflow_ros.train.model import Encoder
 
-__all__ = ["Teacher", "distill_loss", "distill_step"]
+__all__ = ["Teacher", "distill_loss"]
 
 
 class Teacher:
@@ -58,14 +49,7 @@ class Teacher:
 
 
 def distill_loss(student: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
-    """Mean squared difference of two descriptor maps, of their x and of their y differences.
-
-    Args:
-        student: the student's maps.
-        teacher: the teacher's maps (no gradient needed).
-
-    Returns:
-        the scalar loss.
+    """mean (S - T)^2 + mean (dx S - dx T)^2 + mean (dy S - dy T)^2 of student S and teacher T maps.
 
     Shape:
         student, teacher: (B, d, H, W) with H, W >= 2.
@@ -80,16 +64,3 @@ def distill_loss(student: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
     dy = diff[..., 1:, :] - diff[..., :-1, :]
     return (diff * diff).mean() + (dx * dx).mean() + (dy * dy).mean()
 
-
-def distill_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, teacher: Teacher) -> float:
-    """One optimisation step on both frames of a pair; returns the loss."""
-    frames = (pair.image1, pair.image2)
-    x = torch.from_numpy(np.stack(frames).astype(np.float32) / 255.0)[:, None]
-    if model.spec.in_channels == 3:
-        x = x.expand(-1, 3, -1, -1).contiguous()
-    target = torch.stack([teacher(f) for f in frames])
-    loss = distill_loss(model(x), target)
-    opt.zero_grad()
-    loss.backward()
-    opt.step()
-    return float(loss.item())

@@ -1,12 +1,8 @@
 """Data-parallel training over processes with ``torch.distributed`` (started by ``torchrun``).
 
-``torchrun --nproc_per_node N -m nsflow_ros.train ...`` (multi-node: add ``--nnodes``, ``--node_rank``,
-``--rdzv_endpoint``) sets ``WORLD_SIZE``, ``RANK`` and ``LOCAL_RANK``; :func:`init_distributed` joins the
-process group (``nccl`` on GPUs, ``gloo`` on CPUs). Step ``s`` of a run with global batch ``B x N``
-takes pairs ``s B N .. (s + 1) B N - 1`` of the indexed stream and rank ``r`` takes its own ``B`` of
-them (:func:`shard`), so N processes with batch B see exactly the pairs one process with batch ``B N``
-sees; DistributedDataParallel averages the gradients, which makes the step the same as well. Rank 0
-alone writes checkpoints, logs, figures, the ONNX model and the card.
+Step ``s`` with global batch ``B N`` takes pairs ``s B N .. (s + 1) B N - 1`` of the indexed stream, rank
+``r`` its own ``B`` of them (:func:`shard`), so N processes with batch B see the pairs (and, with
+DistributedDataParallel's averaged gradients, take the step) of one process with batch ``B N``.
 """
 
 from __future__ import annotations
@@ -40,22 +36,22 @@ def init_distributed(device: torch.device, backend: str | None = None) -> World:
     """Join the process group ``torchrun`` describes (or the one already joined); one process otherwise.
 
     Args:
-        device: this process's device (picks the default backend: nccl for CUDA, gloo for the CPU).
-        backend: ``gloo`` or ``nccl`` to override.
+        device: this process's device (nccl for CUDA, gloo for the CPU unless ``backend`` says).
+        backend: ``gloo`` or ``nccl``.
 
     Raises:
         TrainError: the environment names a world but torch.distributed is unavailable.
     """
     if dist.is_available() and dist.is_initialized():
-        comm = device if dist.get_backend() == "nccl" else torch.device("cpu")
-        return World(dist.get_world_size(), dist.get_rank(), comm)
-    size = int(os.environ.get("WORLD_SIZE", "1"))
-    if size <= 1:
-        return World()
-    if not dist.is_available():
-        raise TrainError(f"WORLD_SIZE={size} but this torch build has no torch.distributed")
-    backend = backend or ("nccl" if device.type == "cuda" else "gloo")
-    dist.init_process_group(backend)
+        backend = dist.get_backend()
+    else:
+        size = int(os.environ.get("WORLD_SIZE", "1"))
+        if size <= 1:
+            return World()
+        if not dist.is_available():
+            raise TrainError(f"WORLD_SIZE={size} but this torch build has no torch.distributed")
+        backend = backend or ("nccl" if device.type == "cuda" else "gloo")
+        dist.init_process_group(backend)
     comm = device if backend == "nccl" else torch.device("cpu")
     return World(dist.get_world_size(), dist.get_rank(), comm)
 

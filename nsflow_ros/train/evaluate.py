@@ -1,14 +1,8 @@
 """NSFlow vs classical on held-out pairs, with the project's NumPy solver (what runs on the robot).
 
-Both modes run ``nsflow_ros.track`` on the same pairs, points and initial flows; they differ only in
-the descriptor maps: the ONNX encoder through onnxruntime (NSFlow) or ``IntensityEncoder`` (classical).
-Pairs come from :data:`~nsflow_ros.train.data.HELDOUT_IMAGES` only, with a fixed seed, and start from
-an initial error of exactly ``init_error`` pixels in a random direction.
-
-Metrics are over ALL points of all pairs, a point that the solver reports as lost (status False or
-non-finite flow) counting as an infinite error, so a mode cannot look better by dropping hard points:
-``median_epe`` (px), ``within_1px`` (share with error < 1 px), ``within_3px``, ``tracked`` (share with
-status True) and ``median_epe_tracked`` (median over tracked points only).
+Both modes solve the same pairs, points and initial flows and differ only in the descriptor maps (the
+ONNX encoder, or intensities). Metrics are over ALL points, a lost point counting as an infinite error,
+so a mode cannot look better by dropping hard points.
 """
 
 from __future__ import annotations
@@ -27,7 +21,8 @@ __all__ = ["Comparison", "ModeMetrics", "compare", "format_table", "heldout_pair
 
 @dataclass(frozen=True)
 class ModeMetrics:
-    """Accuracy of one mode on a pair set (see the module docstring)."""
+    """Accuracy of one mode on a pair set: median error (px), shares within 1 and 3 px, share tracked,
+    median error of the tracked points, point count."""
 
     median_epe: float
     within_1px: float
@@ -52,17 +47,8 @@ class Comparison:
 def heldout_pairs(
     per_image: int = 20, strength: float = 1.0, init_error: float = 5.0, seed: int = 20240601
 ) -> list[Pair]:
-    """The fixed held-out evaluation pairs (same geometry for every strength; only lighting differs).
-
-    Args:
-        per_image: pairs per held-out photo.
-        strength: illumination perturbation strength (0 = none).
-        init_error: initial flow error in pixels.
-        seed: base seed.
-
-    Returns:
-        ``per_image * len(HELDOUT_IMAGES)`` pairs.
-    """
+    """``per_image`` fixed pairs of each held-out photo, starting exactly ``init_error`` px off (same
+    geometry at every ``strength``: only the lighting differs)."""
     pairs = []
     for k, name in enumerate(HELDOUT_IMAGES):
         src = load_image(name)
@@ -112,12 +98,9 @@ def compare(
     Args:
         encoder: the learned encoder, e.g. ``nsflow_ros.load_encoder(path)``.
         pairs: evaluation pairs, e.g. :func:`heldout_pairs`.
-        config: solver settings of both methods; None = what the tracker deploys (the registry's
-            ``nsflow`` and ``classical``), ``PAPER_LM`` = Algorithm 1 as written.
+        config: solver settings of both methods; None = the registry's deployed ``nsflow`` and
+            ``classical``.
         label: name of the pair set for tables.
-
-    Returns:
-        the :class:`Comparison`.
     """
     specs = {name: METHODS[name] if config is None else replace(METHODS[name], lm=config)
              for name in ("nsflow", "classical")}

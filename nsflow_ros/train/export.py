@@ -1,8 +1,7 @@
 """ONNX export of the encoder, in the contract ``nsflow_ros.load_encoder`` checks.
 
-Input "image" (1, c_in, H, W) float32 in [0, 1]; output "descriptors" (1, d, H, W) float32; H and W
-dynamic; opset 17; metadata_props name="nsflow-d{d}" plus the encoder spec. The encoder has no
-BatchNorm, so there is nothing to fold.
+Input "image" (1, c_in, H, W) float32 in [0, 1], output "descriptors" (1, d, H, W) float32, H and W
+dynamic, opset 17, metadata_props name="nsflow-d{d}" plus the encoder spec.
 """
 
 from __future__ import annotations
@@ -23,15 +22,15 @@ OPSET = 17
 
 
 def export_onnx(model: Encoder, path: str | os.PathLike[str], metadata: dict[str, str] | None = None) -> Path:
-    """Export an encoder to ONNX.
+    """Export an encoder to ONNX (parent folders are created); returns the path written.
 
     Args:
-        model: the encoder (its spec gives c_in, d and the name).
-        path: the .onnx file to write (parent folders are created).
+        model: the encoder.
+        path: the .onnx file to write.
         metadata: extra metadata_props (string values), e.g. the training command.
 
-    Returns:
-        the path written.
+    Raises:
+        TrainError: a metadata value that is not a string.
     """
     import onnx
 

@@ -50,13 +50,9 @@ def plot_loss(
 def plot_validation(
     results: dict[str, tuple[np.ndarray, np.ndarray | None]], title: str, path: str | os.PathLike[str]
 ) -> Path:
-    """Cumulative share of points within an error, per mode and pair set.
+    """Cumulative share of points within an error per label -> (errors, inf where lost; statuses or None).
 
-    Args:
-        results: label -> (errors with inf for lost points, statuses or None); labels containing
-            "NSFlow" are drawn solid, others dashed, in pairs of colours.
-        title: figure title.
-        path: PNG to write.
+    Labels containing "NSFlow" are drawn solid, others dashed, in pairs of colours.
     """
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.6, 3.4), dpi=90)

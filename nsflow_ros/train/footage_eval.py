@@ -1,10 +1,7 @@
 """Does fine-tuning help on the user's footage? Models side by side on its held-out frames.
 
-The held-out frames of a :class:`~nsflow_ros.train.sources.FootageSource` (the end of the footage, never
-trained on) become fixed homography pairs with exact flow, once with the training's lighting change and
-once without, initial error exactly 5 px in a random direction, as the held-out photo comparison
-(:mod:`~nsflow_ros.train.evaluate`) does; every model runs the deployed NumPy solver through onnxruntime on
-the same pairs, beside the classical (intensity) mode.
+The held-out frames become fixed homography pairs with and without the training's lighting change,
+scored as the held-out photo comparison (:mod:`~nsflow_ros.train.evaluate`) scores them.
 """
 
 from __future__ import annotations
@@ -44,7 +41,7 @@ def footage_pairs(
 @dataclass(frozen=True)
 class FootageRow:
     """One line of the comparison: a mode (an encoder's label or "classical") on a pair set, with every
-    point's error (inf where lost)."""
+    point's error."""
 
     pairs: str
     mode: str
@@ -58,13 +55,13 @@ def evaluate_footage(
     """Each encoder and the classical mode on held-out footage pairs, with and without lighting change.
 
     Args:
-        encoders: label -> encoder (e.g. "fine-tuned" and "shipped", loaded with ``load_encoder``).
+        encoders: label -> encoder.
         frames: the held-out frames.
         per_frame: pairs per frame and condition.
-        config: solver settings; ``LMConfig()`` (as deployed) when None.
+        config: solver settings; None = as deployed.
 
     Returns:
-        rows: per condition, every encoder then the classical mode.
+        per condition, a row per encoder then the classical mode's.
     """
     rows = []
     for label, strength in (("lighting change", 1.0), ("same lighting", 0.0)):

@@ -1,44 +1,23 @@
 """The differentiable Lucas-Kanade layer: the paper's LM solver (Algorithm 1) in torch, with two backwards.
 
-Forward (both modes) runs exactly the iteration of ``nsflow_ros.core.solver`` at a single pyramid level
-(``LMConfig(levels=1)``), batched over points: J and f at x + u, the closed-form 2x2 solve of
-(J^T J + lambda I) du = -J^T f, accept/reject on the cost with lambda /= nu or *= nu, and the stop tests
-||du|| < eps (1 + ||u||) or ||J^T f||_inf < eps (both on the values before the step). The flow, the LM
-state and the damping are float64 whatever the maps' dtype (as in the NumPy solver); the maps are sampled
-in their own dtype.
+The forward runs exactly the iteration of ``nsflow_ros.core.solver`` at one level, batched over points;
+the flow, the LM state and the damping are float64 whatever the maps' dtype (as in the NumPy solver).
 
 Backward modes (:class:`BackwardMode`):
 
-* ``IMPLICIT`` - the implicit function theorem at the converged solution u*. The solver stops where
-  F(D1, D2, u) = J(u)^T f(u) = 0 (J = the Scharr derivative maps of D2 sampled at x + u; with
-  ``Jacobian.ESM`` their mean with D1's at x, so F then depends on D1 through J as well), so
-  du*/dD = -(dF/du)^-1 dF/dD. dF/du is block diagonal (one 2x2 block per point, each point's F depends on
-  its own u only); the blocks are the exact derivative of F, second-order terms included (the change of
-  the sampled J and f with u), obtained with autograd on one re-evaluation of F at u*, one block row at a
-  time. Each block is inverted in closed form and the gradient reaches D1 and D2 as one
-  vector-Jacobian product through F: grad_D = -(dF/dD)^T (dF/du)^-T grad_u. The forward keeps no graph,
-  so memory does not grow with the number of iterations. Points whose block is not positive definite
-  (not at a local minimum) get no gradient (``min_curvature``); training diverged without this test.
+* ``IMPLICIT`` - the implicit function theorem at the converged u*, where F(D1, D2, u) = J(u)^T f(u) = 0:
+  du*/dD = -(dF/du)^-1 dF/dD, with the exact 2x2 block of dF/du per point (autograd on one re-evaluation
+  of F) and one vector-Jacobian product through F, so memory does not grow with the iterations. Points
+  whose block is not positive definite get no gradient (``min_curvature``): training diverged without
+  this test. LM may stop slightly off F = 0 (its Scharr J is not the exact derivative of its bilinear
+  cost), and there the gradient is that of the nearby fixed point.
+* ``UNROLL`` - the same iterations recorded by autograd (accept/reject and stopping as hard masks), for
+  comparison.
 
-  Caveat, measured: LM does not always end exactly at F = 0. Its step uses the Scharr J, its accept test
-  the bilinear cost S, and the Scharr J is not the exact derivative of S; near F = 0 the step can fail
-  to lower S, LM rejects until the step test stops it, and the output then sits ~1e-5..1e-3 away from
-  F = 0. Where LM does reach F = 0 the implicit gradient matches finite differences of the whole solver
-  to ~5e-9 (test/train/test_lk_layer.py); at stalled points it is the gradient of the nearby fixed point.
-* ``UNROLL`` - the same iterations recorded by autograd (accept/reject and stopping act as hard masks),
-  the way Theseus' unrolled mode and the authors' LET-NET2 training differentiate. For comparison.
-
-Coarse to fine (:func:`lk_track_pyramid`): the tracker's solve, level by level like
-``nsflow_ros.core.solver.track`` - the descriptor pyramid of each frame (``cv2.pyrDown`` twins,
-:func:`~nsflow_ros.train.ops.pyramid`, differentiable), the coarsest level first from flow0 / 2^(L-1), the
-flow doubled between levels, a fresh lambda^(0) per level. With the IMPLICIT backward every level's result
-is differentiated at that level's own converged flow, w.r.t. that level's two maps (and through the
-linear pyrDown chain to the full-resolution maps), and each level's start is detached. Why: a converged
-flow is a fixed point of F = 0 that does not depend on where the iteration started (du*/du0 = 0 by the
-implicit function theorem), so the finest result's gradient reaches only the finest maps; the coarse maps
-learn only through a loss on the coarse levels' own results (``LKPyramidOutput.levels``), which is what
-can teach them a wide basin. Differentiating only the finest level would give the coarse maps nothing,
-and unrolling through a whole pyramid would keep every level's iterations in memory.
+Coarse to fine (:func:`lk_track_pyramid`) solves level by level as ``nsflow_ros.core.solver.track`` does.
+With the IMPLICIT backward each level is differentiated at its own converged flow and its start is
+detached, because a converged flow does not depend on its start (du*/du0 = 0): the coarse maps learn
+only through a loss on the coarse levels' own results (``LKPyramidOutput.levels``).
 """
 
 from __future__ import annotations
@@ -50,6 +29,7 @@ import torch
 
 from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import Jacobian, LMConfig, window_centres
+from nsflow_ros.train.data import inside
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.ops import pyramid, sample_windows, scharr_gradients
 
@@ -76,14 +56,8 @@ class BackwardMode(enum.Enum):
 
 @dataclass(frozen=True)
 class LKOutput:
-    """Result of :func:`lk_track`.
-
-    Attributes:
-        flow: estimated flow u*, differentiable w.r.t. both descriptor maps, shape (N, 2), float64.
-        status: True where the point counts as tracked (same rule as the NumPy solver), shape (N,).
-        cost: final S(u*) = 1/2 ||f||^2, shape (N,), no gradient.
-        iterations: LM iterations per point, shape (N,), int64.
-    """
+    """Result of :func:`lk_track`: the (N, 2) float64 flow u*, differentiable w.r.t. both maps; the (N,)
+    status by the NumPy solver's rule, final cost 1/2 ||f||^2 (no gradient) and LM iterations."""
 
     flow: torch.Tensor
     status: torch.Tensor
@@ -93,16 +67,9 @@ class LKOutput:
 
 @dataclass(frozen=True)
 class LKPyramidOutput:
-    """Result of :func:`lk_track_pyramid`.
-
-    Attributes:
-        flow: the finest level's flow u*, level-0 pixels, differentiable, shape (N, 2), float64.
-        status: the NumPy solver's rule at level 0 (full-resolution windows), shape (N,).
-        cost: final level-0 S(u*), shape (N,), no gradient.
-        iterations: LM iterations summed over levels, shape (N,), int64.
-        levels: each level's :class:`LKOutput`, level 0 first, with ``flow`` scaled to level-0 pixels
-            (differentiable w.r.t. that level's maps) and ``status`` the same rule on that level's image.
-    """
+    """Result of :func:`lk_track_pyramid`: level 0's flow, status and cost as in :class:`LKOutput`, the
+    iterations summed over levels, and each level's :class:`LKOutput` (level 0 first, flow in level-0
+    pixels)."""
 
     flow: torch.Tensor
     status: torch.Tensor
@@ -112,7 +79,7 @@ class LKPyramidOutput:
 
 
 def stack_level(desc: torch.Tensor) -> torch.Tensor:
-    """[D | Dx | Dy] of a map (frame 2's, or frame 1's for ESM): the maps the solver samples.
+    """[D | Dx | Dy] of a map: what the solver samples.
 
     Shape:
         desc: (C, H, W). Returns (3C, H, W).
@@ -123,14 +90,8 @@ def stack_level(desc: torch.Tensor) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class Template:
-    """The frame-1 side of a solve: what every residual and Jacobian of a point is taken against.
-
-    Attributes:
-        values: D1 over each point's window, flattened, (M, C window^2).
-        grad: for :attr:`Jacobian.ESM` D1's Scharr x / y derivatives there, (M, 2, C window^2); else None.
-        channels: C.
-        zero_mean: residuals and Jacobians lose their window means per channel (``LMConfig.zero_mean``).
-    """
+    """The frame-1 side of a solve: D1 over each point's window (M, C window^2), with ESM its x / y
+    derivatives there (M, 2, C window^2), and whether residuals and Jacobians lose their window means."""
 
     values: torch.Tensor
     grad: torch.Tensor | None
@@ -153,7 +114,7 @@ class Template:
 def template_windows(
     desc1: torch.Tensor, pts: torch.Tensor, window: int, jacobian: Jacobian, zero_mean: bool = False
 ) -> Template:
-    """Sample the frame-1 template at ``pts`` (with its derivatives when the Jacobian needs them).
+    """The frame-1 template at ``pts`` (with its derivatives for ESM).
 
     Shape:
         desc1: (C, H, W). pts: (M, 2).
@@ -170,8 +131,7 @@ def residual_and_jacobian(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """f = D2(x + u) - D1(x) and the step's J (x and y) at the frame-2 centres x + u.
 
-    J is D2's Scharr derivative there, or with an ESM template the mean of that and D1's at x; a
-    ``zero_mean`` template centres all three per channel over the window.
+    J is D2's Scharr derivative there, with an ESM template its mean with D1's at x.
 
     Shape:
         level2: (3C, H, W) from :func:`stack_level`. centers: (M, 2). Returns three (M, C window^2).
@@ -188,7 +148,7 @@ def residual_and_jacobian(
 def _normal_equations(
     level2: torch.Tensor, centers: torch.Tensor, template: Template, window: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """S, J^T J as (h11, h12, h22) and J^T f at the given frame-2 centres; all (M,) / (M, 3) / (M, 2)."""
+    """S (M,), J^T J as (h11, h12, h22) (M, 3) and J^T f (M, 2) at the frame-2 centres."""
     f, jx, jy = residual_and_jacobian(level2, centers, template, window)
     cost = 0.5 * (f * f).sum(1).double()
     hess = torch.stack([(jx * jx).sum(1), (jx * jy).sum(1), (jy * jy).sum(1)], 1).double()
@@ -205,20 +165,7 @@ def optimality_condition(
     jacobian: Jacobian = Jacobian.FORWARD,
     zero_mean: bool = False,
 ) -> torch.Tensor:
-    """F(D1, D2, u) = J(u)^T f(u) per point, zero at a converged solution of the LM solver.
-
-    Args:
-        desc1: frame-1 descriptor map.
-        desc2: frame-2 descriptor map (its Scharr derivatives are computed here, so F depends on D2
-            through both the sampled descriptors and the sampled Jacobian).
-        points: keypoints x in frame 1.
-        flow: flow u.
-        window: odd window side.
-        jacobian: the J of the solver's step (ESM: the mean of D2's derivatives at x + u and D1's at x).
-        zero_mean: f and J centred per window and channel (``LMConfig.zero_mean``).
-
-    Returns:
-        F, one 2-vector per point, in the maps' dtype.
+    """F(D1, D2, u) = J(u)^T f(u) per point in the maps' dtype, zero at a converged solution of the solver.
 
     Shape:
         desc1, desc2: (C, H, W). points, flow: (N, 2). Returns (N, 2).
@@ -231,10 +178,9 @@ def optimality_condition(
 def _lm_solve(
     desc1: torch.Tensor, desc2: torch.Tensor, pts: torch.Tensor, u0: torch.Tensor, cfg: LMConfig
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Algorithm 1 at one level; returns (u, cost, hess, iterations). Differentiable if grad is enabled.
+    """Algorithm 1 at one level: (u, cost, hess, iterations), differentiable when grad is enabled.
 
-    Only the still-active points are evaluated in each iteration; results are written back out of place
-    so that the same code records a valid graph in UNROLL mode.
+    Results are written back out of place so that the same code records a valid graph in UNROLL mode.
     """
     win = cfg.window
     n = pts.shape[0]
@@ -289,10 +235,6 @@ def _valid(
     """The NumPy solver's status rule: finite, both windows inside the image, textured window."""
     h, w = shape
     r = cfg.window // 2
-
-    def inside(p: torch.Tensor) -> torch.Tensor:
-        return (p[:, 0] >= r) & (p[:, 0] <= w - 1 - r) & (p[:, 1] >= r) & (p[:, 1] <= h - 1 - r)
-
     new = pts + u
     finite = torch.isfinite(new).all(1)
     tr = hess[:, 0] + hess[:, 2]
@@ -300,11 +242,11 @@ def _valid(
     min_eig = 0.5 * (tr - torch.sqrt(diff * diff + 4.0 * hess[:, 1] ** 2))
     textured = min_eig / (cfg.window**2 * channels) >= cfg.min_eigen
     safe_new = torch.where(finite[:, None], new, torch.full_like(new, -1e9))
-    return finite & inside(pts) & inside(safe_new) & textured
+    return finite & inside(pts, w, h, r) & inside(safe_new, w, h, r) & textured
 
 
 class _ImplicitLK(torch.autograd.Function):
-    """LM forward without a graph; implicit-function-theorem backward (see the module docstring)."""
+    """LM forward without a graph; implicit-function-theorem backward."""
 
     @staticmethod
     def forward(ctx, desc1, desc2, points, flow0, cfg, residual_tol, min_curvature):  # type: ignore[override]
@@ -442,16 +384,13 @@ def lk_track(
         desc2: frame-2 descriptor map, same shape.
         points: keypoints x in frame 1, (x, y) pixels.
         flow0: initial flow (zeros when None); it receives no gradient.
-        config: solver settings; must be single level (``levels=1``). ``LMConfig(levels=1)`` when None.
-        mode: the backward, :attr:`BackwardMode.IMPLICIT` (default) or :attr:`BackwardMode.UNROLL`.
-        residual_tol: IMPLICIT only: points whose optimality residual ||F(u*)||_inf exceeds this get no
-            gradient (the implicit function theorem describes a stationary point; a point stopped by the
-            iteration limit or a stall far from one is not). None = every tracked point gets one.
+        config: single-level solver settings; ``LMConfig(levels=1)`` when None.
+        mode: the backward.
+        residual_tol: IMPLICIT only: points whose ||F(u*)||_inf exceeds this get no gradient (the theorem
+            holds only at a stationary point); None = every tracked point gets one.
         min_curvature: IMPLICIT only: a point gets a gradient only if the symmetric part of its dF/du
-            block is positive definite with eigenvalue ratio min/max above this (a local minimum of the
-            cost; elsewhere the implicit slope -(dF/du)^-1 dF/dD points nowhere useful and can be huge).
-            Default 0 (positive definite); None = no test. Measured on a repeated training pair: with the
-            test the loss falls 0.28 -> 0.21 in 80 steps, without it 0.31 -> 0.27 (unrolled: 0.28 -> 0.19).
+            block is positive definite with eigenvalue ratio min/max above this (elsewhere the implicit
+            slope points nowhere useful and can be huge); None = no test.
 
     Returns:
         an :class:`LKOutput`; ``flow`` matches ``nsflow_ros.track(..., LMConfig(levels=1, ...))``.
@@ -484,24 +423,9 @@ def lk_track_pyramid(
 ) -> LKPyramidOutput:
     """Track coarse to fine through the descriptor pyramid, as ``nsflow_ros.track`` does, differentiably.
 
-    Args:
-        desc1: frame-1 full-resolution descriptor map; its coarser levels are built here.
-        desc2: frame-2 map, same shape.
-        points: keypoints x in frame 1, level-0 pixels.
-        flow0: initial flow in level-0 pixels (zeros when None); no gradient.
-        config: solver settings, ``config.levels`` levels (fewer if the image is too small, as in the
-            core); ``LMConfig()`` when None.
-        mode: the backward. IMPLICIT differentiates each level at its own converged flow and detaches the
-            next level's start (see the module docstring); UNROLL records every level's iterations and the
-            chain between levels.
-        residual_tol: as in :func:`lk_track`, per level.
-        min_curvature: as in :func:`lk_track`, per level.
-        smoothing: each pyramid level's Gaussian smoothing (the ``nsflow`` method's
-            ``LEARNED_SMOOTHING``, :func:`nsflow_ros.train.ops.pyramid`); None = none.
-
-    Returns:
-        an :class:`LKPyramidOutput`; ``flow`` matches ``nsflow_ros.track(..., config)`` on pyramids
-        built with the same smoothing.
+    Args are those of :func:`lk_track` (full-resolution maps, per level), ``config`` holding the levels
+    (``LMConfig()`` when None) and ``smoothing`` the pyramid's (:func:`nsflow_ros.train.ops.pyramid`).
+    ``flow`` matches ``nsflow_ros.track(..., config)`` on pyramids built with the same smoothing.
 
     Raises:
         TrainError: on mismatched maps or wrong point/flow shapes.
@@ -520,8 +444,7 @@ def lk_track_pyramid(
     for lev in range(nlev - 1, -1, -1):
         s = 2.0**lev
         start = u.detach() if mode is BackwardMode.IMPLICIT else u
-        # Each level solves with its own window (``LMConfig.at_level``), status by the same rule; a
-        # coarse level's windows are moved inside it as the core moves them (points carry no gradient).
+        # a coarse level's windows are moved inside it as the core moves them (points carry no gradient)
         p_l = pts / s
         if lev:
             at = window_centres(p_l.detach().cpu().numpy(), tuple(pyr1[lev].shape[-2:]), cfg.window_at(lev))

@@ -35,9 +35,8 @@ def flow_loss(
         flow_gt: ground-truth flow.
         valid: solver status; non-finite estimates are masked as well.
         delta: scale of rho in pixels.
-        rho: "huber" (quadratic below delta, linear above), "cauchy" (delta^2/2 log(1 + (e/delta)^2):
-            its gradient falls off beyond delta, so points stuck far away in a wrong minimum barely
-            pull) or "charbonnier" (sqrt(e^2 + delta^2) - delta).
+        rho: "huber", "cauchy" (its gradient falls off beyond delta, so points stuck in a wrong minimum
+            far away barely pull) or "charbonnier".
 
     Returns:
         (loss, number of points used); the loss is 0 (with a graph) when no point is valid.

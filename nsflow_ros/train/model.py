@@ -1,19 +1,15 @@
 """The NSFlow encoder CNN: image in [0, 1] -> full-resolution d-channel descriptor map.
 
-Architecture (the paper's, at the default width w = 8): 3x3 conv c_in -> w, 3x3 conv w -> w, 1x1 conv
-w -> 2w, 1x1 conv 2w -> d, with biases and a ReLU after each of the first three convs. The width sets the
-encoder's run time at deployment: at 752x480 on the 2-core machine (onnxruntime, the tracker's strip
-runner, random weights) w = 8 takes 5.7 ms per image, w = 6 4.1 ms and w = 4 3.0 ms.
-
-The head's nonlinearity is a setting
-(:class:`EncoderSpec.head`): ``"relu"`` as in the paper, ``"sigmoid"`` as in the authors' released code
-(descriptors in (0, 1) like the intensity baseline the solver's thresholds assume), or ``"none"``.
-The 3x3 convs pad by one pixel with REPLICATED borders, the same border rule as the solver's Scharr
-derivatives and sampling, so no artificial edge appears at the image border. No BatchNorm.
+Architecture (the paper's at width w = 8): 3x3 conv c_in -> w, 3x3 conv w -> w, 1x1 conv w -> 2w, 1x1
+conv 2w -> d, with biases and a ReLU after each of the first three convs, then the head: ``"relu"`` as in
+the paper, ``"sigmoid"`` as in the authors' code (descriptors in (0, 1) like the intensity baseline the
+solver's thresholds assume), or ``"none"``. The 3x3 convs pad with replicated borders, the solver's
+border rule, so no artificial edge appears at the image border. No BatchNorm.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import torch
@@ -23,7 +19,12 @@ from nsflow_ros.train.errors import TrainError
 
 __all__ = ["HEADS", "Encoder", "EncoderSpec", "count_flops", "count_parameters"]
 
-HEADS = ("sigmoid", "relu", "none")
+_HEAD_FUNCTIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
+    "sigmoid": torch.sigmoid,
+    "relu": torch.relu,
+    "none": lambda x: x,
+}
+HEADS = tuple(_HEAD_FUNCTIONS)
 
 
 @dataclass(frozen=True)
@@ -31,10 +32,11 @@ class EncoderSpec:
     """Shape of the encoder.
 
     Attributes:
-        d: descriptor channels (the solver's per-iteration cost grows with it).
+        d: descriptor channels.
         in_channels: 1 (gray) or 3 (RGB).
-        head: nonlinearity after the last conv: "sigmoid", "relu" or "none".
-        width: channels of the two 3x3 convs (the 1x1 hidden layer has twice as many); 8 in the paper.
+        head: nonlinearity after the last conv, one of :data:`HEADS`.
+        width: channels of the two 3x3 convs (twice as many in the 1x1 hidden layer); it sets the
+            encoder's run time at deployment.
     """
 
     d: int = 4
@@ -77,13 +79,10 @@ class Encoder(nn.Module):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        """He-normal weights and zero biases; the head's weights doubled.
+        """He-normal weights and zero biases, the head's weights doubled.
 
-        PyTorch's default conv init shrinks the signal at every layer: a fresh encoder then outputs
-        an almost constant map (std ~0.01 around 0.5), LM stops at once on its gradient test, and
-        training never starts (measured: no loss decrease in 200 steps). With this init the fresh
-        encoder's descriptors have a spread of ~0.05-0.1, random local filters that LK can already
-        track, and the loss falls from the first steps. Random init all the same: no pretraining.
+        PyTorch's default init gives an almost constant map on which LM stops at once and training never
+        starts; this one gives random local filters that LK can already track.
         """
         for conv in (self.conv1, self.conv2, self.conv3, self.conv4):
             nn.init.kaiming_normal_(conv.weight, nonlinearity="relu")
@@ -92,13 +91,7 @@ class Encoder(nn.Module):
             self.conv4.weight.mul_(2.0)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        """Encode a batch of images.
-
-        Args:
-            image: images scaled to [0, 1].
-
-        Returns:
-            descriptor maps.
+        """Descriptor maps of images scaled to [0, 1].
 
         Shape:
             image: (B, c_in, H, W). Returns (B, d, H, W).
@@ -110,12 +103,7 @@ class Encoder(nn.Module):
         x = torch.relu(self.conv1(image))
         x = torch.relu(self.conv2(x))
         x = torch.relu(self.conv3(x))
-        x = self.conv4(x)
-        if self.spec.head == "sigmoid":
-            return torch.sigmoid(x)
-        if self.spec.head == "relu":
-            return torch.relu(x)
-        return x
+        return _HEAD_FUNCTIONS[self.spec.head](self.conv4(x))
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -1,14 +1,9 @@
 """Torch twins of the solver's map operations: Scharr derivatives, exact bilinear window sampling and
-the pyramid's downsampling.
+the descriptor pyramid.
 
-All mirror the NumPy core exactly (``nsflow_ros.core.pyramid.descriptor_gradients``,
-``nsflow_ros.core.solver.sample_windows`` and ``nsflow_ros.core.pyramid.build_pyramid``): normalised Scharr
-kernels with replicated borders, ``cv2.pyrDown`` with ``BORDER_REPLICATE`` (the border the core passes,
-not OpenCV's default reflect-101), and bilinear interpolation whose sample coordinates are clamped to
-[0, W-1] x [0, H-1] (= replicated border).
-Every pixel of a window shares the centre's fractional offset, so a window is interpolated from one
-(window+1)^2 integer patch; the result is differentiable w.r.t. the maps and (through the fractional
-offset) w.r.t. the centres.
+Each mirrors the NumPy core exactly (``nsflow_ros.core.pyramid.descriptor_gradients``,
+``nsflow_ros.core.solver.sample_windows``, ``nsflow_ros.core.pyramid.build_pyramid``), replicated borders
+included, and is differentiable w.r.t. the maps (sampling also w.r.t. the centres).
 """
 
 from __future__ import annotations
@@ -32,13 +27,7 @@ def _scharr_kernels(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
 
 
 def scharr_gradients(desc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """x- and y-derivatives of a descriptor map (normalised Scharr, replicated border).
-
-    Args:
-        desc: descriptor map, channels first.
-
-    Returns:
-        (dx, dy), each shaped like ``desc``.
+    """(dx, dy) of a descriptor map (normalised Scharr, replicated border), each shaped like it.
 
     Shape:
         desc: (C, H, W) float.
@@ -54,8 +43,11 @@ def scharr_gradients(desc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def sample_windows(maps: torch.Tensor, centers: torch.Tensor, window: int) -> torch.Tensor:
     """Sample square windows of a multi-channel map with exact bilinear interpolation.
 
+    Every pixel of a window shares the centre's fractional offset, so a window is interpolated from one
+    (window + 1)^2 integer patch with coordinates clamped to the map (= replicated border).
+
     Args:
-        maps: the map to sample, replicated beyond its border.
+        maps: the map to sample.
         centers: window centres (x, y) in pixels.
         window: odd window side.
 
@@ -91,15 +83,6 @@ def sample_windows(maps: torch.Tensor, centers: torch.Tensor, window: int) -> to
 def pyr_down(desc: torch.Tensor) -> torch.Tensor:
     """One coarser pyramid level: ``cv2.pyrDown(desc, borderType=cv2.BORDER_REPLICATE)`` per channel.
 
-    The 5x5 Gaussian [1 4 6 4 1] / 16 (separable), borders replicated, then every second row and
-    column from the first: output size ((H + 1) // 2, (W + 1) // 2), as OpenCV's.
-
-    Args:
-        desc: the finer level.
-
-    Returns:
-        the coarser level, differentiable w.r.t. ``desc`` (the filter is linear).
-
     Shape:
         desc: (C, H, W). Returns (C, (H + 1) // 2, (W + 1) // 2).
     """
@@ -114,14 +97,11 @@ def pyr_down(desc: torch.Tensor) -> torch.Tensor:
 
 
 def gaussian_smooth(desc: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian smoothing with replicated borders, as the core's pyramid smoothing.
+    """Separable Gaussian smoothing with replicated borders (``nsflow_ros.core.pyramid.gaussian_kernel``).
 
     Args:
         desc: the map.
-        sigma: standard deviation in pixels, > 0 (the taps of ``nsflow_ros.core.pyramid.gaussian_kernel``).
-
-    Returns:
-        the smoothed map, differentiable w.r.t. ``desc``.
+        sigma: standard deviation in pixels, > 0.
 
     Shape:
         desc: (C, H, W). Returns (C, H, W).
@@ -141,13 +121,9 @@ def pyramid(desc: torch.Tensor, levels: int, smoothing: Smoothing | None = None)
 
     Args:
         desc: the full-resolution map.
-        levels: levels wanted; as in the core, a level whose smaller side would drop below
-            :data:`MIN_LEVEL_SIZE` is not built, so the result may have fewer.
-        smoothing: Gaussian smoothing, as in the core: level 0 before the coarser levels are made
-            from it, each coarser level after; None = none.
-
-    Returns:
-        the maps, level 0 first (``desc`` itself unless level 0 is smoothed).
+        levels: levels wanted; fewer when a level's smaller side would drop below :data:`MIN_LEVEL_SIZE`.
+        smoothing: Gaussian smoothing as in the core (level 0 before the coarser levels are made from
+            it, each coarser level after); None = none.
 
     Shape:
         desc: (C, H, W).

@@ -1,16 +1,14 @@
 """Training presets (``--recipe``): the settings a paper states, and the choices made where it is silent.
 
-``paper`` is the training section of the NSFlow paper: TartanAir colour pairs at 640x480, one pair per
-batch, up to 200 keypoints per image, the LK layer run for up to 50 iterations in an 11x11 window, Adam
-at 1e-3, the encoder of 1,003 parameters (RGB in, 3 descriptor channels, width 8, ReLU head). What the
-paper leaves open is listed in :data:`PAPER_OPEN` with the choice made here; the model card repeats it.
+``paper`` is the training section of the NSFlow paper; what it leaves open is listed in
+:data:`PAPER_OPEN` with the choice made here, and the model card repeats it.
 """
 
 from __future__ import annotations
 
 from nsflow_ros.train.errors import TrainError
 
-__all__ = ["PAPER", "PAPER_OPEN", "RECIPES", "recipe_defaults"]
+__all__ = ["PAPER", "PAPER_DATA", "PAPER_OPEN", "RECIPES", "recipe_defaults"]
 
 PAPER: dict[str, object] = {
     "size": (640, 480),
@@ -26,6 +24,9 @@ PAPER: dict[str, object] = {
     "levels": 1,
 }
 """The option values ``--recipe paper`` sets (argparse destinations); options given explicitly win."""
+
+PAPER_DATA = "tartanair"
+"""The ``--data`` kind ``--recipe paper`` needs."""
 
 PAPER_OPEN: tuple[tuple[str, str], ...] = (
     ("training length: '1000 epochs' of an unstated epoch size, about a day on one RTX 4090",
@@ -49,11 +50,7 @@ RECIPES = {"paper": PAPER}
 
 
 def recipe_defaults(name: str) -> dict[str, object]:
-    """The option defaults a recipe sets.
-
-    Raises:
-        TrainError: an unknown recipe.
-    """
+    """The option defaults a recipe sets; TrainError for an unknown recipe."""
     if name not in RECIPES:
         raise TrainError(f"unknown recipe {name!r}; known: {sorted(RECIPES)}")
     return dict(RECIPES[name])

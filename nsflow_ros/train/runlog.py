@@ -1,11 +1,6 @@
-"""What a run leaves in its folder besides the model: the step log, TensorBoard events, progress, and
-the record of how it was made (command, data sources, git state, environment).
-
-* ``train.csv`` - one row per step: step, seconds, loss, pairs, points (appended to on ``--resume``);
-* TensorBoard event files under ``tensorboard/`` when the ``tensorboard`` package is installed
-  (``pip install tensorboard``; optional, so a CPU install needs only ``[train]``);
-* a progress bar with the time to the end, only on a terminal;
-* ``run.json`` - see :func:`run_record`.
+"""What a run leaves in its folder besides the model: ``train.csv`` (one row per step), TensorBoard
+events under ``tensorboard/`` when the optional ``tensorboard`` package is installed, and ``run.json``
+(:func:`run_record`); and the progress shown meanwhile.
 """
 
 from __future__ import annotations
@@ -38,10 +33,10 @@ class StepLog:
 
     Args:
         folder: the run folder.
-        resume: continue an existing ``train.csv`` from step ``first`` (rows after it, written by the
-            killed run after its last checkpoint, are dropped) instead of starting a new one.
+        resume: continue an existing ``train.csv`` at step ``first``, dropping the rows a killed run
+            wrote after its last checkpoint.
         first: the step the run starts at.
-        tensorboard: try TensorBoard (None when not installed; :attr:`tensorboard` says which).
+        tensorboard: try TensorBoard (:attr:`tensorboard` is None when it is not installed).
     """
 
     def __init__(self, folder: Path, resume: bool = False, first: int = 0, tensorboard: bool = True) -> None:
@@ -79,15 +74,9 @@ class StepLog:
 
 
 class Progress:
-    """The run's progress with the time to the end (:func:`nsflow_ros.progress.progress_bar`: a bar on a
-    terminal, plain lines in a log), shown when ``enabled``.
-
-    Args:
-        enabled: the caller wants progress (``--no-progress`` turns it off).
-        first: the step the run starts at (after ``--resume``).
-        steps: the step limit (None = only the time limit).
-        deadline: ``time.monotonic()`` at which the time limit ends.
-    """
+    """The run's progress with the time to the end (:func:`nsflow_ros.progress.progress_bar`), when
+    ``enabled``, from step ``first`` to ``steps`` (None = only the time limit) or the ``time.monotonic()``
+    ``deadline``."""
 
     def __init__(self, enabled: bool, first: int, steps: int | None, deadline: float) -> None:
         self.bar = None
@@ -140,15 +129,8 @@ def _version(module: str) -> str | None:
 def run_record(
     *, command: str, data: dict[str, object], device: str, world_size: int, config: dict[str, str]
 ) -> dict[str, object]:
-    """What ``run.json`` records about how a run was made (the caller adds its results).
-
-    Args:
-        command: the command line.
-        data: the data sources with their shares (``PairSource.describe``).
-        device: the torch device.
-        world_size: processes in the run.
-        config: the run's settings as strings.
-    """
+    """What ``run.json`` records about how a run was made: command, data, git state, environment and
+    settings (the caller adds its results)."""
     import torch
 
     env: dict[str, object] = {

@@ -1,16 +1,9 @@
 """Training pairs rendered from the project's synthetic sample scenes: real 3D motion with exact flow.
 
-Beside the photo homographies (:mod:`~nsflow_ros.train.data`), these pairs look like the tracker's
-input: EuRoC-like 752x480 frames of a textured room (:mod:`nsflow_ros.data.sample`) with depth
-discontinuities, occlusions and textureless walls, as left/right stereo pairs at the EuRoC baseline or
-as two frames of the left camera a few frames apart. The flow of every keypoint is exact
-(``SampleSequence.flow``: ray casting, occluded points dropped).
-
-Rendering a frame costs ~0.4 s, more than a training step, so a :class:`ScenePool` renders a fixed set of
-frame pairs once (GFTT corners of the first frame and their exact flows included); every training pair
-is then a random crop of one of them (the same crop of both frames, so the flow stays exact) with its own
-illumination change and initial flow. The evaluation's stereo pairs come from sequence seed 0; the pool
-uses other seeds (other rooms and flights from the same generator).
+Unlike the photo homographies these look like the tracker's input (:mod:`nsflow_ros.data.sample`: depth
+discontinuities, occlusions, textureless walls), as stereo pairs at the EuRoC baseline or two frames of
+the left camera a few frames apart. Rendering costs more than a training step, so a :class:`ScenePool`
+renders a fixed set of pairs once and each training pair is a random crop of one of them.
 """
 
 from __future__ import annotations
@@ -21,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from nsflow_ros.core.detector import detect_corners
-from nsflow_ros.train.data import Pair, PairConfig, initial_flow, perturb_frames
+from nsflow_ros.train.data import Pair, PairConfig, initial_flow, inside, perturb_frames
 from nsflow_ros.train.errors import TrainError
 
 __all__ = ["SCENE_SEEDS", "RenderedPair", "ScenePool", "make_scene_pair"]
@@ -38,7 +31,7 @@ class RenderedPair:
         kind: "stereo" (left -> right, same instant) or "temporal" (left camera, frame i -> i + k).
         image1, image2: (H, W) uint8 frames.
         points: (N, 2) corners in frame 1.
-        flow: (N, 2) exact flow of the corners into frame 2 (only visible ones are kept).
+        flow: (N, 2) their flow into frame 2.
     """
 
     kind: str
@@ -54,10 +47,9 @@ class ScenePool:
     Args:
         root: folder for the sample sequences' metadata (made once, reused).
         seeds: sample-sequence seeds.
-        frames: rendered frame pairs per seed, spread evenly over the flight, alternately stereo and
-            temporal.
+        frames: frame pairs per seed, spread over the flight, alternately stereo and temporal.
         duration: seconds of flight per sequence.
-        max_gap: temporal pairs are frames i and i + k with k uniform in [1, max_gap] (20 Hz camera).
+        max_gap: temporal pairs are frames i and i + k with k uniform in [1, max_gap].
         points: GFTT corners per rendered frame.
         seed: seed of the frame gaps.
 
@@ -116,16 +108,11 @@ class ScenePool:
 def make_scene_pair(
     pool: ScenePool, rng: np.random.Generator, cfg: PairConfig | None = None, strength: float = 1.0
 ) -> Pair:
-    """A training pair: a random crop of a random pooled pair, lighting change, initial flow.
+    """A training pair: the same random crop of both frames of a random pooled pair (so the flow stays
+    exact), with its own lighting change (``strength``) and initial flow; possibly without points.
 
-    Args:
-        pool: the rendered pairs.
-        rng: random generator (pair, crop, perturbation, points, initial flow).
-        cfg: crop size, points, window and initial flow settings (``PairConfig()`` when None).
-        strength: illumination perturbation strength (0 = none).
-
-    Returns:
-        the :class:`Pair` (its ``homography`` is NaN: the motion is not one); possibly without points.
+    Raises:
+        TrainError: the crop is larger than the rendered frames.
     """
     cfg = cfg or PairConfig()
     src = pool.pairs[int(rng.integers(len(pool.pairs)))]
@@ -138,14 +125,8 @@ def make_scene_pair(
     f2 = src.image2[y0 : y0 + cfg.height, x0 : x0 + cfg.width]
     f1, f2 = perturb_frames(f1, f2, rng, strength)
     pts = src.points - (x0, y0)
-    r = cfg.window // 2
-
-    def inside(q: np.ndarray) -> np.ndarray:
-        return (
-            (q[:, 0] >= r) & (q[:, 0] <= cfg.width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= cfg.height - 1 - r)
-        )
-
-    keep = np.flatnonzero(inside(pts) & inside(pts + src.flow))
+    frame = (cfg.width, cfg.height, cfg.window // 2)
+    keep = np.flatnonzero(inside(pts, *frame) & inside(pts + src.flow, *frame))
     if len(keep) > cfg.max_points:
         keep = np.sort(rng.choice(keep, cfg.max_points, replace=False))
     pts, gt = pts[keep], src.flow[keep]

@@ -1,22 +1,9 @@
-"""Training data sources behind one interface: every source gives pairs with exact ground-truth flow.
+"""Training data sources behind one interface: every source gives perturbed pairs with exact flow.
 
-A :class:`PairSource` draws one :class:`~nsflow_ros.train.data.Pair` from a random generator; the pair
-carries the illumination perturbation the training applies to every source
-(:func:`~nsflow_ros.train.data.perturb_frames`) and GFTT keypoints of frame 1 whose exact flow is known.
-
-* :class:`PhotoSource` - homographies of the bundled photos (:mod:`~nsflow_ros.train.data`);
-* :class:`SceneSource` - crops of rendered sample-scene pairs (:mod:`~nsflow_ros.train.scenes`);
-* :class:`TartanAirSource` - consecutive frames of TartanAir trajectories with their flow ``.npy`` files;
-  keypoints only where the flow mask marks the pixel valid and the target lies inside frame 2;
-* :class:`FootageSource` - frames of the user's own bag, ASL folder or image folder, made into pairs by
-  random homographies as the photos are (no ground truth needed), with held-out frames at the end;
-* :class:`MixedSource` - several sources drawn by weight.
-
-:class:`PairStream` turns a source into an indexed stream: pair ``i`` depends only on the seed and ``i``,
-so every process of a distributed run, every data-loader worker and a resumed run see the same pairs.
-
-``--data KIND:PATH:WEIGHT`` on the command line is parsed by :func:`parse_data_spec` and built by
-:func:`build_source`.
+The ``--data`` kinds are registered in :data:`SOURCES` (photos, scenes, TartanAir, the user's footage);
+:class:`MixedSource` draws from several by weight, and :class:`PairStream` indexes a source so that pair
+``i`` depends only on the seed and ``i`` (every process, data-loader worker and resumed run sees the
+same pairs).
 """
 
 from __future__ import annotations
@@ -24,8 +11,10 @@ from __future__ import annotations
 import itertools
 import re
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -36,6 +25,7 @@ from nsflow_ros.train.data import (
     Pair,
     PairConfig,
     initial_flow,
+    inside,
     load_image,
     make_pair,
     perturb_frames,
@@ -44,6 +34,7 @@ from nsflow_ros.train.errors import TrainError
 
 __all__ = [
     "DATA_KINDS",
+    "SOURCES",
     "DataSpec",
     "FootageSource",
     "MixedSource",
@@ -51,47 +42,89 @@ __all__ = [
     "PairStream",
     "PhotoSource",
     "SceneSource",
+    "SourceOptions",
     "TartanAirSource",
-    "build_source",
     "parse_data_spec",
     "read_footage",
     "tartanair_environments",
 ]
 
-DATA_KINDS = ("photos", "scenes", "tartanair", "footage")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
-class PairSource(ABC):
-    """Something that draws training pairs with exact flow."""
+@dataclass(frozen=True)
+class SourceOptions:
+    """What splitting a ``--data`` entry may read beside its path (each kind reads its own fields).
 
-    kind: str = ""
+    Attributes:
+        seed: seed of the scene pool.
+        cache: the scene pool's cache folder when the entry names none.
+        color: TartanAir frames as RGB.
+        tartanair_val: TartanAir environments held out for validation; None = the last by name when
+            there are two or more.
+        topics: footage camera topics (None = the default ones).
+        holdout: footage share held out at the end.
+    """
+
+    seed: int = 0
+    cache: Path = Path("cache")
+    color: bool = False
+    tartanair_val: tuple[str, ...] | None = None
+    topics: list[str] | None = None
+    holdout: float = 0.2
+
+
+Split = tuple["PairSource", "PairSource | None"]
+
+
+class PairSource(ABC):
+    """Something that draws training pairs with exact flow.
+
+    A kind of ``--data`` entry is a subclass registered in :data:`SOURCES`; its :meth:`split` is the one
+    place that turns an entry into sources, so no caller branches on a kind.
+    """
+
+    kind: ClassVar[str] = ""
+    path_use: ClassVar[Literal["required", "optional", "none"]] = "none"
+    """Whether a ``--data`` entry of this kind needs, may have or takes no path."""
+
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        """The training source a ``--data`` entry of this kind names, and its held-out validation source.
+
+        Args:
+            path: the entry's path (None when it names none).
+            opts: settings beside the path.
+
+        Returns:
+            (training source, validation source or None when nothing is held out).
+
+        Raises:
+            TrainError: the data cannot be read or split (the message names the path).
+        """
+        raise NotImplementedError  # pragma: no cover - every registered kind overrides it
+
+    def evaluation_frames(self) -> list[np.ndarray]:
+        """Frames the end-of-run footage comparison scores models on when this is a validation source;
+        empty = validated during training only."""
+        return []
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        """A :meth:`describe` result in words for the model card (its share excluded)."""
+        raise NotImplementedError  # pragma: no cover - every registered kind overrides it
 
     @abstractmethod
     def sample(self, rng: np.random.Generator, cfg: PairConfig, strength: float) -> Pair:
-        """One pair (possibly with few or no points).
-
-        Args:
-            rng: random generator (which frames, geometry, perturbation, initial flow).
-            cfg: frame size, keypoints, window and initial-flow settings.
-            strength: illumination perturbation strength in [0, 1].
-        """
+        """One pair (possibly with few or no points), ``strength`` the illumination change in [0, 1]."""
 
     @abstractmethod
     def describe(self) -> dict[str, object]:
         """What the source reads, for the run folder and the model card (JSON-able)."""
 
 
-def _inside(q: np.ndarray, width: int, height: int, r: int) -> np.ndarray:
-    return (q[:, 0] >= r) & (q[:, 0] <= width - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= height - 1 - r)
-
-
 class PhotoSource(PairSource):
-    """Random homography pairs of the bundled photos (the shipped model's data).
-
-    Args:
-        images: photo names (:func:`~nsflow_ros.train.data.load_image`).
-    """
+    """Random homography pairs of the bundled photos (:func:`~nsflow_ros.train.data.make_pair`)."""
 
     kind = "photos"
 
@@ -108,9 +141,17 @@ class PhotoSource(PairSource):
     def describe(self) -> dict[str, object]:
         return {"kind": self.kind, "images": list(self.images)}
 
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        return cls(), None
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        return "homography pairs of the bundled photos"
+
 
 class SceneSource(PairSource):
-    """Crops of stereo and temporal pairs rendered from the sample scenes (exact flow).
+    """Crops of stereo and temporal pairs rendered from the sample scenes (:mod:`~nsflow_ros.train.scenes`).
 
     Args:
         cache: folder of the scenes' sample-sequence metadata (made once, reused).
@@ -118,6 +159,7 @@ class SceneSource(PairSource):
     """
 
     kind = "scenes"
+    path_use = "optional"
 
     def __init__(self, cache: Path, seed: int = 0) -> None:
         from nsflow_ros.train.scenes import SCENE_SEEDS, ScenePool
@@ -133,6 +175,14 @@ class SceneSource(PairSource):
 
     def describe(self) -> dict[str, object]:
         return {"kind": self.kind, "sequence_seeds": list(self.seeds), "rendered_pairs": len(self.pool)}
+
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        return cls(path or opts.cache, seed=opts.seed), None
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        return f"crops of rendered sample-scene pairs (sequence seeds {description.get('sequence_seeds')})"
 
 
 # -- TartanAir --------------------------------------------------------------------------------------------
@@ -171,19 +221,15 @@ def tartanair_environments(root: str | Path) -> list[str]:
 class TartanAirSource(PairSource):
     """Consecutive frame pairs of TartanAir trajectories with their ground-truth flow.
 
-    Layout (TartanAir's tools): ``<root>/<env>/<Easy|Hard>/<Pxxx>/image_left/NNNNNN_left.png`` and
-    ``flow/NNNNNN_MMMMMM_flow.npy`` (float32 (H, W, 2), frame N to M = N + 1) with
-    ``flow/NNNNNN_MMMMMM_mask.npy`` (uint8 (H, W), 0 = valid; other values mark occluded and dynamic
-    pixels). Each pair is a random crop of ``cfg.width`` x ``cfg.height`` (the same crop of both frames,
-    so the flow stays exact); keypoints are GFTT corners of frame 1 restricted to pixels whose flow is
-    valid and whose target lies inside frame 2 (window margin included). Corners sit on integer pixels,
-    where the flow file holds the exact value.
+    Layout (TartanAir's tools): ``<root>/<env>/<Easy|Hard>/<Pxxx>/image_left/NNNNNN_left.png``,
+    ``flow/NNNNNN_MMMMMM_flow.npy`` (float32 (H, W, 2), M = N + 1) and ``flow/NNNNNN_MMMMMM_mask.npy``
+    (uint8 (H, W), 0 = valid). A pair is the same random crop of both frames; its keypoints are GFTT
+    corners on integer pixels (where the flow file is exact) whose flow is valid and lands inside frame 2.
 
     Args:
         root: the folder holding the environments.
-        environments: the environments to use (None = all); the split by environment keeps validation
-            away from every training environment.
-        color: frames as RGB (the model's 3-channel input) instead of gray.
+        environments: the environments to use (None = all).
+        color: frames as RGB instead of gray.
 
     Raises:
         TrainError: the root holds no environment, an environment named is missing, a trajectory has a
@@ -191,6 +237,7 @@ class TartanAirSource(PairSource):
     """
 
     kind = "tartanair"
+    path_use = "required"
 
     def __init__(self, root: str | Path, environments: list[str] | None = None, color: bool = False) -> None:
         self.root = Path(root)
@@ -261,12 +308,12 @@ class TartanAirSource(PairSource):
         yy, xx = np.mgrid[0 : cfg.height, 0 : cfg.width]
         target = np.stack([xx + fl[..., 0], yy + fl[..., 1]], -1).reshape(-1, 2)
         r = cfg.window // 2
-        ok = (mk == 0).reshape(-1) & np.isfinite(target).all(1) & _inside(target, cfg.width, cfg.height, r)
+        ok = (mk == 0).reshape(-1) & np.isfinite(target).all(1) & inside(target, cfg.width, cfg.height, r)
         valid = ok.reshape(cfg.height, cfg.width).astype(np.uint8) * 255
         f1, f2 = perturb_frames(f1, f2, rng, strength)
         gray = cv2.cvtColor(f1, cv2.COLOR_RGB2GRAY) if self.color else f1
         pts = detect_corners(gray, cfg.max_points, min_distance=cfg.min_distance, mask=valid)
-        pts = pts[_inside(pts, cfg.width, cfg.height, r)]
+        pts = pts[inside(pts, cfg.width, cfg.height, r)]
         ij = np.rint(pts).astype(np.int64)
         pts = ij.astype(np.float64)
         gt = fl[ij[:, 1], ij[:, 0]] if len(ij) else np.zeros((0, 2))
@@ -281,6 +328,34 @@ class TartanAirSource(PairSource):
             "color": self.color,
         }
 
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        """Hold out ``opts.tartanair_val`` (default: the last environment when another is left to train on).
+
+        Raises:
+            TrainError: a held-out environment is not in the folder, or every environment is held out.
+        """
+        assert path is not None
+        envs = tartanair_environments(path)
+        if opts.tartanair_val is not None:
+            held = list(opts.tartanair_val)
+        else:
+            held = envs[-1:] if len(envs) > 1 else []
+        unknown = [e for e in held if e not in envs]
+        if unknown:
+            raise TrainError(f"validation environments {unknown} not in {path} (present: {envs})")
+        train_envs = [e for e in envs if e not in held]
+        if not train_envs:
+            raise TrainError(f"every environment of {path} is held out for validation: {held}")
+        train = cls(path, train_envs, color=opts.color)
+        return train, cls(path, held, color=opts.color) if held else None
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        envs = ", ".join(str(e) for e in description.get("environments", []))  # type: ignore[attr-defined]
+        pairs = description.get("pairs")
+        return f"TartanAir `{description.get('path')}`, environments {envs} ({pairs} pairs)"
+
 
 # -- the user's footage -----------------------------------------------------------------------------------
 
@@ -292,18 +367,15 @@ def _image_folder(path: Path) -> list[Path]:
 def read_footage(
     path: str | Path, topics: list[str] | None = None, stride: int = 1, max_frames: int = 400
 ) -> list[np.ndarray]:
-    """Gray frames of a bag, an ASL folder or a folder of images, in time order.
+    """(H, W) uint8 frames of a bag, an ASL folder or a folder of images, in time order.
 
     Args:
-        path: ROS 1 / ROS 2 bag, ASL folder (as ``nsflow_ros.data.sources.SensorSource`` reads them) or
-            a folder of image files (read in name order).
+        path: ROS 1 / ROS 2 bag or ASL folder (``nsflow_ros.data.sources.SensorSource``), or a folder of
+            image files (read in name order).
         topics: camera topics of a bag or ASL folder (None = ``/cam0/image_raw`` and ``/cam1/image_raw``,
             those present).
         stride: keep every ``stride``-th frame.
         max_frames: at most this many frames, spread evenly over the kept ones.
-
-    Returns:
-        (H, W) uint8 frames.
 
     Raises:
         TrainError: the path is none of these, a topic is missing, or no frame is found.
@@ -343,11 +415,9 @@ def read_footage(
 
 
 class FootageSource(PairSource):
-    """Random homography pairs of the user's own frames (exact flow without ground truth).
+    """Random homography pairs of the user's own frames, made as the photo pairs are (exact flow).
 
-    Each pair is made from one frame exactly as the photo pairs are (random similarity crop, random
-    homography, independent illumination changes on both views). The last ``holdout`` share of the
-    frames (in time order) is kept apart for validation and evaluation (:meth:`heldout`).
+    The last ``holdout`` share of the frames (in time order) is kept apart (:meth:`heldout`).
 
     Args:
         path: bag, ASL folder or image folder (:func:`read_footage`).
@@ -359,6 +429,7 @@ class FootageSource(PairSource):
     """
 
     kind = "footage"
+    path_use = "required"
 
     def __init__(
         self,
@@ -402,17 +473,30 @@ class FootageSource(PairSource):
             "size": [w, h],
         }
 
+    @classmethod
+    def split(cls, path: Path | None, opts: SourceOptions) -> Split:
+        assert path is not None
+        train = cls(path, opts.topics, holdout=opts.holdout)
+        return train, train.heldout()
+
+    def evaluation_frames(self) -> list[np.ndarray]:
+        return self.frames
+
+    @staticmethod
+    def words(description: Mapping[str, object]) -> str:
+        return (
+            f"footage `{description.get('path')}`, {description.get('frames')} frames as random homography "
+            f"pairs ({description.get('heldout_frames')} later frames held out)"
+        )
+
 
 # -- mixing and indexing ----------------------------------------------------------------------------------
 
 
 class MixedSource(PairSource):
-    """Several sources, one drawn per pair with probability proportional to its weight.
+    """Several sources, one drawn per pair with probability proportional to its weight (> 0).
 
-    A single source is used without a draw (its pairs are those it gives alone).
-
-    Args:
-        parts: (source, weight) pairs, weights > 0.
+    A single source is used without a draw, so its pairs are those it gives alone.
     """
 
     kind = "mixed"
@@ -443,15 +527,7 @@ class MixedSource(PairSource):
 class PairStream:
     """An indexed stream of training pairs: pair ``i`` depends only on ``seed`` and ``i``.
 
-    A pair with fewer than ``min_points`` keypoints is redrawn (``attempts`` times at most, also indexed),
-    so the stream never holds an empty pair.
-
-    Args:
-        source: where the pairs come from.
-        cfg: pair settings.
-        seed: the run's seed.
-        min_points: fewest keypoints a pair must have.
-        attempts: draws per index before giving up.
+    A pair with fewer than ``min_points`` keypoints is redrawn, ``attempts`` times at most.
     """
 
     source: PairSource
@@ -472,22 +548,26 @@ class PairStream:
         )
 
 
-# -- command line -----------------------------------------------------------------------------------------
+# -- the registry and the command line --------------------------------------------------------------------
 
+SOURCES: Mapping[str, type[PairSource]] = {
+    cls.kind: cls for cls in (PhotoSource, SceneSource, TartanAirSource, FootageSource)
+}
+"""Every ``--data`` kind and the source class that builds and splits it."""
+
+DATA_KINDS = tuple(SOURCES)
 
 @dataclass(frozen=True)
 class DataSpec:
-    """One ``--data KIND[:PATH][:WEIGHT]`` argument.
-
-    Attributes:
-        kind: one of :data:`DATA_KINDS`.
-        path: the folder / bag (tartanair, footage; an optional cache folder for scenes), or None.
-        weight: relative weight in the mix.
-    """
+    """One ``--data KIND[:PATH][:WEIGHT]`` argument: a kind of :data:`SOURCES`, its path, its weight."""
 
     kind: str
     path: Path | None = None
     weight: float = 1.0
+
+    def split(self, opts: SourceOptions) -> Split:
+        """The training source this entry names and its held-out validation source (None without one)."""
+        return SOURCES[self.kind].split(self.path, opts)
 
 
 def parse_data_spec(text: str) -> DataSpec:
@@ -510,39 +590,9 @@ def parse_data_spec(text: str) -> DataSpec:
     if not (weight > 0 and np.isfinite(weight)):
         raise TrainError(f"--data {text!r}: weight must be finite and > 0, got {weight}")
     path = Path(path_text) if path_text else None
-    if kind in ("tartanair", "footage") and path is None:
+    use = SOURCES[kind].path_use
+    if use == "required" and path is None:
         raise TrainError(f"--data {text!r}: {kind} needs a path ({kind}:PATH[:WEIGHT])")
-    if kind == "photos" and path is not None:
-        raise TrainError(f"--data {text!r}: photos takes no path (photos[:WEIGHT])")
+    if use == "none" and path is not None:
+        raise TrainError(f"--data {text!r}: {kind} takes no path ({kind}[:WEIGHT])")
     return DataSpec(kind, path, weight)
-
-
-def build_source(
-    spec: DataSpec,
-    *,
-    seed: int = 0,
-    cache: Path = Path("cache"),
-    color: bool = False,
-    environments: list[str] | None = None,
-    topics: list[str] | None = None,
-    holdout: float = 0.2,
-) -> PairSource:
-    """The source a :class:`DataSpec` names.
-
-    Args:
-        spec: the parsed ``--data`` argument.
-        seed: seed of the scene pool.
-        cache: the scene pool's cache folder when the spec names none.
-        color: TartanAir frames as RGB.
-        environments: TartanAir environments to read (None = all).
-        topics: footage camera topics.
-        holdout: footage share held out at the end.
-    """
-    if spec.kind == "photos":
-        return PhotoSource()
-    if spec.kind == "scenes":
-        return SceneSource(spec.path or cache, seed=seed)
-    assert spec.path is not None
-    if spec.kind == "tartanair":
-        return TartanAirSource(spec.path, environments, color=color)
-    return FootageSource(spec.path, topics, holdout=holdout)

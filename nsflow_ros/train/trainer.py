@@ -1,11 +1,8 @@
 """The training loop (paper, Algorithm 2): pairs -> encoder -> LK layer -> robust EPE loss -> Adam.
 
-One loop serves every setting: any mix of data sources (:mod:`~nsflow_ros.train.sources`), ``batch``
-pairs per step, the CPU or a GPU (:mod:`~nsflow_ros.train.device`), one process or several under
-``torchrun`` (:mod:`~nsflow_ros.train.distributed`), data-loader workers, checkpoints and ``resume``.
-Pair ``i`` of the run is pair ``i`` of an indexed stream (:class:`~nsflow_ros.train.sources.PairStream`),
-so the pairs a step trains on depend only on the seed, the step and the global batch: a resumed run and a
-run over more processes see the pairs an uninterrupted single-process run sees.
+One loop serves every data mix, batch, device, process count, worker count and resumed run: the pairs a
+step trains on depend only on the seed, the step and the global batch
+(:class:`~nsflow_ros.train.sources.PairStream`), so all of these see the pairs of one uninterrupted run.
 """
 
 from __future__ import annotations
@@ -38,15 +35,12 @@ from nsflow_ros.train.ops import pyramid
 from nsflow_ros.train.runlog import TENSORBOARD_HINT, Progress, StepLog, run_record
 from nsflow_ros.train.sources import (
     DataSpec,
-    FootageSource,
     MixedSource,
     PairSource,
     PairStream,
     PhotoSource,
     SceneSource,
-    TartanAirSource,
-    build_source,
-    tartanair_environments,
+    SourceOptions,
 )
 
 __all__ = [
@@ -67,64 +61,31 @@ __all__ = [
 class TrainConfig:
     """Settings of a training run.
 
+    Most fields are the ``nsflow-train`` options of the same name (``huber_delta`` is ``--delta``; see its
+    ``--help``); the others and those whose meaning goes beyond the option follow.
+
     Attributes:
-        spec: encoder shape.
-        out: run folder (checkpoint, figures, log).
-        minutes: wall-clock budget (training stops after it; validation and export come after).
+        minutes: wall-clock budget of the training steps (validation and export come after).
         steps: step limit (None = only the time limit).
-        seed: seeds torch and the pair generator.
-        lr: Adam learning rate.
-        mode: LK layer backward.
-        lm: solver settings in the training forward. ``levels=1`` (the shipped model's) solves at full
-            resolution only; more levels solve coarse to fine through the descriptor pyramid as the tracker
-            does (:func:`~nsflow_ros.train.lk_layer.lk_track_pyramid`). ``min_eigen=0``: the loss masks only
-            lost points (outside the image, non-finite), not flat windows - a fresh encoder's descriptors
-            are nearly flat everywhere and would otherwise mask every point and stall training.
-        coarse_weight: weight of each coarse level's loss (0 = the finest result only). A coarse level's
-            result (scaled to level-0 pixels) is compared with the ground truth in that level's own pixels
-            (error / 2^level, same robust penalty and scale): it only has to land inside the next level's
-            basin. With the implicit backward this term is the only gradient the coarse maps get.
-        basin_weight: weight of the basin loss (:mod:`~nsflow_ros.train.basin`: where the solver's first
-            step lands from a random start near the answer, on every training level); 0 = off.
-        basin_radius: largest start offset of the basin loss, in each level's own pixels.
-        pair: pair settings (photo and scene pairs alike).
-        scene_share: share of training pairs rendered from the sample scenes
-            (:mod:`~nsflow_ros.train.scenes`: stereo at the EuRoC baseline and temporal pairs, exact flow);
-            the rest are photo homographies. 0 = photos only (the shipped model's data).
-        scene_cache: folder of the scenes' sample-sequence metadata (made once, reused);
-            None = ``cache`` beside ``out``.
-        huber_delta: scale of the robust loss in pixels.
-        rho: the robust loss (see :func:`~nsflow_ros.train.loss.flow_loss`).
-        val_every: steps between validations (one "epoch").
-        val_per_image: validation pairs per held-out photo and condition.
-        threads: torch intra-op threads.
-        images: training photos.
-        teacher: an ONNX encoder to distil from (:mod:`~nsflow_ros.train.distill`): each step then
-            regresses the encoder's maps of both frames on the teacher's, and the LK-layer settings
-            (``mode``, ``lm``, ``coarse_weight``, ``basin_*``, ``rho``, ``huber_delta``) are not used.
-            None = end-to-end training through the LK layer.
-        init: a checkpoint (``encoder.pt`` of an earlier run, same spec) to start from instead of
-            random weights, e.g. to fine-tune a distilled encoder through the LK layer.
-        smoothing: Gaussian smoothing of the descriptor pyramid in the training solver, validation
-            and the basin loss, as the tracker applies a model's declared smoothing
-            (``nsflow_ros.core.pyramid.Smoothing``); the export then declares it. None = none.
-        data: the training data (``--data KIND[:PATH][:WEIGHT]``, :mod:`~nsflow_ros.train.sources`);
-            empty = the bundled photos plus ``scene_share`` of sample-scene pairs.
-        tartanair_val: TartanAir environments kept for validation (never trained on); None = the last
-            environment in name order when there are two or more, else none.
-        footage_topics: camera topics of footage bags / ASL folders (None = the default ones).
-        footage_holdout: share of each footage's frames (at its end) kept for validation.
+        lm: solver settings of the training forward. ``min_eigen=0`` because a fresh encoder's nearly flat
+            descriptors would otherwise mask every point and stall training.
+        coarse_weight: weight of each coarse level's loss, its error in that level's own pixels (with the
+            implicit backward the only gradient the coarse maps get); 0 = the finest result only.
+        scene_share: share of sample-scene pairs beside the photo pairs when ``data`` is empty.
+        scene_cache: folder of the scenes' sample-sequence metadata; None = ``cache`` beside ``out``.
+        images: training photos when ``data`` is empty.
+        teacher: an ONNX encoder to distil from instead of training through the LK layer (whose settings
+            are then unused).
+        init: a checkpoint (``encoder.pt`` of an earlier run or an exported ``.onnx``, same spec) to start
+            from instead of random weights.
+        smoothing: Gaussian smoothing of the descriptor pyramid in the training solver, validation and the
+            basin loss, declared by the export; None = none.
+        data: the ``--data`` entries; empty = the bundled photos plus ``scene_share`` of scene pairs.
+        tartanair_val: TartanAir environments held out; None = the last one when there are two or more.
         batch: pairs per step and process (the loss is the mean of the pairs' losses).
-        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:K`` (:func:`~nsflow_ros.train.device.resolve_device`).
-        dtype: dtype of the descriptor maps in the LK layer, ``float32`` or ``float64``
-            (:mod:`~nsflow_ros.train.device`).
         workers: data-loader worker processes making pairs (0 = in the training process).
-        checkpoint_every: steps between checkpoints (``encoder.pt`` with the optimiser state); 0 = at
-            each validation only. One is always written at the end.
-        resume: continue the run whose checkpoint is in ``out``, at its step, with its optimiser state
-            and the same pair order.
-        command: the command line, recorded in ``run.json``.
-        tensorboard: write TensorBoard events when the package is installed.
+        checkpoint_every: steps between checkpoints; 0 = at each validation only (always one at the end).
+        resume: continue the run whose checkpoint is in ``out`` with the same pair order.
     """
 
     spec: EncoderSpec = field(default_factory=EncoderSpec)
@@ -170,7 +131,7 @@ class TrainConfig:
 
 
 def _onnx_checkpoint(path: Path) -> dict[str, object]:
-    """An exported encoder's weights and spec (its ONNX initializers and ``spec`` metadata)."""
+    """An exported encoder's weights and spec."""
     import onnx
     from onnx import numpy_helper
 
@@ -186,10 +147,7 @@ def _onnx_checkpoint(path: Path) -> dict[str, object]:
 
 
 def load_checkpoint(model: Encoder, path: str | Path) -> dict[str, object]:
-    """Load an ``encoder.pt`` (or an exported ``.onnx`` encoder, e.g. the shipped one) into ``model``.
-
-    Returns:
-        the whole checkpoint (a run's also holds ``step``, ``optimizer``, ``losses``, ...).
+    """Load an ``encoder.pt`` (or an exported ``.onnx`` encoder) into ``model``; returns the checkpoint.
 
     Raises:
         TrainError: a missing or unreadable file, or another encoder shape.
@@ -255,7 +213,7 @@ def encode_pair(model: Encoder, pair: Pair) -> tuple[torch.Tensor, torch.Tensor]
 def _pair_loss(
     d1: torch.Tensor, d2: torch.Tensor, pair: Pair, cfg: TrainConfig
 ) -> tuple[torch.Tensor, int]:
-    """The LK-layer loss of one pair from its two maps (in the maps' dtype and device)."""
+    """The LK-layer loss of one pair from its two maps."""
     dev = d1.device
     pts, flow0, gt = (torch.from_numpy(a).to(dev) for a in (pair.points, pair.flow0, pair.flow_gt))
     if cfg.lm.levels == 1:
@@ -286,14 +244,13 @@ def batch_loss(
 ) -> tuple[torch.Tensor, int]:
     """The loss of one step: the mean over ``pairs`` of each pair's loss, and the points used.
 
-    A pair without a usable point adds 0 (the mean is still over all pairs, so a rank's loss does not
-    depend on what the other ranks drew); the maps of every pair always enter the graph, so every
-    parameter gets a gradient (DistributedDataParallel needs one from every rank).
+    A pair without a usable point adds 0 and the maps always enter the graph, so every parameter of
+    every rank gets a gradient, as DistributedDataParallel needs.
 
     Args:
         model: the encoder (or its DistributedDataParallel wrapper).
         pairs: the step's pairs (same frame size).
-        cfg: loss and solver settings; ``cfg.dtype`` is the maps' dtype in the LK layer.
+        cfg: loss and solver settings.
         teacher: distil from this teacher's maps instead of training through the LK layer.
     """
     spec: EncoderSpec = getattr(model, "module", model).spec
@@ -316,9 +273,12 @@ def batch_loss(
     return total / len(pairs), points
 
 
-def train_step(model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: TrainConfig) -> float | None:
-    """One optimisation step on one pair; returns the loss, or None (no step) when no point was usable."""
-    loss, used = batch_loss(model, [pair], cfg)
+def train_step(
+    model: Encoder, opt: torch.optim.Optimizer, pair: Pair, cfg: TrainConfig, teacher: Teacher | None = None
+) -> float | None:
+    """One optimisation step on one pair (as :func:`batch_loss`); returns the loss, or None (no step) when
+    no point was usable."""
+    loss, used = batch_loss(model, [pair], cfg, teacher)
     if used == 0:
         return None
     opt.zero_grad(set_to_none=True)
@@ -348,19 +308,14 @@ def validate(
     model: Encoder | None, pairs: list[Pair], lm: LMConfig, smoothing: Smoothing | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Endpoint errors (inf where lost) and statuses of all points; ``model=None`` is the classical mode
-    (never smoothed); ``smoothing`` is the model's (only its fine part acts: ``lm`` solves one level)."""
+    (never smoothed)."""
     errs, stats = zip(*(_pair_errors(model, p, lm, smoothing) for p in pairs if len(p.points)), strict=True)
     return np.concatenate(errs), np.concatenate(stats)
 
 
 @dataclass
 class TrainData:
-    """A run's data: the training mix and the validation sets beside the held-out photos.
-
-    Attributes:
-        source: the training mix.
-        validation: name -> held-out source (TartanAir environments kept apart, footage's last frames).
-    """
+    """A run's data: the training mix and the held-out sources validated beside the held-out photos."""
 
     source: MixedSource
     validation: dict[str, PairSource] = field(default_factory=dict)
@@ -373,11 +328,10 @@ class TrainData:
 
 
 def make_data(cfg: TrainConfig) -> TrainData:
-    """Build the training mix and its held-out validation sources from ``cfg.data``.
+    """The training mix and its held-out validation sources from ``cfg.data``.
 
     Raises:
-        TrainError: a source cannot be read (the message names the file), or a TartanAir validation
-            environment would also be trained on; bad settings (checked before any data is read).
+        TrainError: bad settings (checked before any data is read), or a source cannot be read or split.
     """
     _check(cfg)
     cache = cfg.scene_cache or Path(cfg.out).parent / "cache"
@@ -390,35 +344,20 @@ def make_data(cfg: TrainConfig) -> TrainData:
         return TrainData(MixedSource(parts))
     parts = []
     validation: dict[str, PairSource] = {}
-    color = cfg.spec.in_channels == 3
-    topics = list(cfg.footage_topics) if cfg.footage_topics else None
+    opts = SourceOptions(
+        seed=cfg.seed,
+        cache=cache,
+        color=cfg.spec.in_channels == 3,
+        tartanair_val=cfg.tartanair_val,
+        topics=list(cfg.footage_topics) if cfg.footage_topics else None,
+        holdout=cfg.footage_holdout,
+    )
     for k, spec in enumerate(cfg.data):
         tag = f"{spec.kind}{k}" if sum(s.kind == spec.kind for s in cfg.data) > 1 else spec.kind
-        if spec.kind == "tartanair":
-            assert spec.path is not None
-            envs = tartanair_environments(spec.path)
-            if cfg.tartanair_val is not None:
-                held = list(cfg.tartanair_val)
-            else:  # the last environment, when another one is left to train on
-                held = envs[-1:] if len(envs) > 1 else []
-            unknown = [e for e in held if e not in envs]
-            if unknown:
-                raise TrainError(f"validation environments {unknown} not in {spec.path} (present: {envs})")
-            train_envs = [e for e in envs if e not in held]
-            if not train_envs:
-                raise TrainError(f"every environment of {spec.path} is held out for validation: {held}")
-            parts.append((TartanAirSource(spec.path, train_envs, color=color), spec.weight))
-            if held:
-                validation[tag] = TartanAirSource(spec.path, held, color=color)
-        elif spec.kind == "footage":
-            src = build_source(spec, topics=topics, holdout=cfg.footage_holdout)
-            assert isinstance(src, FootageSource)
-            parts.append((src, spec.weight))
-            held_src = src.heldout()
-            if held_src is not None:
-                validation[tag] = held_src
-        else:
-            parts.append((build_source(spec, seed=cfg.seed, cache=cache), spec.weight))
+        train_src, held = spec.split(opts)
+        parts.append((train_src, spec.weight))
+        if held is not None:
+            validation[tag] = held
     return TrainData(MixedSource(parts), validation)
 
 
@@ -475,7 +414,7 @@ def _batches(stream: PairStream, first: int, cfg: TrainConfig, world: World) -> 
 
 
 def _save(path: Path, payload: dict[str, object]) -> None:
-    """Write a checkpoint atomically (a run killed while writing keeps the previous one)."""
+    """Write a checkpoint atomically, so a run killed while writing keeps the previous one."""
     tmp = path.with_suffix(".pt.tmp")
     torch.save(payload, tmp)
     os.replace(tmp, path)
@@ -505,10 +444,7 @@ def train(
     data: TrainData | None = None,
     on_step: Callable[[int, float, Encoder], None] | None = None,
 ) -> TrainResult:
-    """Train an encoder (from scratch, from ``cfg.init``, or on from the checkpoint with ``cfg.resume``).
-
-    In a distributed run (``torchrun``, or a process group the caller joined) every rank calls this; rank 0
-    alone writes the run folder, and every rank returns the same model.
+    """Train an encoder; in a distributed run every rank calls this, rank 0 alone writes the run folder.
 
     Args:
         cfg: run settings.

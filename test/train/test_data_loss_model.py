@@ -15,7 +15,7 @@ from nsflow_ros.train.data import (  # noqa: E402
     PairConfig,
     load_image,
     make_pair,
-    perturb_illumination,
+    perturb_frames,
 )
 from nsflow_ros.train.loss import flow_loss  # noqa: E402
 from nsflow_ros.train.model import Encoder, EncoderSpec, count_flops  # noqa: E402
@@ -73,10 +73,12 @@ def test_training_initial_flow_modes():
 def test_perturbation_changes_illumination_but_not_zero_strength():
     img = load_image("camera")[:120, :160]
     rng = np.random.default_rng(0)
-    assert np.array_equal(perturb_illumination(img, rng, 0.0), img)
-    out = perturb_illumination(img, rng, 1.0)
-    assert out.dtype == np.uint8 and out.shape == img.shape
-    assert np.abs(out.astype(float) - img).mean() > 5
+    assert all(np.array_equal(f, img) for f in perturb_frames(img, img, rng, 0.0))
+    a, b = perturb_frames(img, img, rng, 1.5)  # clipped to the full strength
+    for out in (a, b):
+        assert out.dtype == np.uint8 and out.shape == img.shape
+        assert np.abs(out.astype(float) - img).mean() > 5
+    assert not np.array_equal(a, b)  # each frame its own change
 
 
 def test_loss_masks_invalid_and_non_finite_points():

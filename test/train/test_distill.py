@@ -10,10 +10,11 @@ torch = pytest.importorskip("torch")
 from nsflow_ros import load_encoder  # noqa: E402
 from nsflow_ros.train.cli import main  # noqa: E402
 from nsflow_ros.train.data import PairConfig, load_image, make_pair  # noqa: E402
-from nsflow_ros.train.distill import Teacher, distill_loss, distill_step  # noqa: E402
+from nsflow_ros.train.distill import Teacher, distill_loss  # noqa: E402
 from nsflow_ros.train.errors import TrainError  # noqa: E402
 from nsflow_ros.train.export import export_onnx  # noqa: E402
 from nsflow_ros.train.model import Encoder, EncoderSpec  # noqa: E402
+from nsflow_ros.train.trainer import TrainConfig, train_step  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +53,8 @@ def test_steps_bring_the_student_to_the_teacher(teacher_path):
     pair = make_pair(load_image("astronaut"), np.random.default_rng(0), PairConfig(width=96, height=72))
     student = Encoder(EncoderSpec(d=2, width=2))
     opt = torch.optim.Adam(student.parameters(), lr=3e-3)
-    losses = [distill_step(student, opt, pair, teacher) for _ in range(60)]
+    cfg = TrainConfig(spec=student.spec)
+    losses = [train_step(student, opt, pair, cfg, teacher) for _ in range(60)]
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:3])
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ast
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -13,13 +16,16 @@ from train_sources_data import write_footage_bag, write_tartanair  # noqa: E402
 from nsflow_ros.train.data import PairConfig  # noqa: E402
 from nsflow_ros.train.errors import TrainError  # noqa: E402
 from nsflow_ros.train.sources import (  # noqa: E402
+    DATA_KINDS,
+    SOURCES,
     DataSpec,
     FootageSource,
     MixedSource,
+    PairSource,
     PairStream,
     PhotoSource,
+    SourceOptions,
     TartanAirSource,
-    build_source,
     parse_data_spec,
     read_footage,
     tartanair_environments,
@@ -164,4 +170,62 @@ def test_data_spec_parsing(tmp_path):
     ):
         with pytest.raises(TrainError, match=msg):
             parse_data_spec(bad)
-    assert isinstance(build_source(DataSpec("photos")), PhotoSource)
+
+
+def test_every_kind_builds_and_splits_through_one_call(tmp_path, tartanair, monkeypatch):
+    from nsflow_ros.train import scenes
+
+    small_pool = scenes.ScenePool
+    monkeypatch.setattr(
+        scenes, "ScenePool", lambda root, seeds, seed: small_pool(root, (1,), 2, 1.0, points=300, seed=seed)
+    )
+    paths = {"tartanair": tartanair[0], "footage": write_footage_bag(tmp_path / "bag", frames=5)}
+    assert DATA_KINDS == tuple(SOURCES) == ("photos", "scenes", "tartanair", "footage")
+    opts = SourceOptions(cache=tmp_path / "cache", holdout=0.2)
+    held_kinds = []
+    for kind, cls in SOURCES.items():
+        assert cls.kind == kind and cls.split is not PairSource.split and cls.words is not PairSource.words
+        spec = parse_data_spec(f"{kind}:{paths[kind]}" if kind in paths else kind)
+        train, held = spec.split(opts)
+        assert type(train) is cls and train.describe()["kind"] == kind
+        assert len(PairStream(train, SMALL)[0].points) >= 4
+        assert isinstance(cls.words({**train.describe(), "share": 1.0}), str)
+        if held is not None:
+            assert type(held) is cls
+            held_kinds.append((kind, len(held.evaluation_frames())))
+    # TartanAir holds its last environment out (validated during training only); footage its last frame
+    assert held_kinds == [("tartanair", 0), ("footage", 1)]
+
+
+def _names(node: ast.AST) -> set[str]:
+    """Every name and attribute name inside ``node``."""
+    found = set()
+    for n in ast.walk(node):
+        if isinstance(n, ast.Name | ast.Attribute):
+            found.add(n.id if isinstance(n, ast.Name) else n.attr)
+    return found
+
+
+def test_no_module_outside_the_registry_branches_on_a_source_type_or_kind():
+    import nsflow_ros
+
+    classes = {c.__name__ for c in (*SOURCES.values(), MixedSource, PairSource)}
+    root = Path(nsflow_ros.__file__).parent
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        if path == root / "train" / "sources.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            where = f"{path.relative_to(root)}:{getattr(node, 'lineno', 0)}"
+            if isinstance(node, ast.Call) and _names(node.func) & {"isinstance", "issubclass", "type"}:
+                checked = set().union(*(_names(a) for a in node.args))
+            else:
+                checked = set()
+            if classes & checked:
+                found.append(where)
+            if isinstance(node, ast.Compare):
+                sides = [node.left, *node.comparators]
+                consts = {s.value for side in sides for s in ast.walk(side) if isinstance(s, ast.Constant)}
+                if consts & set(DATA_KINDS) or classes & set().union(*(_names(s) for s in sides)):
+                    found.append(where)
+    assert not found, f"branches on a data source's type or kind outside train/sources.py: {found}"
