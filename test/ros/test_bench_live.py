@@ -16,7 +16,9 @@ def sample_dir(tmp_path_factory):
 
 def test_klt_node_keeps_up_with_a_short_stereo_replay(sample_dir):
     # with a light background load and the node's queue of one passed through
-    res = run_live_benchmark(1.0, ["klt"], cache_dir=sample_dir, background_load=0.3, params={"queue_size": 1})
+    res = run_live_benchmark(
+        1.0, ["klt"], cache_dir=sample_dir, background_load=0.3, params={"queue_size": 1}
+    )
     assert res["setup"]["background_load_cores"] == 0.3 and res["setup"]["params"] == {"queue_size": 1}
     fig = res["klt"]
     assert fig["frames_sent"] == 20
