@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from functools import cache
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
@@ -24,9 +24,11 @@ __all__ = [
     "IMU",
     "POINT_CLOUD",
     "POINT_STAMPED",
+    "ImageFields",
     "compressed_image_message",
     "decode_compressed",
     "default_encoding",
+    "image_fields",
     "image_message",
     "imu_message",
     "is_ros1",
@@ -79,14 +81,23 @@ def _header(store: Any, stamp_ns: int, frame_id: str, seq: int) -> Any:
     return Header(stamp=stamp, frame_id=frame_id)
 
 
-def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str | None = None,
-                  *, seq: int = 0, step: int | None = None) -> Any:
-    """A sensor_msgs/Image.
+class ImageFields(NamedTuple):
+    """The layout fields of a sensor_msgs/Image (header aside), the same in ROS 1 and ROS 2."""
+
+    height: int
+    width: int
+    encoding: str
+    step: int
+    data: np.ndarray
+    """(height * step,) uint8, little-endian pixels (``is_bigendian`` = 0)."""
+
+
+def image_fields(image: np.ndarray, encoding: str | None = None, *, step: int | None = None) -> ImageFields:
+    """The sensor_msgs/Image layout of pixels, with no typestore (rclpy publishers use it directly).
 
     Args:
         image: (H, W) or (H, W, C) uint8 / uint16 pixels.
         encoding: a key of :data:`nsflow_ros.data.images.ENCODINGS`; None = :func:`default_encoding`.
-        seq: ROS 1 header sequence number (ignored for ROS 2).
         step: row length in bytes, larger than the packed row to pad rows (None = packed).
 
     Raises:
@@ -114,8 +125,22 @@ def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, e
         padded = np.zeros((h, step), np.uint8)
         padded[:, :row] = packed
         packed = padded
-    return store.types[IMAGE](header=_header(store, stamp_ns, frame_id, seq), height=h, width=w,
-                              encoding=encoding, is_bigendian=0, step=step, data=packed.reshape(-1))
+    return ImageFields(h, w, encoding, step, packed.reshape(-1))
+
+
+def image_message(store: Any, stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str | None = None,
+                  *, seq: int = 0, step: int | None = None) -> Any:
+    """A sensor_msgs/Image of the typestore's ROS version; the layout is :func:`image_fields`'.
+
+    Args:
+        seq: ROS 1 header sequence number (ignored for ROS 2).
+
+    Raises:
+        DataError: as :func:`image_fields`.
+    """
+    f = image_fields(image, encoding, step=step)
+    return store.types[IMAGE](header=_header(store, stamp_ns, frame_id, seq), height=f.height, width=f.width,
+                              encoding=f.encoding, is_bigendian=0, step=f.step, data=f.data)
 
 
 def compressed_image_message(store: Any, stamp_ns: int, frame_id: str, fmt: str, data: bytes, *,

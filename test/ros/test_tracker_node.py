@@ -681,3 +681,16 @@ def test_debug_image_only_while_watched_and_at_most_track_image_rate(tmp_path, p
         assert not drawn and h.tracker.counters()["track_images_published"] == 2
     finally:
         h.close()
+
+
+def test_the_debug_image_needs_no_rosbags_typestore():
+    # building the typestore costs ~80 ms: paid inside the first frame, it made the node supersede a frame
+    from nsflow_ros.data.messages import image_message, ros2_store
+
+    ros2_store.cache_clear()
+    bgr = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3)
+    msg = rclpy_image(bgr, "bgr8")
+    assert ros2_store.cache_info().currsize == 0
+    ref = image_message(ros2_store(), 0, "", bgr, "bgr8")
+    assert (msg.height, msg.width, msg.encoding, msg.step) == (ref.height, ref.width, ref.encoding, ref.step)
+    assert bytes(msg.data) == ref.data.tobytes()
