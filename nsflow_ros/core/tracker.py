@@ -388,6 +388,14 @@ class FeatureTracker:
         """The method's descriptor encoder (None for ``klt``, which tracks the gray image)."""
         return self.method.encoder
 
+    def warm_up(self) -> None:
+        """Prepare a black frame of camera 0's size and discard it, so the method's first-run costs
+        (onnxruntime's buffers) do not land on the first real frame, which a live node's queue of one would
+        pay with a superseded frame (docs/benchmarks.md, "The node at camera rate")."""
+        cam = self.cameras[0]
+        black = np.zeros((cam.height, cam.width), np.uint8)
+        self.method.prepare(black, black)
+
     def update_settings(self, changes: Mapping[str, Any]) -> None:
         """Change settings of the running tracker (not :data:`REBUILD_FIELDS`); its tracks go on.
 

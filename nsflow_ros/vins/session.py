@@ -169,9 +169,11 @@ class FrontEndSession:
         return cfg, session_tracker_fields(settings, self.layout)
 
     def _build(self) -> FeatureTracker:
-        return tracker_from_config(
+        tracker = tracker_from_config(
             self.config, {**self._fields, **self._fixed}, fisheye_mask=self._fisheye_mask
         )
+        tracker.warm_up()
+        return tracker
 
     @staticmethod
     def _value(s: Setting, config: VinsConfig, fields: Mapping[str, Any]) -> Any:

@@ -208,6 +208,25 @@ def test_descriptor_maps_are_computed_once_per_image(pan):
     assert len(calls) == 10
 
 
+def test_warm_up_encodes_one_frame_of_camera_0s_size_and_changes_no_track(pan):
+    calls = []
+
+    class Counting(IntensityEncoder):
+        def __call__(self, image):
+            calls.append(image.shape)
+            return super().__call__(image)
+
+    cold = FeatureTracker([syn.camera()], _classical(), encoder=Counting())
+    warm = FeatureTracker([syn.camera()], _classical(), encoder=Counting())
+    warm.warm_up()
+    cam = syn.camera()
+    assert calls == [(cam.height, cam.width)]
+    assert warm.last_stamp is None and warm.next_id == 0
+    for a, b in zip(_run(cold, pan, 4), _run(warm, pan, 4), strict=True):
+        assert np.array_equal(a.cameras[0].ids, b.cameras[0].ids)
+        assert np.array_equal(a.cameras[0].pixels, b.cameras[0].pixels)
+
+
 def test_nsflow_method_loads_an_onnx_encoder(tmp_path, pan):
     model = conv_encoder(tmp_path / "tiny.onnx", c_in=1, d=3)
     settings = TrackerSettings(model_path=str(model), min_dist=20, num_threads=1)

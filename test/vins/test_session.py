@@ -176,3 +176,14 @@ def test_settings_apply_by_their_mode_through_one_path(tmp_path, pan):
     with pytest.raises(ConfigError, match="use_imu_prediction cannot change"):
         s.update(use_imu_prediction=True, max_cnt=10)
     assert s.tracker.settings.max_cnt == 30
+
+
+def test_every_tracker_the_session_builds_is_warmed_up_before_its_first_frame(tmp_path, monkeypatch):
+    from nsflow_ros.core.tracker import FeatureTracker
+
+    warmed = []
+    monkeypatch.setattr(FeatureTracker, "warm_up", lambda self: warmed.append(self))
+    s = _session(tmp_path)
+    assert warmed == [s.tracker]
+    s.update(method="klt")  # a rebuild
+    assert warmed == [warmed[0], s.tracker] and s.tracker is not warmed[0]
