@@ -441,7 +441,7 @@ class FeatureTracker:
     def _track(
         self,
         kind: SolveKind,
-        check: SolveKind,
+        check: SolveKind | None,
         frame1: Any,
         frame2: Any,
         pts: np.ndarray,
@@ -449,7 +449,8 @@ class FeatureTracker:
         start: np.ndarray | None = None,
         prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """A solve, the border check and its reverse check: (positions in frame 2, status).
+        """A solve, the border check and its reverse check (none when ``check`` is None): (positions in
+        frame 2, status).
 
         A ``start`` (the IMU prediction) that leaves fewer than :data:`PREDICTION_MIN_TRACKED` points is
         dropped and the solve repeated without it, as VINS does.
@@ -459,7 +460,7 @@ class FeatureTracker:
         if start is not None and int(status.sum()) < PREDICTION_MIN_TRACKED:
             new, status = m.solve(kind, frame1, frame2, pts, None, prior)
         status &= _in_border(new, size, BORDER_PX)
-        if self.settings.flow_back and status.any():
+        if check is not None and self.settings.flow_back and status.any():
             # Only live points are checked: the others are dropped anyway.
             idx = np.flatnonzero(status)
             back, ok = m.solve(check, frame2, frame1, new[idx], pts[idx])
@@ -521,7 +522,7 @@ class FeatureTracker:
         return w, h
 
     def _track_previous(
-        self, frame0: Any, size: tuple[int, int], predicted: np.ndarray | None
+        self, frame0: Any, size: tuple[int, int], predicted: np.ndarray | None, checks: bool
     ) -> tuple[_Tracks, np.ndarray]:
         """Step 1-3: the previous frame's points into this one; returns the survivors and their previous
         undistorted points, counts already grown by 1."""
@@ -530,8 +531,9 @@ class FeatureTracker:
             return _Tracks.empty(), np.zeros((0, 2))
         # constant velocity: each id moves as it did into the previous frame
         prior = prev.pixels + (prev.pixels - prev.previous)
+        back = SolveKind.FLOW_BACK if checks else None
         pts, status = self._track(
-            SolveKind.FORWARD, SolveKind.FLOW_BACK, self._frame, frame0, prev.pixels, size, predicted, prior
+            SolveKind.FORWARD, back, self._frame, frame0, prev.pixels, size, predicted, prior
         )
         tracks = _Tracks(prev.ids[status], prev.track_counts[status] + 1, pts[status], prev.pixels[status])
         return tracks, prev.undistorted[status]
@@ -563,7 +565,7 @@ class FeatureTracker:
         return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous)
 
     def _stereo(
-        self, image1: np.ndarray, frame0: Any, left: _Tracks, size: tuple[int, int], dt: float
+        self, image1: np.ndarray, frame0: Any, left: _Tracks, size: tuple[int, int], dt: float, checks: bool
     ) -> CameraFeatures:
         """Step 7: left -> right with its back-check, each id starting from its previous disparity."""
         _, frame1 = self._prepare(image1, "image1")
@@ -572,9 +574,8 @@ class FeatureTracker:
             r, prev = self._right, self._left
             disparity = r.pixels - _lookup(r.ids, prev.ids, prev.pixels)
             prior = left.pixels + _lookup(left.ids, r.ids, disparity)
-            rpts, st = self._track(
-                SolveKind.STEREO, SolveKind.STEREO_BACK, frame0, frame1, left.pixels, size, None, prior
-            )
+            back = SolveKind.STEREO_BACK if checks else None
+            rpts, st = self._track(SolveKind.STEREO, back, frame0, frame1, left.pixels, size, None, prior)
             ids = left.ids[st]
             right = _Tracks(ids, left.counts[st], rpts[st], _lookup(ids, r.ids, r.pixels))
         return self._lift(1, right, self._right, dt)
@@ -605,6 +606,7 @@ class FeatureTracker:
         gyro: np.ndarray | None = None,
         *,
         detect: bool = True,
+        checks: bool = True,
     ) -> FrameFeatures:
         """Track one frame (VINS-Fusion ``trackImage``; the steps of the module docstring).
 
@@ -614,6 +616,8 @@ class FeatureTracker:
             image1: camera-1 image of the same stamp (stereo only).
             gyro: (M, 4) gyro samples (t, wx, wy, wz) in the IMU frame since the previous frame.
             detect: top the features up with new corners (VINS-Mono skips this on throttled frames).
+            checks: run the reverse checks that ``settings.flow_back`` asks for; False skips them on this
+                frame only (a live node catching up on a frame that waited).
 
         Raises:
             CoreError: on a stamp that does not increase, a wrong image size or type, or a missing
@@ -628,7 +632,7 @@ class FeatureTracker:
         with _timed(timings, cpu, "encode"):
             gray0, frame0 = self._prepare(image0, "image0")
         with _timed(timings, cpu, "track"):
-            tracks, prev_un = self._track_previous(frame0, size, predicted)
+            tracks, prev_un = self._track_previous(frame0, size, predicted, checks)
         with _timed(timings, cpu, "detect"):
             if detect:
                 tracks = self._reject_mask_detect(gray0, tracks, prev_un, size)
@@ -637,7 +641,7 @@ class FeatureTracker:
         right = None
         if self.settings.stereo:
             with _timed(timings, cpu, "stereo"):
-                right = self._stereo(image1, frame0, tracks, size, dt)  # type: ignore[arg-type]
+                right = self._stereo(image1, frame0, tracks, size, dt, checks)  # type: ignore[arg-type]
         self._commit(stamp, frame0, left, right)
         timings["total"] = (time.perf_counter() - t_start) * 1e3
         cpu["total"] = (time.process_time() - c_start) * 1e3

@@ -165,7 +165,8 @@ def format_live_table(res: dict[str, Any]) -> str:
         + (f" at nice {s['background_load_nice']}" if s.get("background_load_nice") else "")
         + "".join(f", {k} {v}" for k, v in s.get("params", {}).items()),
         "",
-        f"{'method':14s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'drop':>6s}{'supers':>7s}{'out':>6s}"
+        f"{'method':14s}{'sent':>6s}{'recv':>6s}{'proc':>6s}{'late':>6s}{'drop':>6s}{'supers':>7s}"
+        f"{'out':>6s}"
         f"{'processed':>11s}{'lat p50 ms':>12s}{'lat p90 ms':>12s}{'CPU ms/fr':>11s}{'same feat':>11s}",
     ]
     for m, f in res.items():
@@ -180,16 +181,18 @@ def format_live_table(res: dict[str, Any]) -> str:
         share = (f.get("agreement") or {}).get("same_share")
         lines.append(
             f"{m:14s}{num('frames_sent'):>6s}{num('tracker_received'):>6s}{num('tracker_processed'):>6s}"
-            f"{num('tracker_dropped'):>6s}{num('tracker_superseded'):>7s}{num('frames'):>6s}"
+            f"{num('tracker_unchecked'):>6s}{num('tracker_dropped'):>6s}{num('tracker_superseded'):>7s}"
+            f"{num('frames'):>6s}"
             f"{(proc / sent if sent else 0):11.1%}"
             f"{num('tracker_latency_ms_p50', '.1f'):>12s}{num('tracker_latency_ms_p90', '.1f'):>12s}"
             f"{num('tracker_cpu_ms_per_frame', '.1f'):>11s}"
             f"{'' if share is None else format(share, '.1%'):>11s}"
         )
     lines.append("sent: image pairs replayed; recv / proc / drop: pairs the node received / tracked / "
-                 "did not track; supers: of those dropped, superseded by a newer pair while the tracker "
-                 "was busy; out: feature messages received back; CPU ms/fr: the node process's CPU time "
-                 "per tracked pair")
+                 "did not track; late: of those tracked, pairs that waited over late_frame_ms and were "
+                 "tracked without the reverse checks; supers: of those dropped, superseded by a newer "
+                 "pair while the tracker was busy; out: feature messages received back; CPU ms/fr: the "
+                 "node process's CPU time per tracked pair")
     if any("agreement" in f for m, f in res.items() if m != "setup"):
         lines.append("method/jpegN, method/png: images as CompressedImage (decoding in the latency); same "
                      "feat: share of the raw run's camera-0 features within 0.1 px in the same frame")

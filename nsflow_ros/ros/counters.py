@@ -19,6 +19,7 @@ class NodeCounters:
         images_unpaired: stereo images whose partner never came.
         frames_received: frames (image pairs for stereo) queued for the tracker.
         frames_processed: frames the tracker ran on.
+        frames_unchecked: of those, frames tracked without the reverse checks because they came late.
         frames_published: feature messages published.
         frames_superseded: frames given up unprocessed for a newer one while the tracker was behind.
         frames_left_at_stop: frames still waiting when the node stopped.
@@ -32,6 +33,7 @@ class NodeCounters:
     images_unpaired: int = 0
     frames_received: int = 0
     frames_processed: int = 0
+    frames_unchecked: int = 0
     frames_published: int = 0
     frames_superseded: int = 0
     frames_left_at_stop: int = 0
@@ -57,7 +59,7 @@ class NodeCounters:
 
 
 WINDOWED = (
-    "frames_received", "frames_processed", "frames_dropped", "frames_superseded", "images_unpaired",
-    "frames_missing_upstream",
+    "frames_received", "frames_processed", "frames_dropped", "frames_superseded", "frames_unchecked",
+    "images_unpaired", "frames_missing_upstream",
 )
 """The counts the status line reports per period."""

@@ -180,8 +180,8 @@ def run_live(
     figures["frames_sent"] = sent // len(topics)
     # what the tracker itself saw: frames that reached it and frames it tracked (its summary file)
     counters = _read_summary(summary_file)
-    for key in ("frames_received", "frames_processed", "frames_dropped", "frames_superseded",
-                "latency_ms_p50", "latency_ms_p90", "cpu_ms_per_frame"):
+    for key in ("frames_received", "frames_processed", "frames_unchecked", "frames_dropped",
+                "frames_superseded", "latency_ms_p50", "latency_ms_p90", "cpu_ms_per_frame"):
         figures[f"tracker_{key.removeprefix('frames_')}"] = counters.get(key)
     # the debug image of the sequence's middle frame (or the nearest one drawn): the same frame for every run
     target = int(seq.stamps_ns[len(seq) // 2])

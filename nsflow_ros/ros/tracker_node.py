@@ -337,15 +337,18 @@ class TrackerNode(Node):
             frame = self._queue.take()
             if frame is None:  # stopped
                 return
+            # a frame that waited for the one before is late: skip its checks to catch up
+            limit = float(self._params["late_frame_ms"])
+            checks = not (limit > 0 and (time.perf_counter() - frame.t_recv) * 1e3 > limit)
             try:
                 with self._lock:
-                    self._frame(frame)
+                    self._frame(frame, checks)
             except Exception as err:
                 self._bad(f"internal:{type(err).__name__}", f"{type(err).__name__}: {err}")
 
-    def _frame(self, item: _Frame) -> None:
+    def _frame(self, item: _Frame, checks: bool = True) -> None:
         stamp = stamp_to_s(item.header.stamp)
-        out: FrameOutcome = self.session.process(stamp, item.image0, item.image1)
+        out: FrameOutcome = self.session.process(stamp, item.image0, item.image1, checks=checks)
         if out.skipped in (Skip.DUPLICATE_STAMP, Skip.TRACKER):
             cause = str(out.skipped) if out.skipped is Skip.DUPLICATE_STAMP else f"tracker:{out.note}"
             self._bad(cause, out.note)
@@ -359,6 +362,7 @@ class TrackerNode(Node):
         if out.note:
             self.get_logger().warning(out.note)
         self.stats.frames_processed += 1
+        self.stats.frames_unchecked += not checks
         if out.features is None:
             return
         msg = self._cloud(item.header, out.features)
@@ -440,7 +444,8 @@ class TrackerNode(Node):
             else ""
         )
         return (
-            f"frames received {c['frames_received']}, processed {c['frames_processed']}, published "
+            f"frames received {c['frames_received']}, processed {c['frames_processed']} (late, without the "
+            f"reverse checks: {c['frames_unchecked']}), published "
             f"{c['frames_published']}, dropped {c['frames_dropped']} (superseded by newer frames while the "
             f"tracker was busy {d['superseded']}, waiting at the stop {d['left_at_stop']}, refused "
             f"{d['refused']}); images unpaired {c['images_unpaired']}, undecodable "
@@ -471,8 +476,8 @@ class TrackerNode(Node):
             message = "; ".join(problems)
         else:
             message = "tracking"
-        totals = ("frames_received", "frames_processed", "frames_dropped", "frames_superseded",
-                  "frames_published")
+        totals = ("frames_received", "frames_processed", "frames_unchecked", "frames_dropped",
+                  "frames_superseded", "frames_published")
         values = {
             **{_label(k): c[k] for k in totals},
             **{f"{_label(k)} (period)": window[k] for k in WINDOWED},

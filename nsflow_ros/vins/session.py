@@ -301,14 +301,16 @@ class FrontEndSession:
         return False, ""
 
     def process(
-        self, stamp: float, image0: np.ndarray, image1: np.ndarray | None = None
+        self, stamp: float, image0: np.ndarray, image1: np.ndarray | None = None, *, checks: bool = True
     ) -> FrameOutcome:
         """Apply the frame policy to one frame (``stamp`` in seconds, uint8 images) and track it.
+
+        ``checks`` False tracks it without the reverse checks (:meth:`FeatureTracker.process`).
 
         Returns:
             what to publish and what happened; counted in :attr:`counters`.
         """
-        out = self._process(stamp, image0, image1)
+        out = self._process(stamp, image0, image1, checks)
         c = self.counters
         c.tracked += out.tracked
         c.published += out.features is not None
@@ -317,7 +319,9 @@ class FrontEndSession:
             c.skipped[out.skipped] += 1
         return out
 
-    def _process(self, stamp: float, image0: np.ndarray, image1: np.ndarray | None) -> FrameOutcome:
+    def _process(
+        self, stamp: float, image0: np.ndarray, image1: np.ndarray | None, checks: bool
+    ) -> FrameOutcome:
         last = self._last_stamp
         if last is not None and stamp == last:
             return FrameOutcome(None, False, skipped=Skip.DUPLICATE_STAMP,
@@ -341,7 +345,7 @@ class FrontEndSession:
             with self._gyro_lock:
                 gyro = self.gyro.window(prev, stamp)
         try:
-            frame = self.tracker.process(stamp, image0, image1, gyro, detect=publish)
+            frame = self.tracker.process(stamp, image0, image1, gyro, detect=publish, checks=checks)
         except CoreError as err:
             return FrameOutcome(None, False, skipped=Skip.TRACKER, note=str(err))
         self._last_stamp = stamp

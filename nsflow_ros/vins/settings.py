@@ -262,6 +262,13 @@ SETTINGS: tuple[Setting, ...] = (
         "always works on the newest frame, which waits at most for the one being tracked.",
         unit="frames", minimum=1),
     Setting(
+        "late_frame_ms", 20.0, Mode.LIVE,
+        "A frame that waited longer than this for the tracker (which was still on an earlier one) is "
+        "tracked without the reverse checks of flow_back, about a sixth of a learned frame's cost, so the "
+        "node catches up instead of superseding frames; counted as unchecked on /diagnostics. 0 = always "
+        "check.",
+        unit="ms", minimum=0),
+    Setting(
         "status_period", 5.0, Mode.LIVE,
         "Seconds between status lines in the log and on /diagnostics (frames received / processed / "
         "dropped, features, latency); 0 = none.",

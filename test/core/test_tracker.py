@@ -227,6 +227,27 @@ def test_warm_up_encodes_one_frame_of_camera_0s_size_and_changes_no_track(pan):
         assert np.array_equal(a.cameras[0].pixels, b.cameras[0].pixels)
 
 
+def test_a_frame_without_checks_skips_only_its_own_reverse_solves(monkeypatch):
+    from nsflow_ros.core.methods import SolveKind
+
+    seq = syn.translating(4, stereo_disparity=-6)
+    tracker = FeatureTracker([syn.camera(), syn.camera()], _classical(stereo=True))
+    kinds: list[list[SolveKind]] = []
+    solve = tracker.method.solve
+
+    def counting(kind, *args, **kwargs):
+        kinds[-1].append(kind)
+        return solve(kind, *args, **kwargs)
+
+    monkeypatch.setattr(tracker.method, "solve", counting)
+    for k, checks in enumerate((True, True, False, True)):
+        kinds.append([])
+        tracker.process(float(seq.stamps[k]), seq.frames[k], seq.right[k], checks=checks)
+    back = {SolveKind.FLOW_BACK, SolveKind.STEREO_BACK}
+    assert back <= set(kinds[1]) and back <= set(kinds[3])
+    assert not back & set(kinds[2]) and {SolveKind.FORWARD, SolveKind.STEREO} <= set(kinds[2])
+
+
 def test_nsflow_method_loads_an_onnx_encoder(tmp_path, pan):
     model = conv_encoder(tmp_path / "tiny.onnx", c_in=1, d=3)
     settings = TrackerSettings(model_path=str(model), min_dist=20, num_threads=1)

@@ -475,6 +475,21 @@ def test_summary_file_has_the_counters(tmp_path, prefix, pan):
         h.close()
 
 
+@pytest.mark.parametrize(("late_ms", "unchecked"), [(0.0, 0), (0.001, 3)])
+def test_late_frames_are_tracked_without_checks_and_counted(tmp_path, prefix, pan, late_ms, unchecked):
+    # 0.001 ms: every frame waits longer than that between its arrival and the worker
+    h = Harness(write_config(tmp_path, prefix), prefix, late_frame_ms=late_ms)
+    try:
+        for k in range(3):
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+        h.tracker.stop_worker()
+        c = h.tracker.counters()
+        assert c["frames_processed"] == 3 and c["frames_unchecked"] == unchecked
+        assert f"without the reverse checks: {unchecked})" in h.tracker.summary()
+    finally:
+        h.close()
+
+
 def test_frames_lost_before_the_node_are_inferred_from_stamp_gaps():
     from nsflow_ros.ros.tracker_node import _StampGaps
 
