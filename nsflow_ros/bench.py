@@ -415,6 +415,11 @@ def main(args: list[str] | None = None) -> int:
         help="the node runs' queue_size (frames waiting for the tracker at most; default: the node's, "
         f"{setting('queue_size').default})",
     )
+    parser.add_argument(
+        "--late-frame-ms", type=non_negative_float, default=None, metavar="MS",
+        help="the node runs' late_frame_ms (a frame that waited longer for the tracker skips its reverse "
+        f"checks; 0 = always check; default: the node's, {setting('late_frame_ms').default:g})",
+    )
     parser.add_argument("--no-stages", action="store_true",
                         help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
     parser.add_argument(
@@ -448,7 +453,8 @@ def main(args: list[str] | None = None) -> int:
             from nsflow_ros.ros.bench_live import run_live_benchmark
 
             node_params = {k: v for k, v in (("opencv_threads", opts.opencv_threads),
-                                             ("queue_size", opts.queue_size)) if v is not None}
+                                             ("queue_size", opts.queue_size),
+                                             ("late_frame_ms", opts.late_frame_ms)) if v is not None}
             res["node_live"] = run_live_benchmark(
                 opts.node_seconds, ("nsflow", "klt"), progress=not opts.json,
                 compress=opts.compress.split(","),

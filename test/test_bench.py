@@ -43,6 +43,26 @@ def test_cli_json_and_errors(tmp_path, capsys):
     assert "missing.onnx" in capsys.readouterr().err
 
 
+def test_node_options_reach_the_node_runs_as_parameters(monkeypatch, capsys):
+    import nsflow_ros.ros.bench_live as bench_live
+
+    seen = {}
+
+    def fake_run(seconds, methods, **kwargs):
+        seen.update(kwargs["params"])
+        return {"setup": {}}
+
+    monkeypatch.setattr(bench_live, "run_live_benchmark", fake_run)
+    monkeypatch.setattr(bench_live, "format_live_table", lambda res: "")
+    args = ["--tracker-seconds", "0", "--no-stages", "--node-seconds", "1", "--json"]
+    assert main([*args, "--queue-size", "2", "--late-frame-ms", "0", "--opencv-threads", "1"]) == 0
+    assert seen == {"queue_size": 2, "late_frame_ms": 0.0, "opencv_threads": 1}
+    seen.clear()
+    assert main(args) == 0
+    assert seen == {}  # the node's own defaults
+    capsys.readouterr()
+
+
 def test_cost_fit_recovers_known_prices():
     work = np.array([[10, 10], [12, 48], [20, 300], [33, 1900], [30, 1500]], np.float64)
     ms = 0.06 * work[:, 0] + 0.0017 * work[:, 1]
