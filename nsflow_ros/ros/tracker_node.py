@@ -107,7 +107,7 @@ def resolve_config_path(value: str) -> Path:
 def rclpy_image(image: np.ndarray, encoding: str | None = None) -> Image:
     """An rclpy sensor_msgs/Image (header unset) in :func:`~nsflow_ros.data.messages.image_fields`' layout.
 
-    No rosbags typestore: building one costs about 80 ms, which the first debug image would pay.
+    No rosbags typestore: building one inside the first frame would delay it (docs/benchmarks.md).
 
     Raises:
         DataError: the pixels do not match the encoding.

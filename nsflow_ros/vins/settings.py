@@ -264,9 +264,9 @@ SETTINGS: tuple[Setting, ...] = (
     Setting(
         "late_frame_ms", 20.0, Mode.LIVE,
         "A frame that waited longer than this for the tracker (which was still on an earlier one) is "
-        "tracked without the reverse checks of flow_back, about a fifth of a learned frame's cost, so the "
-        "node catches up instead of superseding frames; counted as unchecked on /diagnostics. 0 = always "
-        "check.",
+        "tracked without the reverse checks of flow_back, which are a large share of a learned frame's "
+        "cost, so the node catches up instead of superseding frames; counted as unchecked on /diagnostics "
+        "(cost and quality: docs/benchmarks.md). 0 = always check.",
         unit="ms", minimum=0),
     Setting(
         "status_period", 5.0, Mode.LIVE,
