@@ -126,6 +126,7 @@ class _Frame:
     image0: np.ndarray
     image1: np.ndarray | None
     t_recv: float  # perf_counter when its (first) image arrived
+    t_queued: float = 0.0  # perf_counter when it joined the queue (decoded and paired)
 
 
 def _percentile(values: list[float], q: float) -> float | None:
@@ -328,6 +329,7 @@ class TrackerNode(Node):
     def _enqueue(self, frame: _Frame) -> None:
         self.stats.frames_missing_upstream += self._gaps.add(stamp_to_s(frame.header.stamp))
         self.stats.frames_received += 1
+        frame.t_queued = time.perf_counter()
         self.stats.frames_superseded += self._queue.put(frame)
 
     # -- the worker --------------------------------------------------------------------------------------
@@ -337,9 +339,9 @@ class TrackerNode(Node):
             frame = self._queue.take()
             if frame is None:  # stopped
                 return
-            # a frame that waited for the one before is late: skip its checks to catch up
+            # a frame that waited in the queue for the one before is late: skip its checks to catch up
             limit = float(self._params["late_frame_ms"])
-            checks = not (limit > 0 and (time.perf_counter() - frame.t_recv) * 1e3 > limit)
+            checks = not (limit > 0 and (time.perf_counter() - frame.t_queued) * 1e3 > limit)
             try:
                 with self._lock:
                     self._frame(frame, checks)
