@@ -21,7 +21,7 @@ import torch
 from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import LMConfig
 from nsflow_ros.train.basin import basin_loss
-from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, initial_flow
+from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, initial_flow, load_image
 from nsflow_ros.train.device import resolve_device, resolve_dtype
 from nsflow_ros.train.distill import Teacher, distill_loss
 from nsflow_ros.train.distributed import World, all_mean, broadcast_flag, init_distributed, shard
@@ -496,7 +496,10 @@ def train(
     if world.size > 1:
         ids = [device] if device.type == "cuda" else None
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=ids)
-    teacher = None if cfg.teacher is None else Teacher(cfg.teacher, cfg.spec.d, cfg.spec.in_channels)
+    teacher = None
+    if cfg.teacher is not None:  # a narrower student's components are fitted on the training photos
+        fit = [load_image(name) for name in cfg.images]
+        teacher = Teacher(cfg.teacher, cfg.spec.d, cfg.spec.in_channels, fit)
     # One level from 5 px needs the longer limit; the residual is the training solver's.
     val_lm = LMConfig(levels=1, max_iterations=30, zero_mean=cfg.lm.zero_mean)
     val_sets: dict[str, list[Pair]] = {}

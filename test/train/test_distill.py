@@ -10,7 +10,7 @@ torch = pytest.importorskip("torch")
 from nsflow_ros import load_encoder  # noqa: E402
 from nsflow_ros.train.cli import main  # noqa: E402
 from nsflow_ros.train.data import PairConfig, load_image, make_pair  # noqa: E402
-from nsflow_ros.train.distill import Teacher, distill_loss  # noqa: E402
+from nsflow_ros.train.distill import Teacher, distill_loss, principal_components  # noqa: E402
 from nsflow_ros.train.errors import TrainError  # noqa: E402
 from nsflow_ros.train.export import export_onnx  # noqa: E402
 from nsflow_ros.train.model import Encoder, EncoderSpec  # noqa: E402
@@ -44,6 +44,51 @@ def test_teacher_guards(tmp_path, teacher_path):
         Teacher(tmp_path / "missing.onnx", 2, 1)
     with pytest.raises(TrainError, match="maps 1 -> 2 channels, the student 1 -> 4"):
         Teacher(teacher_path, 4, 1)
+
+
+def test_principal_components_find_the_direction_of_most_variation():
+    rng = np.random.default_rng(0)
+    direction = np.array([0.6, -0.8, 0.0])
+    # pixels spread mostly along `direction`, a little along z, about a mean of (1, 2, 3)
+    spread = np.array([0.0, 0.0, 0.5])
+    pixels = rng.normal(size=(5000, 1)) * 3.0 * direction + rng.normal(size=(5000, 3)) * spread
+    maps = [(pixels + np.array([1.0, 2.0, 3.0])).reshape(50, 100, 3)]
+    top, mean = principal_components(maps, 2)
+    assert top.shape == (2, 3) and mean == pytest.approx([1.0, 2.0, 3.0], abs=0.1)
+    np.testing.assert_allclose(top @ top.T, np.eye(2), atol=1e-9)
+    # the largest weight of each direction is positive: -0.8 -> the sign flips to (-0.6, 0.8, 0)
+    np.testing.assert_allclose(top[0], [-0.6, 0.8, 0.0], atol=0.01)
+    np.testing.assert_allclose(np.abs(top[1]), [0.0, 0.0, 1.0], atol=0.01)
+    with pytest.raises(TrainError, match=r"k must be in \[1, 3\], got 4"):
+        principal_components(maps, 4)
+
+
+def test_a_narrower_student_learns_the_teachers_leading_component(teacher_path):
+    photos = [load_image("astronaut"), load_image("camera")]
+    with pytest.raises(TrainError, match=r"principal components .* images to fit them are needed"):
+        Teacher(teacher_path, 1, 1)
+    teacher = Teacher(teacher_path, 1, 1, photos)
+    full = Teacher(teacher_path, 2, 1)
+    assert teacher.projection is not None and full.projection is None
+    image = load_image("coins")
+    top, mean = teacher.projection
+    expected = np.einsum("dhw,d->hw", full(image).numpy() - mean[:, None, None], top[0])
+    got = teacher(image)
+    assert got.shape == (1, *image.shape)
+    np.testing.assert_allclose(got[0].numpy(), expected, atol=1e-5)
+
+
+def test_the_teacher_gives_its_maps_without_its_declared_smoothing(tmp_path, teacher_path):
+    import onnx
+
+    model = onnx.load(teacher_path)
+    onnx.helper.set_model_props(model, {"smoothing": "1.0,1.0"})
+    smoothed = tmp_path / "smoothed.onnx"
+    onnx.save(model, smoothed)
+    image = load_image("coins")
+    raw = load_encoder(teacher_path)(image)
+    assert load_encoder(smoothed).smoothing.fine == 1.0
+    np.testing.assert_array_equal(Teacher(smoothed, 2, 1)(image).permute(1, 2, 0).numpy(), raw)
 
 
 def test_steps_bring_the_student_to_the_teacher(teacher_path):
