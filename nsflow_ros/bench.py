@@ -368,7 +368,10 @@ def main(args: list[str] | None = None) -> int:
                         help="frames of the 752x480 sequence of the stage benchmark (default 60)")
     parser.add_argument("--points", type=positive_int, default=150,
                         help="GFTT points per frame (default 150)")
-    parser.add_argument("--model", default=None, help="ONNX encoder (default: the shipped model)")
+    parser.add_argument(
+        "--model", default=None,
+        help="ONNX encoder: a file, or a shipped model by name (default, fast; default: default)",
+    )
     parser.add_argument("--threads", type=positive_int, default=2,
                         help="onnxruntime / OpenCV threads (default 2)")
     parser.add_argument("--providers", default="cpu", help="onnxruntime execution providers of the encoder, "
@@ -454,7 +457,8 @@ def main(args: list[str] | None = None) -> int:
 
             node_params = {k: v for k, v in (("opencv_threads", opts.opencv_threads),
                                              ("queue_size", opts.queue_size),
-                                             ("late_frame_ms", opts.late_frame_ms)) if v is not None}
+                                             ("late_frame_ms", opts.late_frame_ms),
+                                             ("model_path", opts.model)) if v is not None}
             res["node_live"] = run_live_benchmark(
                 opts.node_seconds, ("nsflow", "klt"), progress=not opts.json,
                 compress=opts.compress.split(","),

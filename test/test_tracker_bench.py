@@ -45,6 +45,19 @@ def test_every_method_and_mode_is_timed_beside_klt(result):
     assert result["stereo"]["klt"]["stages"]["stereo"] > 0
 
 
+def test_the_fast_model_keeps_klts_track_quality(tmp_path):
+    res = run_tracker_benchmark(4.0, ["nsflow"], ["stereo"], model="fast", cache_dir=tmp_path, threads=1,
+                                opencv_threads=1)
+    fast, klt = res["stereo"]["nsflow"], res["stereo"]["klt"]
+    # as many features carried and matched on the right image, about as accurately (exact flow)
+    assert fast["carried_share"] >= klt["carried_share"] - 0.01
+    assert fast["stereo_matched_share"] >= klt["stereo_matched_share"] - 0.01
+    assert fast["error_median_px"] <= 1.25 * klt["error_median_px"]
+    assert fast["stereo_error_median_px"] <= 1.25 * klt["stereo_error_median_px"]
+    assert fast["error_over_1px_share"] <= klt["error_over_1px_share"] + 0.005
+    assert fast["stereo_error_over_1px_share"] <= klt["stereo_error_over_1px_share"] + 0.005
+
+
 def test_table_has_a_row_per_mode_and_method(result):
     table = format_tracker_table(result)
     rows = [line for line in table.splitlines() if line.startswith(("mono", "stereo"))]

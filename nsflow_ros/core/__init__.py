@@ -8,6 +8,7 @@ from __future__ import annotations
 from nsflow_ros.core.detector import detect_corners
 from nsflow_ros.core.encoder import (
     DEFAULT_MODEL,
+    SHIPPED_MODELS,
     Encoder,
     IntensityEncoder,
     OnnxEncoder,
@@ -31,6 +32,7 @@ from nsflow_ros.core.solver import IterationRecord, Jacobian, LMConfig, TrackRes
 __all__ = [
     "DEFAULT_MODEL",
     "METHODS",
+    "SHIPPED_MODELS",
     "CoreError",
     "DescriptorPyramid",
     "Encoder",

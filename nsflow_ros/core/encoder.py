@@ -22,6 +22,7 @@ from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, Protocol, runtime_checkable
 
 import cv2
@@ -34,16 +35,27 @@ __all__ = [
     "CPU_PROVIDER",
     "DEFAULT_MODEL",
     "PROVIDER_NAMES",
+    "SHIPPED_MODELS",
     "Encoder",
     "ExecutionProviders",
     "IntensityEncoder",
     "OnnxEncoder",
     "encoder_provider",
     "load_encoder",
+    "model_file",
     "to_gray",
 ]
 
 DEFAULT_MODEL = "models/nsflow_encoder.onnx"
+
+SHIPPED_MODELS: Mapping[str, str] = MappingProxyType({
+    "default": DEFAULT_MODEL,
+    "fast": "models/nsflow_encoder_fast.onnx",
+})
+"""The encoders shipped in models/, by the names :func:`load_encoder` (and the node's ``model_path``) takes
+for them: ``default``, the paper's four-channel descriptors; ``fast``, one channel from a far narrower
+network, for a robot whose cores are shared with the estimator: less CPU per frame, at some accuracy under
+changing light (models/README.md)."""
 
 # Pixels per strip of a tiled run: large enough to amortise the halo, small enough to stay in cache.
 TILE_PIXELS = 60_000
@@ -459,17 +471,31 @@ def load_encoder(
     path: str | os.PathLike[str] | None = None, threads: int | None = None, tile_rows: int | None = None,
     smoothing: Smoothing | None = None, providers: ExecutionProviders | str | Sequence[str] | None = None,
 ) -> OnnxEncoder:
-    """Load an ONNX encoder (:class:`OnnxEncoder`); ``path=None`` means the shipped model in models/.
+    """Load an ONNX encoder (:class:`OnnxEncoder`): a file, or a shipped model by its name in
+    :data:`SHIPPED_MODELS`; ``path=None`` means the default one.
 
     Raises:
         EncoderError: naming the path when the model is missing or has the wrong signature, or naming
             the installed providers when none of ``providers`` is.
     """
-    if path is None:
-        from nsflow_ros.resources import ResourceError, share_file
+    return OnnxEncoder(
+        model_file(path), threads=threads, tile_rows=tile_rows, smoothing=smoothing, providers=providers
+    )
 
-        try:
-            path = share_file(DEFAULT_MODEL)
-        except ResourceError as err:
-            raise EncoderError(f"the shipped encoder {DEFAULT_MODEL} is missing: {err}") from err
-    return OnnxEncoder(path, threads=threads, tile_rows=tile_rows, smoothing=smoothing, providers=providers)
+
+def model_file(path: str | os.PathLike[str] | None = None) -> Path:
+    """The file of an encoder: a shipped model's by its name in :data:`SHIPPED_MODELS` (None = the
+    default), else ``path`` itself.
+
+    Raises:
+        EncoderError: a shipped model whose file is missing from the install.
+    """
+    shipped = DEFAULT_MODEL if path is None else SHIPPED_MODELS.get(os.fspath(path))
+    if shipped is None:
+        return Path(path)  # type: ignore[arg-type]
+    from nsflow_ros.resources import ResourceError, share_file
+
+    try:
+        return Path(share_file(shipped))
+    except ResourceError as err:
+        raise EncoderError(f"the shipped encoder {shipped} is missing: {err}") from err

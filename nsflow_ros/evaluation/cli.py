@@ -16,6 +16,7 @@ from pathlib import Path
 
 from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.argtypes import program_name
+from nsflow_ros.core.encoder import model_file
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
@@ -44,7 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--quick", action="store_true", help="tiny sizes: well under a minute, figures not meaningful"
     )
-    parser.add_argument("--model", default=None, help="NSFlow ONNX encoder (default: the shipped model)")
+    parser.add_argument(
+        "--model", default=None,
+        help="NSFlow ONNX encoder: a file, or a shipped model by name (default, fast; default: default)",
+    )
     parser.add_argument("--only", type=_keys, default=[], metavar="KEY[,KEY]", help="run only these analyses")
     parser.add_argument(
         "--skip", type=_keys, default=[], metavar="KEY[,KEY]", help="leave these analyses out"
@@ -72,7 +76,7 @@ def main(args: list[str] | None = None) -> int:
     started = now()
     try:
         analyses = select(opts.only, opts.skip)
-        model = Path(opts.model) if opts.model is not None else None
+        model = model_file(opts.model) if opts.model is not None else None
         if model is not None and not model.is_file():
             raise EvaluationError(f"model file not found: {model}")
         out = Path(opts.out)

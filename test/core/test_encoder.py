@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import onnx
@@ -11,7 +13,14 @@ from onnx_models import conv_encoder, graph_encoder, reference_conv
 
 import nsflow_ros.resources as resources
 from nsflow_ros import EncoderError, IntensityEncoder, OnnxEncoder, Smoothing, load_encoder
-from nsflow_ros.core.encoder import ExecutionProviders, encoder_provider, to_gray
+from nsflow_ros.core.encoder import (
+    DEFAULT_MODEL,
+    SHIPPED_MODELS,
+    ExecutionProviders,
+    encoder_provider,
+    model_file,
+    to_gray,
+)
 from nsflow_ros.core.pyramid import gaussian_kernel
 
 
@@ -123,6 +132,27 @@ def test_default_model_missing_is_a_clear_error(monkeypatch):
     monkeypatch.setattr(resources, "share_file", missing)
     with pytest.raises(EncoderError, match=r"shipped encoder models/nsflow_encoder\.onnx is missing"):
         load_encoder()
+
+
+def test_shipped_models_load_by_name_and_a_file_passes_through(tmp_path):
+    assert set(SHIPPED_MODELS) == {"default", "fast"} and SHIPPED_MODELS["default"] == DEFAULT_MODEL
+    assert model_file() == model_file("default") == resources.share_file(DEFAULT_MODEL)
+    assert model_file("fast") == resources.share_file("models/nsflow_encoder_fast.onnx")
+    path = conv_encoder(tmp_path / "m.onnx")
+    assert model_file(path) == path and model_file(str(path)) == path
+    fast = load_encoder("fast", threads=1)
+    # one channel, smoothed as the default model is
+    assert fast.channels == 1 and fast.smoothing == Smoothing(fine=1.0, coarse=1.0)
+    assert load_encoder(Path("default"), threads=1).channels == 4
+
+
+def test_a_shipped_model_missing_from_the_install_is_named(monkeypatch):
+    def missing(rel):
+        raise resources.ResourceError(f"cannot find shared file {rel} (tried /x)")
+
+    monkeypatch.setattr(resources, "share_file", missing)
+    with pytest.raises(EncoderError, match=r"shipped encoder models/nsflow_encoder_fast\.onnx is missing"):
+        load_encoder("fast")
 
 
 def test_threads_must_be_positive(tmp_path):

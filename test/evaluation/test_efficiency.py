@@ -59,6 +59,8 @@ def test_shipped_and_paper_architectures_match_their_stated_sizes(tmp_path):
     assert shipped.parameters == 166 and shipped.flops == 23_040_000  # models/README.md: 166, 0.023 G
     teacher = ef.onnx_complexity(share_file("models/nsflow_encoder_w8.onnx"))
     assert teacher.parameters == 876 and teacher.flops == 129_024_000  # the paper's shape, width 8
+    fast = ef.onnx_complexity(load_encoder("fast").path)
+    assert fast.parameters == 27 and fast.flops == 3_379_200  # models/README.md: width 1, d 1
     paper = ef.onnx_complexity(paper_encoder_onnx(tmp_path / "paper.onnx", c_in=3, d=3))
     assert paper.parameters == 1003  # bench.paper_encoder_onnx's docstring; the paper reports 1.01e3
 
