@@ -26,6 +26,7 @@ TRACKER_ARGUMENTS = {
     "config_file": "",
     "params_file": "",
     "method": "",
+    "model_path": "",
     "image_transport": "",
     "providers": "",
     "namespace": "",

@@ -21,13 +21,15 @@ from launch import LaunchDescription
 PACKAGE = "nsflow_ros"
 
 # Node parameters (rows of nsflow_ros.vins.settings.SETTINGS) that are launch arguments of the same name.
-NODE_PARAMETERS = ("config_file", "method", "image_transport", "providers")
+NODE_PARAMETERS = ("config_file", "method", "model_path", "image_transport", "providers")
 
 ARGUMENTS = {
     "config_file": ("", "VINS-Fusion / VINS-Mono config file ('' = the params file's, else the shipped EuRoC "
                         "mono config)"),
     "params_file": ("", "ROS 2 params file of the node (config/tracker_params.yaml lists every parameter)"),
     "method": ("", "tracking method: nsflow, nsflow_lk, classical or klt ('' = params file / nsflow)"),
+    "model_path": ("", "encoder of the learned methods: an ONNX file, or a shipped model by name, default or "
+                       "fast (one channel, less CPU beside an estimator) ('' = params file / default)"),
     "image_transport": ("", "raw or compressed ('' = params file / raw)"),
     "providers": ("", "onnxruntime execution providers of the encoder, best first, e.g. cuda,cpu "
                       "('' = params file / cpu)"),

@@ -1,5 +1,6 @@
 """``--providers`` of the tools reaches the encoder's onnxruntime session (nsflow-replay --offline /
---features-bag, nsflow-bench, nsflow-evaluate), and the benchmark prints the provider in use."""
+--features-bag, nsflow-bench, nsflow-evaluate), and the benchmark prints the provider in use; the
+replay's ``--model`` reaches the tracker."""
 
 from __future__ import annotations
 
@@ -32,6 +33,15 @@ def test_replay_tracking_takes_the_providers(seq, tmp_path, capsys, cpu_only, mo
     assert replay_main([str(seq.asl_dir), mode, str(out), "--no-progress", "--providers", "cuda"]) == 1
     err = capsys.readouterr().err.strip()
     assert NONE_INSTALLED in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("mode", ["--offline", "--features-bag"])
+def test_replay_tracking_takes_the_model_by_file_or_shipped_name(seq, tmp_path, capsys, mode):
+    out = tmp_path / ("f.bag" if mode == "--features-bag" else "off")
+    missing = tmp_path / "missing.onnx"
+    assert replay_main([str(seq.asl_dir), mode, str(out), "--no-progress", "--model", str(missing)]) == 1
+    assert "missing.onnx" in capsys.readouterr().err
+    assert replay_main([str(seq.asl_dir), mode, str(out), "--no-progress", "--model", "fast"]) == 0
 
 
 def test_evaluate_takes_the_providers(tmp_path, capsys, cpu_only):

@@ -21,8 +21,8 @@ TRACKER = ROOT / "launch" / "tracker.launch.py"
 REPLAY = ROOT / "launch" / "replay.launch.py"
 RVIZ = ROOT / "rviz" / "nsflow.rviz"
 # What the tracker launch file must offer (the node parameters among them are rows of the table).
-TRACKER_ARGUMENTS = {"config_file", "params_file", "method", "image_transport", "providers", "namespace",
-                     "use_sim_time", "rviz"}
+TRACKER_ARGUMENTS = {"config_file", "params_file", "method", "model_path", "image_transport", "providers",
+                     "namespace", "use_sim_time", "rviz"}
 
 
 def _tree(path: Path) -> ast.Module:

@@ -280,6 +280,11 @@ def _parser() -> argparse.ArgumentParser:
         + " (default nsflow)",
     )
     p.add_argument(
+        "--model", default=None,
+        help="encoder of the learned methods for --offline / --features-bag: an ONNX file, or a shipped "
+        "model by name, default or fast (as the node's model_path parameter; default: default)",
+    )
+    p.add_argument(
         "--providers", default="cpu",
         help="onnxruntime execution providers of the encoder for --offline / --features-bag, best first, "
         "e.g. cuda,cpu (default cpu; as the node's providers parameter)",
@@ -378,7 +383,7 @@ def main(args: list[str] | None = None) -> int:
                 cfg,
                 method=opts.method,
                 fmt=opts.features_bag_format,
-                overrides={"providers": opts.providers},
+                overrides={"providers": opts.providers, "model_path": opts.model or None},
                 progress=not opts.no_progress,
             )
             print(bag.text())
@@ -389,7 +394,8 @@ def main(args: list[str] | None = None) -> int:
             _make_dir(opts.offline)
             summary = run_offline(
                 ropts, opts.offline, config=opts.config, method=opts.method,
-                overrides={"providers": opts.providers}, progress=not opts.no_progress,
+                overrides={"providers": opts.providers, "model_path": opts.model or None},
+                progress=not opts.no_progress,
             )
             print(summary.text())
             return 0
