@@ -13,6 +13,7 @@ tracker, the evaluation and the benchmarks run the same code with the same setti
 from __future__ import annotations
 
 import enum
+import json
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -243,6 +244,17 @@ def klt_track(
     return np.where(ok[:, None], out, pts), ok
 
 
+def _declared_head(encoder: Encoder) -> str | None:
+    """The last-layer activation an ONNX model declares in its metadata ``spec`` (nsflow-train writes it),
+    None when it declares none."""
+    text = getattr(encoder, "metadata", {}).get("spec")
+    try:
+        head = json.loads(text).get("head") if text else None
+    except (ValueError, AttributeError):
+        return None
+    return head if isinstance(head, str) else None
+
+
 def quantise_descriptors(desc: np.ndarray) -> np.ndarray:
     """Descriptors in [0, 1] as uint8 (x 255, rounded, clipped): the input OpenCV's LK takes.
 
@@ -453,7 +465,8 @@ class DescriptorKLTMethod(KLTMethod):
     window costs more than it gives on OpenCV's 21x21 one (models/README.md).
 
     Raises:
-        CoreError: an encoder that smooths its maps.
+        CoreError: an encoder that smooths its maps, or whose model declares unbounded descriptors (a
+            head other than sigmoid in its metadata ``spec``, as the fast model), which uint8 would fold.
     """
 
     def __init__(self, spec: MethodSpec, encoder: Encoder) -> None:
@@ -462,6 +475,13 @@ class DescriptorKLTMethod(KLTMethod):
             raise CoreError(
                 f"{spec.name} tracks unsmoothed descriptors, but the encoder smooths them "
                 f"({encoder.smoothing}); load it with smoothing=Smoothing()"
+            )
+        head = _declared_head(encoder)
+        if head not in (None, "sigmoid"):
+            raise CoreError(
+                f"{spec.name} quantises descriptors in [0, 1] to uint8, but the model "
+                f"{getattr(encoder, 'path', '')} declares head {head!r} (unbounded descriptors); track its "
+                "descriptors with method 'nsflow'"
             )
         self.encoder = encoder
 

@@ -192,7 +192,8 @@ SETTINGS: tuple[Setting, ...] = (
         "ONNX encoder of the learned methods ('nsflow', 'nsflow_lk'): a file, or a model shipped in the "
         "package's models/ folder by name: '' or 'default' (the paper's four-channel descriptors) or 'fast' "
         "(one channel from a far narrower network: less CPU per frame beside an estimator, somewhat less "
-        "accurate under changing light). Its maps are smoothed as its metadata 'smoothing' declares.",
+        "accurate under changing light; 'nsflow' only). Its maps are smoothed as its metadata 'smoothing' "
+        "declares.",
         tracker=True, session=True, none_value=""),
     Setting(
         "max_cnt", KEEP, Mode.LIVE, "Most features kept per image (VINS max_cnt, >= 1).", unit="features",

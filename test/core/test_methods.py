@@ -48,6 +48,14 @@ def _corners(img, n=60):
     return detect_corners(to_gray(img), n, min_distance=15)
 
 
+def test_opencvs_lk_refuses_unbounded_descriptors_it_would_fold_into_uint8():
+    folded = r"nsflow_lk quantises .*nsflow_encoder_fast\.onnx declares head 'none'"
+    with pytest.raises(CoreError, match=folded):
+        make_method("nsflow_lk", model_path="fast")
+    assert isinstance(make_method("nsflow", model_path="fast"), LMMethod)  # the LM solver takes any range
+    assert make_method("nsflow_lk").encoder.metadata["spec"]  # the default model declares its sigmoid head
+
+
 def test_registry_builds_each_method_once_by_name(tmp_path):
     assert set(METHODS) == {"nsflow", "classical", "klt", "nsflow_lk"}
     assert isinstance(make_method("classical"), LMMethod)
