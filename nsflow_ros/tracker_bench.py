@@ -20,6 +20,7 @@ import numpy as np
 
 from nsflow_ros import threads as process_threads
 from nsflow_ros.core.encoder import encoder_provider
+from nsflow_ros.core.errors import UnsupportedEncoderError
 from nsflow_ros.core.methods import BASELINE, METHODS
 from nsflow_ros.core.tracker import FeatureTracker
 from nsflow_ros.data.scoring import FrameQuality
@@ -127,13 +128,20 @@ def run_tracker_benchmark(
         seq = make_sample_sequence(root, seed=seed, duration=duration, stereo=True, formats=("asl",),
                                    progress=progress)
         runs: dict[str, dict[str, _Run]] = {}
+        left_out: dict[str, str] = {}
         for mode in modes:
             cfg = load_vins_config(share_file(CONFIGS[mode]))
             over: dict[str, Any] = {"stereo": mode == "stereo", "num_threads": threads,
                                     "providers": providers}
             if model is not None:
                 over["model_path"] = model
-            runs[mode] = {m: _Run(tracker_from_config(cfg, {**over, "method": m})) for m in names}
+            runs[mode] = {}
+            for m in names:
+                try:
+                    runs[mode][m] = _Run(tracker_from_config(cfg, {**over, "method": m}))
+                except UnsupportedEncoderError as err:  # e.g. OpenCV's LK and unbounded descriptors
+                    left_out[m] = str(err)
+        names = [m for m in names if m not in left_out]
         frames = range(len(seq))
         if progress:
             from nsflow_ros.progress import progress_bar
@@ -152,7 +160,8 @@ def run_tracker_benchmark(
         if tmp is not None:
             tmp.cleanup()
     out: dict[str, Any] = {"setup": {"frames": len(seq), "size": [752, 480], "duration_s": duration,
-                                     "methods": names, "modes": list(modes), "interleaved": True,
+                                     "methods": names, "left_out": left_out, "modes": list(modes),
+                                     "interleaved": True,
                                      "configs": {m: CONFIGS[m] for m in modes},
                                      "encoder_provider": _provider(runs),
                                      "encoder_threads": threads, "opencv_threads": used_cv}}
@@ -180,6 +189,7 @@ def format_tracker_table(res: dict[str, Any]) -> str:
         f"{s['size'][0]}x{s['size'][1]} of the sample sequence, methods interleaved; encoder on "
         f"{s.get('encoder_provider', 'none')}, encoder threads "
         f"{'all cores' if threads is None else threads}, OpenCV threads {s.get('opencv_threads', '?')}",
+        *(f"left out: {why}" for why in s.get("left_out", {}).values()),
         "",
         f"{'mode':7s}{'method':11s}{'median ms':>10s}{'p90 ms':>8s}{'x klt':>7s}{'CPU ms':>8s}{'x klt':>7s}"
         f"{'carried':>9s}{'err px':>8s}{'>1px':>7s}{'stereo':>8s}{'s.err px':>9s}{'s.>1px':>7s}"

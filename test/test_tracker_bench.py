@@ -58,6 +58,14 @@ def test_the_fast_model_keeps_klts_track_quality(tmp_path):
     assert fast["stereo_error_over_1px_share"] <= klt["stereo_error_over_1px_share"] + 0.005
 
 
+def test_a_method_that_cannot_take_the_model_is_left_out_and_said(tmp_path):
+    res = run_tracker_benchmark(0.2, ["nsflow_lk", "nsflow"], ["mono"], model="fast", cache_dir=tmp_path,
+                                threads=1, opencv_threads=1)
+    assert res["setup"]["methods"] == ["nsflow", "klt"] and set(res["mono"]) == {"nsflow", "klt"}
+    assert "unbounded descriptors" in res["setup"]["left_out"]["nsflow_lk"]
+    assert "left out: nsflow_lk quantises" in format_tracker_table(res)
+
+
 def test_table_has_a_row_per_mode_and_method(result):
     table = format_tracker_table(result)
     rows = [line for line in table.splitlines() if line.startswith(("mono", "stereo"))]

@@ -15,7 +15,7 @@ from nsflow_ros.core.encoder import (
     load_encoder,
     to_gray,
 )
-from nsflow_ros.core.errors import CoreError, EncoderError
+from nsflow_ros.core.errors import CoreError, EncoderError, UnsupportedEncoderError
 from nsflow_ros.core.methods import (
     METHODS,
     MethodSpec,
@@ -49,6 +49,7 @@ __all__ = [
     "Solver",
     "TrackResult",
     "TrackingMethod",
+    "UnsupportedEncoderError",
     "build_pyramid",
     "detect_corners",
     "klt_track",

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
-from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
@@ -465,8 +465,9 @@ class DescriptorKLTMethod(KLTMethod):
     window costs more than it gives on OpenCV's 21x21 one (models/README.md).
 
     Raises:
-        CoreError: an encoder that smooths its maps, or whose model declares unbounded descriptors (a
-            head other than sigmoid in its metadata ``spec``, as the fast model), which uint8 would fold.
+        CoreError: an encoder that smooths its maps.
+        UnsupportedEncoderError: a model that declares unbounded descriptors (a head other than sigmoid in
+            its metadata ``spec``, as the fast model), which uint8 would fold.
     """
 
     def __init__(self, spec: MethodSpec, encoder: Encoder) -> None:
@@ -478,7 +479,7 @@ class DescriptorKLTMethod(KLTMethod):
             )
         head = _declared_head(encoder)
         if head not in (None, "sigmoid"):
-            raise CoreError(
+            raise UnsupportedEncoderError(
                 f"{spec.name} quantises descriptors in [0, 1] to uint8, but the model "
                 f"{getattr(encoder, 'path', '')} declares head {head!r} (unbounded descriptors); track its "
                 "descriptors with method 'nsflow'"

@@ -20,7 +20,7 @@ from nsflow_ros.core.encoder import model_file
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
-from nsflow_ros.evaluation.methods import default_methods
+from nsflow_ros.evaluation.methods import usable_methods
 from nsflow_ros.evaluation.registry import ANALYSES, select
 from nsflow_ros.evaluation.report import command_line, machine_info, now, run_analyses, write_report
 
@@ -84,9 +84,12 @@ def main(args: list[str] | None = None) -> int:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise EvaluationError(f"cannot create the report folder {out}: {err}") from err
+        methods, left_out = usable_methods(str(model) if model else None, threads=opts.threads,
+                                           providers=opts.providers)
+        for why in left_out.values():
+            print(f"nsflow-evaluate: left out {why}", file=sys.stderr)
         ctx = EvalContext(
-            methods=default_methods(str(model) if model else None, threads=opts.threads,
-                                    providers=opts.providers),
+            methods=methods,
             model=model,
             quick=opts.quick,
             out_dir=out,
@@ -96,9 +99,9 @@ def main(args: list[str] | None = None) -> int:
             providers=opts.providers,
         )
         result = run_analyses(ctx, analyses)
-        report, _ = write_report(
-            out, result, machine_info(model), command_line(args), started, quick=opts.quick
-        )
+        info = machine_info(model)
+        info["left_out"] = left_out
+        report, _ = write_report(out, result, info, command_line(args), started, quick=opts.quick)
     except NSFlowError as err:
         print(f"nsflow-evaluate: {err}", file=sys.stderr)
         return 1

@@ -297,10 +297,11 @@ def _time_encoders(ctx: EvalContext, encoders: dict[str, Encoder], repeats: int,
 def _time_trackers(
     ctx: EvalContext, source: sequences.FrameSource, count: int, setup: sequences.SequenceSetup
 ) -> dict[str, dict[str, dict[str, float]]]:
-    """The whole tracker's stage times on the first ``count`` frames, per method of the sequences analysis."""
+    """The whole tracker's stage times on the first ``count`` frames, per compared method."""
     frames = [source.image(i) for i in range(count)]
     settings = setup.tracker_settings(ctx)
-    kinds = sequences.TRACKER_METHODS
+    known = sequences.TRACKER_METHODS
+    kinds = {m.name: known[m.name] for m in ctx.methods if m.name in known}
     encoders = sequences.method_encoders(ctx, list(kinds))
     tracker_times: dict[str, dict[str, dict[str, float]]] = {}
     for name in ctx.bar(list(kinds), desc="efficiency: tracker", unit="method"):

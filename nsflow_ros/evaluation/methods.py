@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from nsflow_ros.core.encoder import Encoder, to_gray
-from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.methods import (
     DEPLOYED_LM,
     METHODS,
@@ -27,7 +27,7 @@ from nsflow_ros.core.methods import (
     method_encoder,
 )
 from nsflow_ros.core.solver import LMConfig
-from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.errors import EvaluationError, MethodLeftOutError
 
 __all__ = [
     "BASELINES",
@@ -46,6 +46,7 @@ __all__ = [
     "default_methods",
     "eval_method",
     "prepare_pair",
+    "usable_methods",
 ]
 
 NSFLOW = METHODS["nsflow"].label
@@ -294,6 +295,7 @@ def eval_method(
 
     Raises:
         EvaluationError: an unknown label, bad levels, or a model that cannot be loaded.
+        MethodLeftOutError: the method cannot track this model's descriptors.
     """
     variant = VARIANTS.get(label)
     if variant is None:
@@ -305,6 +307,8 @@ def eval_method(
     try:
         enc = encoder if encoder is not None else method_encoder(spec, model, threads, providers)
         core = make_method(spec, encoder=enc)
+    except UnsupportedEncoderError as err:
+        raise MethodLeftOutError(f"{label}: {err}") from err
     except CoreError as err:
         raise EvaluationError(f"{label}: {err}") from err
     if spec.is_lm:
@@ -324,3 +328,24 @@ def default_methods(
         eval_method(label, levels=levels, model=model, threads=threads, providers=providers)
         for label in METHOD_ORDER
     ]
+
+
+def usable_methods(
+    model: str | None = None, levels: int | None = None, threads: int | None = None, providers: str = "cpu"
+) -> tuple[list[EvalMethod], dict[str, str]]:
+    """:func:`default_methods` less those that cannot track ``model``'s descriptors (OpenCV's LK and a
+    model of unbounded descriptors), and why each was left out, by label.
+
+    Raises:
+        EvaluationError: bad levels, or the model cannot be loaded.
+    """
+    methods: list[EvalMethod] = []
+    left_out: dict[str, str] = {}
+    for label in METHOD_ORDER:
+        try:
+            method = eval_method(label, levels=levels, model=model, threads=threads, providers=providers)
+        except MethodLeftOutError as err:
+            left_out[label] = str(err)
+            continue
+        methods.append(method)
+    return methods, left_out

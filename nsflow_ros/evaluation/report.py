@@ -139,6 +139,7 @@ def render_report(
         f"- software: Python {info['python']}, NumPy {info['numpy']}, OpenCV {info['opencv']}, "
         f"onnxruntime {info['onnxruntime']}; git {info['git_commit']}",
         f"- NSFlow encoder: {info['model']}",
+        *(f"- left out: {why}" for why in info.get("left_out", {}).values()),
         "",
     ]
     if quick:

@@ -60,6 +60,21 @@ def test_given_model_is_used_and_named(tmp_path):
     assert str(model) in (out / "report.md").read_text()
 
 
+def test_a_shipped_model_by_name_and_a_method_that_cannot_take_it_left_out_and_said(tmp_path, capsys):
+    out = tmp_path / "ev"
+    args = ["--quick", "--out", str(out), "--only", "pairs,efficiency", "--model", "fast", "--no-progress"]
+    assert cli.main(args) == 0  # the fast model's unbounded descriptors: OpenCV's LK cannot track them
+    report = (out / "report.md").read_text()
+    assert "nsflow_encoder_fast.onnx" in report
+    assert "- left out: NSFlow + OpenCV LK: nsflow_lk quantises descriptors" in report
+    assert "left out NSFlow + OpenCV LK" in capsys.readouterr().err
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["machine"]["left_out"]) == {"NSFlow + OpenCV LK"} and not results["failures"]
+    # the other methods still ran; the one left out has no values
+    row = next(r for r in results["headline"] if r["section"] == "pairs")
+    assert "NSFlow + OpenCV LK" not in row["values"] and row["values"]["OpenCV KLT"] != "-"
+
+
 def test_a_failing_analysis_is_reported_and_the_others_still_run(tmp_path):
     def broken(ctx):
         raise EvaluationError("no data for this one")

@@ -13,7 +13,7 @@ from image_pairs import texture, warp_pair
 from nsflow_ros.core import methods as core
 from nsflow_ros.evaluation import methods as ev
 from nsflow_ros.evaluation import sequences
-from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.evaluation.errors import EvaluationError, MethodLeftOutError
 from nsflow_ros.evaluation.pairs import endpoint_errors, inside, keypoints, true_flow
 
 SHIFT = np.array([[1.0, 0.0, 3.2], [0.0, 1.0, -2.1], [0.0, 0.0, 1.0]])
@@ -123,3 +123,13 @@ def test_guards(methods, pair):
         klt.with_iterations(0)
     with pytest.raises(EvaluationError, match="unknown method"):
         ev.eval_method("SIFT")
+
+
+def test_usable_methods_leave_out_only_what_cannot_take_the_model():
+    methods, left_out = ev.usable_methods(threads=1)
+    assert [m.name for m in methods] == list(ev.METHOD_ORDER) and left_out == {}
+    methods, left_out = ev.usable_methods("fast", threads=1)
+    assert [m.name for m in methods] == [n for n in ev.METHOD_ORDER if n != ev.NSFLOW_LK]
+    assert set(left_out) == {ev.NSFLOW_LK} and "unbounded descriptors" in left_out[ev.NSFLOW_LK]
+    with pytest.raises(MethodLeftOutError, match="NSFlow \\+ OpenCV LK: nsflow_lk quantises"):
+        ev.eval_method(ev.NSFLOW_LK, model="fast")
