@@ -133,6 +133,8 @@ def test_bad_updates_are_refused_and_change_nothing(tmp_path, pan):
         s.update(method="nope")
     with pytest.raises(ConfigError, match="use_imu_prediction"):
         s.update(use_imu_prediction=True)
+    with pytest.raises(Exception, match="unbounded descriptors"):  # OpenCV's LK and the fast model
+        s.update(method="nsflow_lk", model_path="fast")
     assert s.tracker is tracker and s.tracker.settings == settings and s.settings == {"method": "classical"}
     assert s.update(F_threshold=2) == ["F_threshold is now 2.0"]  # an integer where a number is expected
 
