@@ -372,8 +372,9 @@ def main(args: list[str] | None = None) -> int:
         "--model", default=None,
         help="ONNX encoder: a file, or a shipped model by name (default, fast; default: default)",
     )
-    parser.add_argument("--threads", type=positive_int, default=2,
-                        help="onnxruntime / OpenCV threads (default 2)")
+    parser.add_argument("--threads", type=positive_int, default=None,
+                        help="encoder (onnxruntime) threads: 2 by default in the tracker and stage runs; "
+                        "given, also the node runs' num_threads (default there: the node's, all cores)")
     parser.add_argument("--providers", default="cpu", help="onnxruntime execution providers of the encoder, "
                         "best first, e.g. tensorrt,cuda,cpu (default cpu; as the node's providers parameter)")
     parser.add_argument("--json", action="store_true", help="print the figures as one JSON object")
@@ -439,6 +440,7 @@ def main(args: list[str] | None = None) -> int:
         "320x240 frames, mono and stereo; 10000 takes several minutes (default 0 = skip)",
     )
     opts = parser.parse_args(args)
+    node_threads, opts.threads = opts.threads, opts.threads or 2
     heap = False if opts.system_malloc else keep_large_buffers()
     try:
         res: dict[str, Any] = {}
@@ -458,7 +460,8 @@ def main(args: list[str] | None = None) -> int:
             node_params = {k: v for k, v in (("opencv_threads", opts.opencv_threads),
                                              ("queue_size", opts.queue_size),
                                              ("late_frame_ms", opts.late_frame_ms),
-                                             ("model_path", opts.model)) if v is not None}
+                                             ("model_path", opts.model),
+                                             ("num_threads", node_threads)) if v is not None}
             res["node_live"] = run_live_benchmark(
                 opts.node_seconds, ("nsflow", "klt"), progress=not opts.json,
                 compress=opts.compress.split(","),

@@ -55,9 +55,11 @@ def test_node_options_reach_the_node_runs_as_parameters(monkeypatch, capsys):
     monkeypatch.setattr(bench_live, "run_live_benchmark", fake_run)
     monkeypatch.setattr(bench_live, "format_live_table", lambda res: "")
     args = ["--tracker-seconds", "0", "--no-stages", "--node-seconds", "1", "--json"]
-    extra = ["--queue-size", "2", "--late-frame-ms", "0", "--opencv-threads", "1", "--model", "fast"]
+    extra = ["--queue-size", "2", "--late-frame-ms", "0", "--opencv-threads", "1", "--model", "fast",
+             "--threads", "1"]
     assert main([*args, *extra]) == 0
-    assert seen == {"queue_size": 2, "late_frame_ms": 0.0, "opencv_threads": 1, "model_path": "fast"}
+    assert seen == {"queue_size": 2, "late_frame_ms": 0.0, "opencv_threads": 1, "model_path": "fast",
+                    "num_threads": 1}
     seen.clear()
     assert main(args) == 0
     assert seen == {}  # the node's own defaults
