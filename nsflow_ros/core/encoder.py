@@ -15,6 +15,7 @@ its output, the LM methods ``coarse`` to the pyramid's coarser levels.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -280,6 +281,8 @@ class OnnxEncoder:
         if smoothing is not None and not isinstance(smoothing, Smoothing):
             raise EncoderError(f"smoothing must be a Smoothing or None, got {smoothing!r}")
         self.smoothing = self._declared_smoothing() if smoothing is None else smoothing
+        # The last layer's activation (nsflow-train's metadata 'spec'); None when undeclared.
+        self.head: str | None = self._declared_head()
         fine = self.smoothing.fine
         self._kernel = gaussian_kernel(fine) if fine > 0 else None
         self.halo: int | None = None if tile_rows == 0 else self._local_halo()
@@ -360,6 +363,13 @@ class OnnxEncoder:
         except (ValueError, CoreError) as err:
             msg = f"{self.path}: metadata 'smoothing' must be 'fine,coarse' (two sigmas >= 0), got {text!r}"
             raise EncoderError(msg) from err
+
+    def _declared_head(self) -> str | None:
+        try:
+            head = json.loads(self.metadata["spec"]).get("head")
+        except (KeyError, ValueError, AttributeError):
+            return None
+        return head if isinstance(head, str) else None
 
     def _planes(self, out: np.ndarray, rows: slice) -> list[np.ndarray]:
         """The (h, w) planes of an encoder output (1, d, h, w), smoothed as declared, cut to ``rows``."""
@@ -496,6 +506,6 @@ def model_file(path: str | os.PathLike[str] | None = None) -> Path:
     from nsflow_ros.resources import ResourceError, share_file
 
     try:
-        return Path(share_file(shipped))
+        return share_file(shipped)
     except ResourceError as err:
         raise EncoderError(f"the shipped encoder {shipped} is missing: {err}") from err

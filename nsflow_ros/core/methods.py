@@ -13,7 +13,6 @@ tracker, the evaluation and the benchmarks run the same code with the same setti
 from __future__ import annotations
 
 import enum
-import json
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -244,17 +243,6 @@ def klt_track(
     return np.where(ok[:, None], out, pts), ok
 
 
-def _declared_head(encoder: Encoder) -> str | None:
-    """The last-layer activation an ONNX model declares in its metadata ``spec`` (nsflow-train writes it),
-    None when it declares none."""
-    text = getattr(encoder, "metadata", {}).get("spec")
-    try:
-        head = json.loads(text).get("head") if text else None
-    except (ValueError, AttributeError):
-        return None
-    return head if isinstance(head, str) else None
-
-
 def quantise_descriptors(desc: np.ndarray) -> np.ndarray:
     """Descriptors in [0, 1] as uint8 (x 255, rounded, clipped): the input OpenCV's LK takes.
 
@@ -477,7 +465,7 @@ class DescriptorKLTMethod(KLTMethod):
                 f"{spec.name} tracks unsmoothed descriptors, but the encoder smooths them "
                 f"({encoder.smoothing}); load it with smoothing=Smoothing()"
             )
-        head = _declared_head(encoder)
+        head = getattr(encoder, "head", None)  # declared by an ONNX model's metadata
         if head not in (None, "sigmoid"):
             raise UnsupportedEncoderError(
                 f"{spec.name} quantises descriptors in [0, 1] to uint8, but the model "

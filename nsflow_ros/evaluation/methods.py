@@ -323,11 +323,12 @@ def default_methods(
 
     Raises:
         EvaluationError: bad levels, or the model cannot be loaded.
+        MethodLeftOutError: a method cannot track this model's descriptors.
     """
-    return [
-        eval_method(label, levels=levels, model=model, threads=threads, providers=providers)
-        for label in METHOD_ORDER
-    ]
+    methods, left_out = usable_methods(model, levels, threads, providers)
+    if left_out:
+        raise MethodLeftOutError(next(iter(left_out.values())))
+    return methods
 
 
 def usable_methods(
