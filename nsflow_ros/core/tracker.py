@@ -14,6 +14,11 @@ same code for every method, so that differences between methods come from the fl
 6. undistorted points from the camera model; velocities against the previous frame, 0 for new ids;
 7. stereo: left -> right, the border check and a right -> left back-check; right points reuse the left ids.
 
+With ``downsample`` d > 1 (:mod:`nsflow_ros.core.downsample`) all of this runs on the images decimated by d,
+with the cameras scaled inside and ``min_dist`` divided by d (the features keep their full-resolution
+layout; the 0.5 px flow-back and 1 px border checks stay in tracking pixels, where the solver works), and
+the output's pixels, undistorted points and velocities are in the full-resolution calibration.
+
 Each image's representation (descriptor pyramid, gray image) is computed once for every solve it is in.
 """
 
@@ -31,6 +36,13 @@ import numpy as np
 
 from nsflow_ros.core.camera import CameraModel
 from nsflow_ros.core.detector import detect_corners
+from nsflow_ros.core.downsample import (
+    check_downsample,
+    downsample_camera,
+    downsample_image,
+    downsample_mask,
+    to_full_resolution,
+)
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import body_to_camera_rotation, integrate_gyro, predict_pixels
@@ -62,7 +74,7 @@ PREDICTION_MIN_TRACKED = 10
 
 REBUILD_FIELDS = frozenset({
     "method", "model_path", "num_threads", "providers", "tensorrt_fp16", "tensorrt_cache",  # the encoder
-    "equalize", "stereo",  # the image preparation, the cameras
+    "equalize", "stereo", "downsample",  # the image preparation, the cameras
 })
 """Settings the tracker's method or image preparation is built from: changing one needs a new tracker."""
 
@@ -88,6 +100,7 @@ class TrackerSettings:
         providers: the learned encoder's onnxruntime execution providers, best first, comma-separated.
         tensorrt_fp16: let TensorRT build half-precision engines.
         tensorrt_cache: folder of TensorRT's engine cache; None = no cache.
+        downsample: track on images decimated by this factor (1, 2 or 4), publish at full resolution.
 
     Raises:
         CoreError: an unknown method or an out-of-range value.
@@ -107,8 +120,10 @@ class TrackerSettings:
     providers: str = "cpu"
     tensorrt_fp16: bool = False
     tensorrt_cache: str | None = None
+    downsample: int = 1
 
     def __post_init__(self) -> None:
+        check_downsample(self.downsample)
         if self.method not in METHODS:
             raise CoreError(f"method must be one of {tuple(METHODS)}, got {self.method!r}")
         if self.max_cnt < 1:
@@ -172,7 +187,7 @@ class FrameFeatures:
     Attributes:
         stamp: the frame's time in seconds.
         cameras: camera 0, then camera 1 for stereo.
-        image_size: (width, height) of the images.
+        image_size: (width, height) of the images (full resolution, as given).
         timings: wall time of the stages in milliseconds (encode, track, detect, stereo, total).
         cpu_timings: the process's CPU time over all its threads in the same stages, in milliseconds.
     """
@@ -327,8 +342,13 @@ class FeatureTracker:
         method: the tracking method, already built (:func:`~nsflow_ros.core.methods.make_method`); its
             name must be ``settings.method``. None = built here from ``settings`` (and ``encoder``).
         body_R_cam0: rotation camera 0 -> IMU body (VINS ``body_T_cam0[:3, :3]``); None = identity.
-        mask: camera 0's static (fisheye) mask, uint8 (H, W), 255 where features may be: tracked points
-            on 0 are dropped and no corner is detected there (VINS-Mono ``setMask``). None = everywhere.
+        mask: camera 0's static (fisheye) mask, uint8 (H, W) at full resolution, 255 where features may
+            be: tracked points on 0 are dropped and no corner is detected there (VINS-Mono ``setMask``).
+            None = everywhere.
+
+    Attributes:
+        full_cameras: the cameras as given (full resolution), in which the output is.
+        cameras: the cameras at the tracking resolution (``full_cameras`` when ``downsample`` is 1).
 
     Raises:
         CoreError: on inconsistent settings, cameras, mask or method.
@@ -346,7 +366,8 @@ class FeatureTracker:
         method: TrackingMethod | None = None,
     ) -> None:
         self.settings = settings or TrackerSettings()
-        self.cameras = tuple(cameras)
+        self.full_cameras = tuple(cameras)
+        self.cameras = self.full_cameras
         need = 2 if self.settings.stereo else 1
         if len(self.cameras) < need:
             mode = "stereo" if need == 2 else "mono"
@@ -361,6 +382,8 @@ class FeatureTracker:
                     f"stereo cameras differ in size: cam0 {c0.width}x{c0.height}, cam1 {c1.width}x{c1.height}"
                 )
         s = self.settings
+        self._down = s.downsample
+        self.cameras = tuple(downsample_camera(c, self._down) for c in self.full_cameras)
         # The method is chosen here, once; every solve below is method-blind.
         if method is None:
             method = make_method(
@@ -377,7 +400,8 @@ class FeatureTracker:
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")
         self._clahe = method.spec.clahe.create() if s.equalize else None
-        self.mask = None if mask is None else _check_mask(mask, self.cameras[0])
+        self.mask = None if mask is None else downsample_mask(_check_mask(mask, self.full_cameras[0]),
+                                                              self._down)
         self._next_id = 0
         self.reset()
 
@@ -428,7 +452,9 @@ class FeatureTracker:
     # -- helpers ---------------------------------------------------------------------------------------
 
     def _prepare(self, image: np.ndarray, name: str) -> tuple[np.ndarray, Any]:
-        """Return (gray for detection, the method's representation of the image)."""
+        """Return (gray for detection, the method's representation of the image), at the tracking
+        resolution."""
+        image = downsample_image(image, self._down)
         try:
             gray = to_gray(image)
         except CoreError as err:
@@ -484,7 +510,7 @@ class FeatureTracker:
         w, h = size
         mask = np.full((h, w), 255, np.uint8) if self.mask is None else self.mask.copy()
         order = np.argsort(-counts, kind="stable")
-        radius = round(self.settings.min_dist)
+        radius = round(self._min_dist)
         keep: list[int] = []
         for i in order:
             x, y = int(np.rint(pts[i, 0])), int(np.rint(pts[i, 1]))
@@ -506,7 +532,7 @@ class FeatureTracker:
                 got = f"{img.dtype} {img.shape}" if isinstance(img, np.ndarray) else type(img).__name__
                 raise CoreError(f"{name} must be a uint8 (H, W) or (H, W, 3) array, got {got}")
         h, w = image0.shape[:2]
-        cam = self.cameras[0]
+        cam = self.full_cameras[0]
         if (w, h) != (cam.width, cam.height):
             raise CoreError(
                 f"image0 is {w}x{h} but camera 0 ({cam.name}) is calibrated for {cam.width}x{cam.height}"
@@ -551,7 +577,7 @@ class FeatureTracker:
         wanted = s.max_cnt - tracks.ids.size
         if wanted <= 0:
             return tracks
-        new = detect_corners(gray0, wanted, quality=GFTT_QUALITY, min_distance=s.min_dist, mask=mask)
+        new = detect_corners(gray0, wanted, quality=GFTT_QUALITY, min_distance=self._min_dist, mask=mask)
         k = new.shape[0]
         ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
         self._next_id += k
@@ -560,7 +586,11 @@ class FeatureTracker:
     def _lift(self, camera: int, tracks: _Tracks, before: CameraFeatures, dt: float) -> CameraFeatures:
         """Step 6: undistorted points and velocities against ``before``."""
         pts = tracks.pixels
-        un = self.cameras[camera].lift(pts) if pts.size else np.zeros((0, 2))
+        if self._down == 1:
+            un = self.cameras[camera].lift(pts) if pts.size else np.zeros((0, 2))
+        else:  # the full-resolution calibration, so the estimator's config applies as it is
+            full = to_full_resolution(pts, self._down)
+            un = self.full_cameras[camera].lift(full) if pts.size else np.zeros((0, 2))
         vel = _velocities(tracks.ids, un, before.ids, before.undistorted, dt)
         return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous)
 
@@ -596,6 +626,19 @@ class FeatureTracker:
                 "(call reset() to start over, e.g. when a bag loops)"
             )
 
+    @property
+    def _min_dist(self) -> float:
+        """``min_dist`` in tracking pixels: the same feature layout as at full resolution."""
+        return self.settings.min_dist / self._down
+
+    def _full_resolution(self, cam: CameraFeatures) -> CameraFeatures:
+        """A camera's features with pixels in full-resolution pixels (points and velocities already are)."""
+        if self._down == 1:
+            return cam
+        d = self._down
+        return replace(cam, pixels=to_full_resolution(cam.pixels, d),
+                       previous=to_full_resolution(cam.previous, d))
+
     # -- main entry ------------------------------------------------------------------------------------
 
     def process(
@@ -625,7 +668,8 @@ class FeatureTracker:
         """
         t_start, c_start = time.perf_counter(), time.process_time()
         self._check_stamp(stamp)
-        size = self._check_images(image0, image1)
+        full_size = self._check_images(image0, image1)
+        size = (self.cameras[0].width, self.cameras[0].height)  # where the tracking happens
         timings: dict[str, float] = {}
         cpu: dict[str, float] = {}
         predicted = self._predict(gyro, stamp)  # before any state changes: may raise on bad samples
@@ -645,5 +689,5 @@ class FeatureTracker:
         self._commit(stamp, frame0, left, right)
         timings["total"] = (time.perf_counter() - t_start) * 1e3
         cpu["total"] = (time.process_time() - c_start) * 1e3
-        cams = (left,) if right is None else (left, right)
-        return FrameFeatures(float(stamp), cams, size, timings, cpu)
+        cams = tuple(self._full_resolution(c) for c in ((left,) if right is None else (left, right)))
+        return FrameFeatures(float(stamp), cams, full_size, timings, cpu)

@@ -19,7 +19,16 @@ from nsflow_ros.data.motion import (
     rotation_to_quaternion,
     synthesize_imu,
 )
-from nsflow_ros.data.perturb import LEVELS, IlluminationPerturber, PerturbLevel, perturb_pair, perturb_records
+from nsflow_ros.data.perturb import (
+    LEVELS,
+    PERTURBATIONS,
+    DarkPerturber,
+    IlluminationPerturber,
+    PerturbLevel,
+    make_perturber,
+    perturb_pair,
+    perturb_records,
+)
 from nsflow_ros.data.records import ImageRecord, ImuRecord, RawMessage, Record
 from nsflow_ros.data.sample import SampleSequence, make_sample_sequence
 from nsflow_ros.data.scene import Rendered, Renderer, Scene, flow_between, ray_depth
@@ -41,8 +50,10 @@ __all__ = [
     "IMU_TOPICS",
     "LEVELS",
     "NO_IMU_NOISE",
+    "PERTURBATIONS",
     "AslWriter",
     "BagWriter",
+    "DarkPerturber",
     "DataError",
     "IlluminationPerturber",
     "ImageRecord",
@@ -63,6 +74,7 @@ __all__ = [
     "detect_kind",
     "flow_between",
     "image_message",
+    "make_perturber",
     "make_sample_sequence",
     "perturb_pair",
     "perturb_records",

@@ -1,4 +1,4 @@
-"""Illumination perturbation of image streams (evaluation) and of image pairs (training).
+"""Perturbations of image streams (evaluation, replay, benchmark) and of image pairs (training).
 
 Evaluation follows the NSFlow paper's EuRoC experiment: ``I'(t) = clip(a(t) * I + b(t), 0, 255)`` with a
 gain ``a(t) = exp(g * s_a(t))`` and an offset ``b(t) = B * s_b(t)``, each ``s(t) = tanh(z(t))`` where
@@ -8,13 +8,22 @@ of ``(seed, t)``, so any frame can be perturbed on its own and replays are repro
 Levels (:data:`LEVELS`): ``small`` gain (0.78, 1.28) = exp(+-0.25), offset (-20, 20) gray levels,
 sinusoids of 0.05 - 0.4 Hz; ``large`` gain (0.50, 2.01) = exp(+-0.7), offset (-60, 60), 0.1 - 0.6 Hz;
 ``none`` returns the image unchanged. For 16-bit images the offset is scaled by 257.
+
+``dark`` (:class:`DarkPerturber`, :data:`DARK_SENSOR`) is low light on a real sensor: the exposure several
+stops down, the photo-electrons drawn from a Poisson law (shot noise), Gaussian read noise added, the gain
+raising the signal back by as many stops and the result quantised to the image's 8 (or 16) bits: the EMVA
+1288 linear camera model. Its noise is a pure function of ``(seed, t, image)``.
+
+Every stream perturbation is chosen by name from :data:`PERTURBATIONS` (:func:`make_perturber`): the
+replay, the benchmark and the evaluation take their choices from it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+import zlib
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -22,7 +31,19 @@ import numpy as np
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.records import ImageRecord, Record
 
-__all__ = ["LEVELS", "IlluminationPerturber", "PerturbLevel", "perturb_pair", "perturb_records"]
+__all__ = [
+    "DARK_SENSOR",
+    "LEVELS",
+    "PERTURBATIONS",
+    "DarkPerturber",
+    "IlluminationPerturber",
+    "PerturbLevel",
+    "Perturber",
+    "SensorModel",
+    "make_perturber",
+    "perturb_pair",
+    "perturb_records",
+]
 
 
 @dataclass(frozen=True)
@@ -138,7 +159,125 @@ class IlluminationPerturber:
         return _to_dtype(a * img.astype(np.float32) + np.float32(b * scale), img.dtype)
 
 
-def perturb_records(records: Iterable[Record], perturber: IlluminationPerturber) -> Iterator[Record]:
+@dataclass(frozen=True)
+class SensorModel:
+    """A linear image sensor in low light (EMVA 1288's camera model), for :class:`DarkPerturber`.
+
+    An image value ``I`` (full scale ``top``) is taken as linear in irradiance: at the normal exposure it
+    collects ``I / top * full_well_e`` electrons; ``stops`` down it collects ``2**-stops`` of that.
+
+    Attributes:
+        name: what reports call it.
+        full_well_e: electrons at white (saturation capacity).
+        read_noise_e: standard deviation of the read (temporal dark) noise in electrons.
+        stops: exposure reduction in stops (factor ``2**-stops`` on the collected light).
+        gain: the factor the camera multiplies the dark signal by before quantisation (analogue gain of an
+            auto-exposure at its exposure limit); None = ``2**stops``, the brightness of the normal exposure.
+    """
+
+    name: str
+    full_well_e: float
+    read_noise_e: float
+    stops: float
+    gain: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.full_well_e > 0 and self.read_noise_e >= 0 and self.stops >= 0):
+            raise DataError(
+                f"sensor model {self.name!r}: full_well_e must be > 0, read_noise_e and stops >= 0; got "
+                f"{self.full_well_e}, {self.read_noise_e}, {self.stops}"
+            )
+        if self.gain is not None and not self.gain > 0:
+            raise DataError(f"sensor model {self.name!r}: gain must be > 0, got {self.gain}")
+
+    @property
+    def total_gain(self) -> float:
+        """The gain applied to the dark signal (``2**stops`` unless given)."""
+        return float(2.0**self.stops if self.gain is None else self.gain)
+
+
+DARK_SENSOR = SensorModel("dark", full_well_e=32_000.0, read_noise_e=7.0, stops=5.0)
+"""The ``dark`` perturbation: a Sony Pregius-class global-shutter sensor (IMX249: SNR 45.1 dB = sqrt of a
+32,400 e- saturation capacity, dynamic range 73 dB = saturation over a 7.2 e- read noise, as its camera's
+EMVA 1288 figures give them) five stops (1/32) under the normal exposure, gained back by 32: mid-gray gets
+~500 electrons (shot-noise SNR ~21, about 6 gray levels of noise after the gain)."""
+
+
+class Perturber(Protocol):
+    """A stream perturbation: ``perturber(image, t)`` -> the perturbed image, same shape and dtype."""
+
+    def __call__(self, image: Any, t: float) -> np.ndarray: ...
+
+
+class DarkPerturber:
+    """Low light on a real sensor: fewer photo-electrons, shot and read noise, gain, quantisation.
+
+    Per pixel: ``e ~ Poisson(I / top * full_well * 2**-stops) + N(0, read_noise^2)`` electrons, then
+    ``I' = clip(round(e * gain / full_well * top), 0, top)`` (:class:`SensorModel`). The noise is drawn
+    from a generator seeded by ``(seed, t in ns, CRC-32 of the image)``: reproducible frame by frame in any
+    order, and independent between the two images of a stereo pair (same stamp, other content).
+
+    Args:
+        sensor: the sensor model (default :data:`DARK_SENSOR`).
+        seed: random seed.
+    """
+
+    def __init__(self, sensor: SensorModel = DARK_SENSOR, seed: int = 0) -> None:
+        self.sensor = sensor
+        self.seed = int(seed)
+
+    def rng(self, image: np.ndarray, t: float) -> np.random.Generator:
+        """The noise generator of one image at ``t`` seconds."""
+        t_ns = round(float(t) * 1e9) % (1 << 63)
+        crc = zlib.crc32(np.ascontiguousarray(image).data)
+        return np.random.default_rng(np.random.SeedSequence([self.seed & 0xFFFFFFFF, 0xDA4C, t_ns, crc]))
+
+    def __call__(self, image: Any, t: float) -> np.ndarray:
+        """Perturb one image taken at time ``t`` (seconds).
+
+        Args:
+            image: (H, W) or (H, W, C) image, uint8, uint16 or float in [0, 1].
+
+        Returns:
+            The dark, noisy image, same shape and dtype.
+
+        Raises:
+            DataError: on a bad shape or dtype.
+        """
+        img = _check_image(image)
+        s = self.sensor
+        top = _full_scale(img.dtype)
+        rng = self.rng(img, t)
+        electrons = img.astype(np.float64) * (s.full_well_e * 2.0**-s.stops / top)
+        signal = rng.poisson(electrons).astype(np.float32)
+        if s.read_noise_e > 0:
+            signal += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(s.read_noise_e)
+        return _to_dtype(signal * np.float32(s.total_gain * top / s.full_well_e), img.dtype)
+
+
+PERTURBATIONS: dict[str, Callable[[int], Perturber]] = {
+    **{name: (lambda seed, name=name: IlluminationPerturber(name, seed)) for name in LEVELS},
+    "dark": lambda seed: DarkPerturber(DARK_SENSOR, seed),
+}
+"""Stream perturbations by name -> a factory taking the seed: ``none``, the paper's illumination levels
+``small`` and ``large``, and ``dark`` (low light with sensor noise)."""
+
+
+def make_perturber(name: str, seed: int = 0) -> Perturber:
+    """The stream perturbation ``name`` of :data:`PERTURBATIONS`, seeded.
+
+    Raises:
+        DataError: for an unknown name, listing the known ones.
+    """
+    try:
+        factory = PERTURBATIONS[name]
+    except KeyError:
+        known = ", ".join(PERTURBATIONS)
+        raise DataError(f"unknown perturbation {name!r}; expected one of {known}") from None
+    return factory(seed)
+
+
+def perturb_records(records: Iterable[Record], perturber: Perturber) -> Iterator[Record]:
     """Perturb the images of a record stream at ``t = stamp_ns * 1e-9``; IMU records pass unchanged.
 
     The stamp is the clock so that both images of a stereo pair see the same illumination.

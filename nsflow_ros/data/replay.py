@@ -19,7 +19,7 @@ from nsflow_ros.data.messages import (
     ros2_store,
     serialize,
 )
-from nsflow_ros.data.perturb import IlluminationPerturber, perturb_records
+from nsflow_ros.data.perturb import PERTURBATIONS, make_perturber, perturb_records
 from nsflow_ros.data.records import ImageRecord, RawMessage, Record
 from nsflow_ros.data.sources import SensorSource
 
@@ -43,7 +43,8 @@ class ReplayOptions:
         start: seconds skipped from the start.
         duration: seconds replayed (None = to the end).
         rate: playback speed factor (1.0 = real time; 0 = as fast as possible).
-        perturb: illumination perturbation level, ``none`` / ``small`` / ``large``.
+        perturb: a perturbation of :data:`~nsflow_ros.data.perturb.PERTURBATIONS`: ``none``, the
+            illumination levels ``small`` / ``large``, or ``dark`` (low light with sensor noise).
         seed: seed of the perturbation processes.
         remap: topic renames, source topic -> published topic.
         compress: ``none``, or publish camera images as sensor_msgs/CompressedImage of this codec
@@ -65,6 +66,8 @@ class ReplayOptions:
     def __post_init__(self) -> None:
         if self.rate < 0:
             raise ReplayError(f"rate must be >= 0 (0 = as fast as possible), got {self.rate}")
+        if self.perturb not in PERTURBATIONS:
+            raise ReplayError(f"perturb must be one of {', '.join(PERTURBATIONS)}, got {self.perturb!r}")
         if self.compress not in COMPRESSIONS:
             raise ReplayError(f"compress must be one of {', '.join(COMPRESSIONS)}, got {self.compress!r}")
         if not 1 <= self.jpeg_quality <= 100:
@@ -129,7 +132,7 @@ def _source(opts: ReplayOptions) -> SensorSource:
 
 def _records(source: SensorSource, remap: Mapping[str, str], opts: ReplayOptions) -> Iterator[Record]:
     """The source's records, perturbed as ``opts`` says, on their remapped topics."""
-    perturber = None if opts.perturb == "none" else IlluminationPerturber(opts.perturb, seed=opts.seed)
+    perturber = None if opts.perturb == "none" else make_perturber(opts.perturb, opts.seed)
     records: Iterator[Record] = source.records()
     if perturber is not None:
         records = perturb_records(records, perturber)

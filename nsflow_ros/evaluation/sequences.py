@@ -1,8 +1,9 @@
-"""Front-end metrics on the sample sequences, per illumination perturbation level and method.
+"""Front-end metrics on the sample sequences, per perturbation (illumination, low light) and method.
 
 Every method runs through the deployed :class:`~nsflow_ros.core.tracker.FeatureTracker` with its
 deployed settings, offline (every frame processed), so the methods differ only in the flow. Per
-perturbation level (:class:`~nsflow_ros.data.perturb.IlluminationPerturber`, the same images for every
+perturbation (:data:`~nsflow_ros.data.perturb.PERTURBATIONS`: the paper's illumination levels and ``dark``,
+low light with sensor noise; the same images for every
 method) it measures track survival and lengths, the tracking error against the exact ground-truth flow,
 the relative-rotation error of a 5-point RANSAC, the paper's Table III fundamental-matrix inlier rate and
 epipolar error, and where tracks are lost (the report's text beside the table says how each is
@@ -58,7 +59,9 @@ __all__ = [
 ]
 
 KEY = "sequences"
-LEVELS = ("none", "small", "large")
+LEVELS = ("none", "small", "large", "dark")
+"""Perturbations of :data:`~nsflow_ros.data.perturb.PERTURBATIONS` the section runs by default: the paper's
+illumination levels and low light with sensor noise."""
 TRACKER_METHODS: dict[str, dict[str, Any]] = {label: v.tracker_overrides for label, v in VARIANTS.items()}
 """Report name of a method -> the :class:`TrackerSettings` fields that make the tracker run it (a view
 over :data:`~nsflow_ros.evaluation.methods.VARIANTS`)."""
@@ -378,7 +381,8 @@ def track_sequence(
     Args:
         source: the frames and their ground truth.
         method: report name (a key of :data:`TRACKER_METHODS`).
-        level: ``none``, ``small`` or ``large``.
+        level: a perturbation of :data:`~nsflow_ros.data.perturb.PERTURBATIONS` (``none``, ``small``,
+            ``large``, ``dark``).
         settings: tracker settings; the method's :data:`TRACKER_METHODS` fields replace theirs.
         encoder: encoder of a method that has one (None: the tracker loads its own).
         seed: perturbation and RANSAC seed.
@@ -388,13 +392,13 @@ def track_sequence(
         EvaluationError: unknown method or level, or the tracker / model fails.
     """
     from nsflow_ros.data.errors import DataError
-    from nsflow_ros.data.perturb import IlluminationPerturber
+    from nsflow_ros.data.perturb import make_perturber
     from nsflow_ros.data.scoring import TrackStats
 
     if method not in TRACKER_METHODS:
         raise EvaluationError(f"unknown method {method!r}; expected one of {list(TRACKER_METHODS)}")
     try:
-        perturb = IlluminationPerturber(level, seed=seed)
+        perturb = make_perturber(level, seed)
     except DataError as err:
         raise EvaluationError(str(err)) from err
     overrides = TRACKER_METHODS[method]
@@ -582,7 +586,7 @@ def _headline(runs: dict[str, dict[str, MethodRun]]) -> list[HeadlineRow]:
             for (level, key), (metric, fmt) in TARGET_ROWS.items() if level in runs]  # fmt: skip
     return rows + [row(level, "rotation_error_median_deg",
                        f"5-point relative-rotation error, median, perturbation {level} (deg)", "{:.3f}")
-                   for level in ("none", "large") if level in runs]  # fmt: skip
+                   for level in ("none", "large", "dark") if level in runs]  # fmt: skip
 
 
 def _verdict(runs: dict[str, dict[str, MethodRun]]) -> str:
@@ -707,13 +711,23 @@ def method_encoders(ctx: EvalContext, methods: list[str]) -> dict[str, Encoder]:
     return encoders
 
 
+def _dark_text() -> str:
+    """The dark perturbation's sensor model in words."""
+    from nsflow_ros.data.perturb import DARK_SENSOR
+
+    s = DARK_SENSOR
+    return (f"{s.stops:g} stops under-exposed, Poisson shot noise on a {s.full_well_e:,.0f} e- full well, "
+            f"{s.read_noise_e:g} e- read noise, gain x{s.total_gain:g}, 8-bit quantisation")
+
+
 def _method_text(ctx: EvalContext, setup: SequenceSetup, source: FrameSource) -> str:
     """The paragraph saying what was run."""
     w, h = source.size
     mode = "quick mode (tiny sequence: numbers are not meaningful)" if ctx.quick else "full mode"
     return (
-        f"Sample sequence seed {setup.seed}, {len(source)} frames at 20 Hz, {w}x{h} ({mode}); illumination "
-        f"perturbation seed {ctx.seed}. Every method runs through the VINS-style `FeatureTracker` "
+        f"Sample sequence seed {setup.seed}, {len(source)} frames at 20 Hz, {w}x{h} ({mode}); "
+        f"perturbation seed {ctx.seed} (dark: {_dark_text()}). Every method runs through the VINS-style "
+        "`FeatureTracker` "
         f"(max_cnt {setup.max_cnt}, min_dist {setup.min_dist:g}, flow-back 0.5 px), offline with every frame "
         "processed; the LM methods use the tracker's 4 levels, the OpenCV LK methods (KLT, KLT on CLAHE'd "
         "images, LK on the uint8 NSFlow descriptors) are called exactly as VINS-Fusion calls KLT (21x21, "

@@ -23,6 +23,7 @@ from nsflow_ros.argtypes import (
     program_name,
 )
 from nsflow_ros.core.methods import METHODS
+from nsflow_ros.data.perturb import PERTURBATIONS
 from nsflow_ros.data.records import RawMessage
 from nsflow_ros.data.replay import COMPRESSIONS, ReplayOptions, parse_remaps, replay_stream
 from nsflow_ros.errors import NSFlowError
@@ -194,9 +195,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--perturb",
-        choices=("none", "small", "large"),
+        choices=tuple(PERTURBATIONS),
         default="none",
-        help="illumination perturbation level (default none)",
+        help="perturbation of the images: the paper's illumination levels small / large, or dark (five "
+        "stops under-exposed with a real sensor's shot and read noise, gained back up; docs/evaluation.md) "
+        "(default none)",
     )
     p.add_argument("--seed", type=int, default=0, help="perturbation seed (default 0)")
     p.add_argument(

@@ -7,6 +7,10 @@ Per frame (:meth:`FrontEndSession.process`) a session
 * in the VINS-Mono layout, does what VINS-Mono's ``img_callback`` does: drops the first image, asks for an
   estimator restart on a stamp gap > 1 s or time going backwards, throttles publishing to ``freq`` Hz (the
   throttled frames are still tracked, without detecting new corners) and skips the first published frame;
+* with ``publish_rate`` (either layout; for ``mono`` it replaces ``freq``) publishes at most that many frames
+  a second with VINS-Mono's rate control, every frame still tracked, and gives the published features
+  velocities over the interval since the previous published frame, so that the estimator's velocities
+  match the frames it gets;
 * after ``max_cnt`` is lowered, publishes only the longest ``max_cnt`` tracks (never an id it cut);
 * predicts the flow from the gyro samples of :meth:`FrontEndSession.add_gyro` when that is on.
 
@@ -35,10 +39,13 @@ from nsflow_ros.vins.messages import LAYOUTS
 from nsflow_ros.vins.settings import (
     SESSION_SETTINGS,
     SETTINGS,
+    TRACKER_SETTINGS,
     Mode,
     Setting,
     config_tracker_fields,
+    is_unset,
     session_tracker_fields,
+    setting,
 )
 from nsflow_ros.vins.tracker import tracker_from_config
 
@@ -92,7 +99,7 @@ class SessionCounters:
         skipped: frames not tracked, by reason.
         restarts: VINS-Mono estimator restarts asked for.
         resets: track resets after time went backwards (VINS-Fusion layout).
-        throttled: frames tracked but not published (VINS-Mono ``freq``).
+        throttled: frames tracked but not published (VINS-Mono ``freq``, ``publish_rate``).
         rebuilds: new trackers built after a setting change.
     """
 
@@ -151,6 +158,7 @@ class FrontEndSession:
         self._id_offset = 0
         self._withheld: set[int] = set()  # ids cut after max_cnt was lowered (see _trim)
         self._last_stamp: float | None = None
+        self._last_published: tuple[float, tuple[tuple[np.ndarray, np.ndarray], ...]] | None = None
         self._reset_mono_state()
 
     # -- settings --------------------------------------------------------------------------------------
@@ -162,15 +170,20 @@ class FrontEndSession:
             raise ConfigError(f"unknown front-end setting(s) {unknown}; valid: {list(SESSION_SETTINGS)}")
 
     def _resolve(self, settings: Mapping[str, Any]) -> tuple[VinsConfig, dict[str, Any]]:
-        """The effective VINS config and the session's TrackerSettings fields for ``settings``."""
+        """The effective VINS config and the session's own fields for ``settings``: the TrackerSettings
+        fields, and ``publish_rate`` (None when unset: the layout's default)."""
         cfg = apply_overrides(
             self._base_config, {s.vins_key: settings.get(s.name) for s in _SESSION if s.vins_key}
         )
-        return cfg, session_tracker_fields(settings, self.layout)
+        fields = session_tracker_fields(settings, self.layout)
+        rate = settings.get("publish_rate")
+        fields["publish_rate"] = None if is_unset(rate) else setting("publish_rate").check(rate)
+        return cfg, fields
 
     def _build(self) -> FeatureTracker:
+        tracker_fields = {k: v for k, v in self._fields.items() if k in TRACKER_SETTINGS}
         tracker = tracker_from_config(
-            self.config, {**self._fields, **self._fixed}, fisheye_mask=self._fisheye_mask
+            self.config, {**tracker_fields, **self._fixed}, fisheye_mask=self._fisheye_mask
         )
         tracker.warm_up()
         return tracker
@@ -194,6 +207,11 @@ class FrontEndSession:
     def freq(self) -> int:
         """Publishing rate in Hz of the VINS-Mono layout (``freq: 0`` reads as 100, i.e. every image)."""
         return int(self.config.freq)
+
+    @property
+    def publish_rate(self) -> float | None:
+        """The ``publish_rate`` given (Hz; 0 = every frame), None when unset (the layout's default)."""
+        return self._fields["publish_rate"]
 
     def update(self, **settings: Any) -> list[str]:
         """Change settings of the running session, all or nothing, as each one's :class:`Mode` says.
@@ -226,9 +244,10 @@ class FrontEndSession:
             notes.append(f"{what} changed: new tracker, tracks restart (ids continue from {self._id_offset})")
         elif live:
             self._apply_live(cfg, fields, [s.name for s in live if s.tracker])
-        if any(s.name == "freq" for s in changed):
+        if any(s.name in ("freq", "publish_rate") for s in changed):
             self._first_time = self._last_time
             self._pub_count = 0
+            self._last_published = None
         self._settings = merged
         for s in sorted(live, key=lambda s: s.name):
             notes.append(f"{s.name} is now {self._value(s, cfg, fields)}")
@@ -246,6 +265,7 @@ class FrontEndSession:
         self._id_offset += self.tracker.next_id
         self.tracker = tracker
         self._withheld.clear()
+        self._last_published = None  # the new tracker's ids start again
         self.counters.rebuilds += 1
 
     def _apply_live(self, config: VinsConfig, fields: dict[str, Any], names: list[str]) -> None:
@@ -265,6 +285,7 @@ class FrontEndSession:
         self._last_time = 0.0
         self._pub_count = 1
         self._init_pub = False
+        self._rate_started = False  # publish_rate in the 'fusion' layout: its first frame seen
 
     def add_gyro(self, stamp: float, rate: tuple[float, float, float] | np.ndarray) -> None:
         """Store one gyro sample (rad/s, IMU frame) when ``use_imu_prediction`` is on; thread-safe."""
@@ -288,17 +309,38 @@ class FrontEndSession:
             self._pub_count = 1
             self.tracker.reset()
             self._last_stamp = None
+            self._last_published = None
             return None, note
         self._last_time = stamp
-        freq = self.freq
+        rate = self.publish_rate
+        return self._rate_due(stamp, self.freq if rate is None else rate), ""
+
+    def _rate_due(self, stamp: float, freq: float) -> bool:
+        """VINS-Mono's rate control: publish while the published frames per second, rounded, are at most
+        ``freq`` (0 = every frame); near the target the count starts over from this frame."""
+        if freq <= 0:
+            return True
         elapsed = stamp - self._first_time
         rate = self._pub_count / elapsed if elapsed > 0 else float("inf")
         if round(rate) <= freq:
             if abs(rate - freq) < 0.01 * freq:  # reset the frequency control near the target
                 self._first_time = stamp
                 self._pub_count = 0
-            return True, ""
-        return False, ""
+            return True
+        return False
+
+    def _fusion_gate(self, stamp: float) -> bool:
+        """Whether the 'fusion' layout publishes this frame: every frame, or ``publish_rate``'s control
+        (the first frame is published and starts the count)."""
+        rate = self.publish_rate
+        if not rate:
+            return True
+        if not self._rate_started:
+            self._rate_started = True
+            self._first_time = stamp
+            self._pub_count = 0
+            return True
+        return self._rate_due(stamp, rate)
 
     def process(
         self, stamp: float, image0: np.ndarray, image1: np.ndarray | None = None, *, checks: bool = True
@@ -335,32 +377,54 @@ class FrontEndSession:
                 return FrameOutcome(None, False, restart=restart,
                                     skipped=Skip.RESTART if restart else Skip.FIRST_FRAME, note=note)
             publish = gate
-        elif last is not None and stamp < last:
-            note = f"time went backwards ({last:.3f} -> {stamp:.3f} s): tracks reset"
-            self.tracker.reset()
-            self.counters.resets += 1
+        else:
+            if last is not None and stamp < last:
+                note = f"time went backwards ({last:.3f} -> {stamp:.3f} s): tracks reset"
+                self.tracker.reset()
+                self.counters.resets += 1
+                self._reset_mono_state()
+                self._last_published = None
+            publish = self._fusion_gate(stamp)
         gyro = None
         prev = self.tracker.last_stamp
         if self.gyro is not None and prev is not None:
             with self._gyro_lock:
                 gyro = self.gyro.window(prev, stamp)
+        # VINS-Mono detects new corners only on published frames; VINS-Fusion's front-end on every frame
+        detect = publish or self.layout != "mono"
         try:
-            frame = self.tracker.process(stamp, image0, image1, gyro, detect=publish, checks=checks)
+            frame = self.tracker.process(stamp, image0, image1, gyro, detect=detect, checks=checks)
         except CoreError as err:
             return FrameOutcome(None, False, skipped=Skip.TRACKER, note=str(err))
         self._last_stamp = stamp
         if self.gyro is not None:
             with self._gyro_lock:
                 self.gyro.prune(stamp)
-        if self.layout == "mono":
-            if not publish:
-                self.counters.throttled += 1
-                return FrameOutcome(None, True, note=note)
-            self._pub_count += 1
-            if not self._init_pub:  # VINS-Mono skips the first published frame
-                self._init_pub = True
-                return FrameOutcome(None, True, note=note)
+        if not publish:
+            self.counters.throttled += 1
+            return FrameOutcome(None, True, note=note)
+        self._pub_count += 1
+        if self.layout == "mono" and not self._init_pub:  # VINS-Mono skips the first published frame
+            self._init_pub = True
+            return FrameOutcome(None, True, note=note)
+        if self.publish_rate:
+            frame = self._interval_velocities(frame)
         return FrameOutcome(self._shift_ids(self._trim(frame)), True, note=note)
+
+    def _interval_velocities(self, frame: FrameFeatures) -> FrameFeatures:
+        """Velocities over the interval since the previous published frame (0 for ids it did not have),
+        so that the estimator, which sees only the published frames, gets consistent ones."""
+        last = self._last_published
+        cams = []
+        for k, cam in enumerate(frame.cameras):
+            vel = np.zeros_like(cam.undistorted)
+            if last is not None and k < len(last[1]) and frame.stamp > last[0]:
+                ids0, un0 = last[1][k]
+                rows, found = _find(cam.ids, ids0)
+                vel[found] = (cam.undistorted[found] - un0[rows[found]]) / (frame.stamp - last[0])
+            cams.append(dataclasses.replace(cam, velocities=vel))
+        self._last_published = (frame.stamp, tuple((c.ids, c.undistorted) for c in frame.cameras))
+        return dataclasses.replace(frame, cameras=tuple(cams))
 
     def _trim(self, frame: FrameFeatures) -> FrameFeatures:
         """At most ``max_cnt`` features, the longest tracks first, after ``max_cnt`` was lowered.
@@ -391,6 +455,16 @@ class FrontEndSession:
             return frame
         cams = tuple(dataclasses.replace(c, ids=c.ids + self._id_offset) for c in frame.cameras)
         return dataclasses.replace(frame, cameras=cams)
+
+
+def _find(ids: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each of ``ids``, its row in ``table`` and whether it is there. Shape: (N,) -> (N,), (N,)."""
+    if not table.size:
+        return np.zeros(ids.shape, np.int64), np.zeros(ids.shape, bool)
+    order = np.argsort(table, kind="stable")
+    pos = np.clip(np.searchsorted(table[order], ids), 0, table.size - 1)
+    found = table[order][pos] == ids
+    return order[pos], found
 
 
 def _subset(cam: Any, rows: np.ndarray) -> Any:

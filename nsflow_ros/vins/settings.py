@@ -218,8 +218,27 @@ SETTINGS: tuple[Setting, ...] = (
         "freq", KEEP, Mode.LIVE,
         "Feature publishing rate in Hz of the 'mono' layout (VINS-Mono freq; 0 = 100 Hz, in effect every "
         "image, as in VINS-Mono); frames in between are tracked but not published. The 'fusion' layout "
-        "publishes every frame and ignores it.",
+        "ignores it (publish_rate sets its rate).",
         unit="Hz", vins_key="freq", session=True, minimum=0, example=10),
+    Setting(
+        "publish_rate", float(KEEP), Mode.LIVE,
+        "Feature messages per second at most, for an estimator that cannot take every frame (e.g. 10 on a "
+        "small computer, as VINS-Fusion's own front-end feeds its estimator every 2nd frame with "
+        "multiple_thread: 1): every frame is still tracked, a frame is published when VINS-Mono's rate "
+        "control lets it through, and the published velocities are taken over the interval since the "
+        "previous published frame. 0 = every frame. -1 = the layout's default: every frame for 'fusion' "
+        "(VINS-Fusion ignores freq), the config's freq for 'mono'. Given for the 'mono' layout it replaces "
+        "freq.",
+        unit="Hz", session=True, minimum=0, example=10.0),
+    Setting(
+        "downsample", 1, Mode.REBUILD,
+        "Track on images decimated by this factor, 1, 2 or 4 (cv2.resize INTER_AREA; for cameras larger "
+        "than 752x480, e.g. 1280x800 with 2): the calibration is scaled inside (pixel centres: x_small = "
+        "(x + 0.5) / factor - 0.5), min_dist is divided by the factor so the features keep the layout they "
+        "have at full resolution, and the published pixels, undistorted points and velocities are in the "
+        "config's full-resolution calibration, so the estimator's config stays as it is. The image size "
+        "must be divisible by the factor.",
+        tracker=True, session=True, minimum=1, example=2),
     Setting(
         "equalize", KEEP, Mode.REBUILD,
         "Equalise the image (CLAHE) before tracking (VINS-Mono equalize), 0/1.",

@@ -105,3 +105,40 @@ def test_perturb_records_changes_images_only(image):
     out = list(perturb_records(recs, p))
     assert np.array_equal(out[0].image, p(image, 1.0)) and out[0].frame_id == "cam0"
     assert out[1] is recs[1]
+
+
+def test_dark_follows_the_sensor_model(image):
+    from nsflow_ros.data.perturb import DARK_SENSOR, PERTURBATIONS, DarkPerturber, SensorModel, make_perturber
+
+    assert set(PERTURBATIONS) == {"none", "small", "large", "dark"}
+    p = make_perturber("dark", 4)
+    assert isinstance(p, DarkPerturber) and p.sensor is DARK_SENSOR
+    flat = np.full((200, 200), 128, np.uint8)
+    out = p(flat, 2.0).astype(float)
+    s = DARK_SENSOR
+    electrons = 128 / 255 * s.full_well_e / s.total_gain  # mean photo-electrons of the dark exposure
+    expected_sd = np.sqrt(electrons + s.read_noise_e**2) * s.total_gain / s.full_well_e * 255
+    assert abs(out.mean() - 128) < 0.2  # the gain restores the brightness
+    assert 0.9 * expected_sd < out.std() < 1.1 * expected_sd  # shot + read noise, after the gain
+    # no noise, no loss of light: the identity up to rounding; more stops: more noise
+    assert np.array_equal(DarkPerturber(SensorModel("x", 1e12, 0.0, 0.0))(image, 0.0), image)
+    darker = DarkPerturber(SensorModel("x", s.full_well_e, s.read_noise_e, s.stops + 2), 4)
+    assert darker(flat, 2.0).std() > 1.5 * out.std()
+    with pytest.raises(DataError, match="unknown perturbation 'night'; expected one of none, small"):
+        make_perturber("night")
+    with pytest.raises(DataError, match="full_well_e must be > 0"):
+        SensorModel("bad", 0.0, 1.0, 3.0)
+
+
+def test_dark_is_reproducible_and_independent_per_image(image):
+    from nsflow_ros.data.perturb import make_perturber
+
+    a, b = make_perturber("dark", 1), make_perturber("dark", 1)
+    first = [a(image, t) for t in TIMES[:5]]
+    assert all(np.array_equal(x, b(image, t)) for x, t in zip(first[::-1], TIMES[:5][::-1], strict=True))
+    assert not np.array_equal(first[0], first[1])  # another frame time: other noise
+    assert not np.array_equal(first[0], make_perturber("dark", 2)(image, TIMES[0]))
+    # the right image of a stereo pair (same stamp, other content) gets its own noise
+    shifted = np.roll(image, 3, axis=1)
+    assert not np.array_equal(np.roll(first[0], 3, axis=1), a(shifted, TIMES[0]))
+    assert a(image.astype(np.uint16) * 257, 0.0).dtype == np.uint16

@@ -83,3 +83,16 @@ def test_compressed_replay_publishes_what_image_transport_would(seq):
 def test_compressed_imu_passes_through(seq):
     msgs = list(replay_stream(ReplayOptions(seq.asl_dir, compress="png")))
     assert {m.topic for m in msgs} == {"/cam0/image_raw/compressed", "/imu0"}
+
+
+def test_dark_replay_comes_from_the_perturbation_registry(seq):
+    from nsflow_ros.data.perturb import make_perturber
+
+    opts = ReplayOptions(seq.asl_dir, ["/cam0/image_raw"], perturb="dark", seed=2)
+    plain = list(replay_records(ReplayOptions(seq.asl_dir, ["/cam0/image_raw"])))
+    dark = list(replay_records(opts))
+    p = make_perturber("dark", 2)
+    pairs = zip(plain, dark, strict=True)
+    assert all(np.array_equal(d.image, p(r.image, r.stamp_ns * 1e-9)) for r, d in pairs)
+    with pytest.raises(ReplayError, match="perturb must be one of none, small, large, dark, got 'night'"):
+        ReplayOptions(seq.asl_dir, perturb="night")

@@ -84,7 +84,10 @@ def test_quick_run_writes_figures_table_and_computed_headline(quick_section, qui
         assert p.is_file() and p.stat().st_size > 5000 and p.parent == quick_ctx.out_dir
         assert f"]({p.name})" in sec.markdown
     res = sec.data["results"]
-    assert set(res) == {"none", "small", "large"} and set(res["none"]) == set(METHOD_ORDER)
+    assert set(res) == {"none", "small", "large", "dark"} and set(res["none"]) == set(METHOD_ORDER)
+    assert f"| dark | {KLT} |" in sec.markdown and "5 stops under-exposed" in sec.markdown
+    # the dark rows come from noisy images: every method's figures differ from the unperturbed ones
+    assert all(res["dark"][m]["error_median_px"] != res["none"][m]["error_median_px"] for m in res["none"])
     targets = [r for r in sec.headline if r.target]
     assert len(targets) == 4 and all(isinstance(r.met, bool) for r in targets)
     # met is computed from the figures, not fixed
@@ -109,7 +112,7 @@ def test_bad_methods_and_levels_are_clear_errors(quick_ctx):
     settings = TrackerSettings(max_cnt=30, min_dist=12)
     with pytest.raises(EvaluationError, match="unknown method"):
         sq.track_sequence(source, "ORB", "none", settings=settings)
-    with pytest.raises(EvaluationError, match="illumination level"):
+    with pytest.raises(EvaluationError, match="unknown perturbation 'huge'"):
         sq.track_sequence(source, KLT, "huge", settings=settings)
     with pytest.raises(EvaluationError, match="no methods"):
         sq.evaluate_sequences(source, [], settings=settings)

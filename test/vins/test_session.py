@@ -189,3 +189,41 @@ def test_every_tracker_the_session_builds_is_warmed_up_before_its_first_frame(tm
     assert warmed == [s.tracker]
     s.update(method="klt")  # a rebuild
     assert warmed == [warmed[0], s.tracker] and s.tracker is not warmed[0]
+
+
+def test_publish_rate_tracks_every_frame_and_publishes_at_the_rate(tmp_path, pan):
+    every = _session(tmp_path)
+    ref = [every.process(T0 + pan.stamps[k], pan.frames[k]).features for k in range(len(pan.frames))]
+    s = _session(tmp_path, publish_rate=10.0)
+    assert s.publish_rate == 10.0
+    outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(len(pan.frames))]
+    assert all(o.tracked for o in outs)
+    published = [k for k, o in enumerate(outs) if o.features is not None]
+    assert published == list(range(0, len(pan.frames), 2))  # 20 Hz in, 10 Hz out: every 2nd frame
+    assert s.counters.throttled == len(pan.frames) - len(published) and s.counters.tracked == len(pan.frames)
+    for a, b in zip(published, published[1:], strict=False):
+        cur, prev = outs[b].features.cameras[0], outs[a].features.cameras[0]
+        same = ref[b].cameras[0]
+        # the tracking is the same as when every frame is published: same ids, pixels, points
+        assert np.array_equal(cur.ids, same.ids) and np.array_equal(cur.undistorted, same.undistorted)
+        # velocities over the published interval (0.1 s), 0 for ids the previous published frame lacked
+        rows = {int(i): n for n, i in enumerate(prev.ids)}
+        old = np.array([int(i) in rows for i in cur.ids])
+        expect = (cur.undistorted[old] - prev.undistorted[[rows[int(i)] for i in cur.ids[old]]]) / 0.1
+        assert old.sum() > 20 and np.allclose(cur.velocities[old], expect, rtol=1e-6, atol=1e-9)
+        assert np.all(cur.velocities[~old] == 0)
+        assert not np.allclose(cur.velocities[old], same.velocities[old])  # not the per-frame rate
+    # 0 = every frame (as by default), with the per-frame velocities of the default
+    assert s.update(publish_rate=0) == ["publish_rate is now 0.0"]
+    assert s.update(publish_rate=-1) == ["publish_rate is now None"]
+    with pytest.raises(ConfigError, match="publish_rate' must be a finite number >= 0"):
+        s.update(publish_rate=-3.0)
+
+
+def test_publish_rate_replaces_freq_in_the_mono_layout(tmp_path, pan):
+    s = _session(tmp_path, "mono", publish_rate=5.0)
+    outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(len(pan.frames))]
+    published = [k for k, o in enumerate(outs) if o.features is not None]
+    # freq 10 in the config would publish every 2nd frame; 5 Hz lets every 4th through (frames 4 and 8 of
+    # 0.05 s; VINS-Mono skips the first one that passes)
+    assert published == [8] and s.counters.throttled == len(pan.frames) - 1 - 2
