@@ -288,6 +288,17 @@ def _parser() -> argparse.ArgumentParser:
         "model by name, default or fast (as the node's model_path parameter; default: default)",
     )
     p.add_argument(
+        "--downsample", type=int, default=1, metavar="N",
+        help="for --offline / --features-bag: track on images decimated by N (1, 2 or 4, for cameras larger "
+        "than 752x480) and write the features in the config's full-resolution calibration (as the node's "
+        "downsample parameter; default 1)",
+    )
+    p.add_argument(
+        "--publish-rate", type=non_negative_float, default=None, metavar="HZ",
+        help="for --features-bag: track every frame but write at most HZ feature messages a second, with "
+        "velocities over the written interval (as the node's publish_rate parameter; default: every frame)",
+    )
+    p.add_argument(
         "--providers", default="cpu",
         help="onnxruntime execution providers of the encoder for --offline / --features-bag, best first, "
         "e.g. cuda,cpu (default cpu; as the node's providers parameter)",
@@ -344,6 +355,10 @@ def main(args: list[str] | None = None) -> int:
     opts = parser.parse_args(argv)
     if opts.compress != "none" and (opts.write_bag or opts.offline or opts.features_bag):
         parser.error("--compress applies to publishing, not to --write-bag / --offline / --features-bag")
+    if opts.publish_rate is not None and opts.features_bag is None:
+        parser.error("--publish-rate applies to --features-bag")
+    if opts.downsample != 1 and opts.offline is None and opts.features_bag is None:
+        parser.error("--downsample applies to --offline / --features-bag (the node has its parameter)")
     if opts.jpeg_quality > 100:
         parser.error(f"--jpeg-quality: expected 1..100, got {opts.jpeg_quality}")
     prog = program_name("nsflow-replay")
@@ -386,7 +401,9 @@ def main(args: list[str] | None = None) -> int:
                 cfg,
                 method=opts.method,
                 fmt=opts.features_bag_format,
-                overrides={"providers": opts.providers, "model_path": opts.model or None},
+                overrides={"providers": opts.providers, "model_path": opts.model or None,
+                           "downsample": opts.downsample},
+                settings=None if opts.publish_rate is None else {"publish_rate": opts.publish_rate},
                 progress=not opts.no_progress,
             )
             print(bag.text())
@@ -397,7 +414,8 @@ def main(args: list[str] | None = None) -> int:
             _make_dir(opts.offline)
             summary = run_offline(
                 ropts, opts.offline, config=opts.config, method=opts.method,
-                overrides={"providers": opts.providers, "model_path": opts.model or None},
+                overrides={"providers": opts.providers, "model_path": opts.model or None,
+                           "downsample": opts.downsample},
                 progress=not opts.no_progress,
             )
             print(summary.text())

@@ -2,7 +2,9 @@
 
 ``rosbag play`` or ``ros2 bag play`` then feeds a stock VINS-Fusion estimator without a live front-end.
 Frames go through the node's frame policy and stereo pairing but none is dropped for speed, so the result
-depends only on the data, the config, the method and the perturbation seed.
+depends only on the data, the config, the settings, the method and the perturbation seed. With a
+``publish_rate`` every frame is tracked and only the frames the rate lets through are written, as the node
+publishes them.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ class FeatureBagSummary:
     Attributes:
         frames: feature messages written.
         unpaired: stereo images dropped because the other camera had no image within the tolerance.
+        tracked: frames tracked (more than ``frames`` with a ``publish_rate``).
     """
 
     path: Path
@@ -54,11 +57,14 @@ class FeatureBagSummary:
     features: int
     imu: int
     unpaired: int = 0
+    tracked: int = 0
 
     def text(self) -> str:
         """One line for the command line."""
         per = self.features / max(self.frames, 1)
         extra = f", {self.unpaired} stereo image(s) without a partner skipped" if self.unpaired else ""
+        if self.tracked > self.frames:
+            extra += f"; {self.tracked} frames tracked, {self.frames} published (publish_rate)"
         return (f"wrote {self.path} ({self.format}): {self.frames} feature messages on {FEATURE_TOPIC} "
                 f"({per:.1f} features/frame), {self.imu} IMU messages{extra}")
 
@@ -92,6 +98,7 @@ def write_feature_bag(
     method: str = "nsflow",
     fmt: str | None = None,
     overrides: dict[str, Any] | None = None,
+    settings: dict[str, Any] | None = None,
     progress: bool = True,
     opencv_threads: int | None = None,
 ) -> FeatureBagSummary:
@@ -103,7 +110,8 @@ def write_feature_bag(
         records: the stream in time order (see :func:`feature_bag_topics`).
         out: the bag to create: a ``.bag`` file for ROS 1, a folder for ROS 2 (mcap).
         fmt: ``ros1`` or ``ros2``; None = from the suffix of ``out``.
-        overrides: further TrackerSettings fields, fixed for the run.
+        overrides: further TrackerSettings fields, fixed for the run (e.g. ``downsample``).
+        settings: front-end settings of the session (the node's parameters, e.g. ``publish_rate``).
         opencv_threads: OpenCV's threads while tracking; None = the node's ``opencv_threads`` default.
 
     Raises:
@@ -116,7 +124,8 @@ def write_feature_bag(
     kind = bag_format(path, fmt)
     if path.exists():
         raise DataError(f"bag {path} exists already; not overwriting")
-    session = FrontEndSession(config, {"method": method}, layout="fusion", tracker_overrides=overrides)
+    session = FrontEndSession(config, {"method": method, **(settings or {})}, layout="fusion",
+                              tracker_overrides=overrides)
     cams = list(config.image_topics)
     pairer: StereoPairer[ImageRecord] = StereoPairer(len(cams))
 
@@ -167,4 +176,4 @@ def write_feature_bag(
         shutil.rmtree(tmp, ignore_errors=True)
     if error is not None:
         raise NSFlowError(f"{error} (the {frames} frames before it were tracked and written to {path})")
-    return FeatureBagSummary(path, kind, frames, features, imu, pairer.unpaired)
+    return FeatureBagSummary(path, kind, frames, features, imu, pairer.unpaired, session.counters.tracked)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
@@ -160,3 +162,84 @@ def test_feature_bag_and_offline_run_give_the_same_features(seq, tmp_path):
         for fid, u, v in mine[:, 2:5]:
             ((_, row),) = frame[int(fid)]
             np.testing.assert_allclose(row[3:5], (u, v), atol=1e-3)
+
+
+def _upsampled(seq, folder):
+    """The sample up-sampled 2x (cv2.resize's pixel centres) as a ROS 2 bag, and a VINS config for it."""
+    from dataclasses import replace
+
+    import cv2
+
+    from nsflow_ros.core.camera import PinholeCamera
+    from nsflow_ros.data.writers import write_ros2_bag
+
+    def big(rec):
+        if not hasattr(rec, "image"):
+            return rec
+        h, w = rec.image.shape[:2]
+        return replace(rec, image=cv2.resize(rec.image, (2 * w, 2 * h), interpolation=cv2.INTER_LINEAR))
+
+    bag = folder / "large"
+    records = SensorSource(seq.asl_dir, topics=["/cam0/image_raw", "/imu0"]).records()
+    write_ros2_bag(bag, (big(r) for r in records))
+    cfg = load_vins_config(share_file(DEFAULT_CONFIG))
+    cam = cfg.cameras[0]
+    PinholeCamera(width=2 * cam.width, height=2 * cam.height, fx=2 * cam.fx, fy=2 * cam.fy,
+                  cx=(cam.cx + 0.5) * 2 - 0.5, cy=(cam.cy + 0.5) * 2 - 0.5, k1=cam.k1, k2=cam.k2,
+                  p1=cam.p1, p2=cam.p2).save_yaml(folder / "cam0_large.yaml")
+    text = cfg.path.read_text().replace("cam0_pinhole.yaml", "cam0_large.yaml")
+    for key, size in (("image_width", 752), ("image_height", 480)):
+        text = text.replace(f"{key}: {size}", f"{key}: {2 * size}")
+    (folder / "large.yaml").write_text(text)
+    return bag, folder / "large.yaml"
+
+
+def test_cli_downsample_writes_features_in_the_full_resolution_calibration(seq, tmp_path, capsys):
+    bag, config = _upsampled(seq, tmp_path)
+    base = ["--method", "klt", "--no-progress"]
+    assert replay_main([str(seq.asl_dir), "--features-bag", str(tmp_path / "small.bag"), *base]) == 0
+    args = [str(bag), "--features-bag", str(tmp_path / "large.bag"), "--config", str(config), *base]
+    assert replay_main([*args, "--downsample", "3"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["nsflow-replay: downsample must be one of 1, 2, 4, got 3"]
+    assert replay_main([*args, "--downsample", "2"]) == 0
+    assert f"{len(seq)} feature messages" in capsys.readouterr().out
+    small, _ = _read(tmp_path / "small.bag")
+    large, _ = _read(tmp_path / "large.bag")
+    assert len(small) == len(large) == len(seq)
+    camera = load_vins_config(config).cameras[0]
+    offsets, total = [], 0
+    for (_, _, a, _), (_, _, b, _) in zip(small, large, strict=True):
+        ua = np.array([obs[0][1] for obs in a.values()])
+        ub = np.array([obs[0][1] for obs in b.values()])
+        assert ub[:, 3].max() > 1000  # pixels of the 1504 px wide image ...
+        np.testing.assert_allclose(ub[:, :2], camera.lift(ub[:, 3:5]), atol=1e-5)  # ... and its calibration
+        # many features are the 752 px tracker's, at (x + 0.5) 2 - 0.5 (GFTT's choice among the many
+        # corners of the sample differs for the rest); no offset: the pixel-centre convention holds
+        mapped = 2 * (ua[:, 3:5] + 0.5) - 0.5
+        d = np.hypot(*(ub[:, None, 3:5] - mapped[None]).transpose(2, 0, 1))
+        same = d.min(axis=1) < 1.0
+        offsets.append(ub[same, 3:5] - mapped[d.argmin(axis=1)[same]])
+        total += len(ub)
+    offsets = np.concatenate(offsets)
+    assert len(offsets) > 0.3 * total and np.all(np.abs(np.median(offsets, axis=0)) < 0.02)
+
+
+def test_cli_publish_rate_writes_fewer_messages_with_velocities_over_their_interval(seq, tmp_path, capsys):
+    out = tmp_path / "rate.bag"
+    args = [str(seq.asl_dir), "--features-bag", str(out), "--method", "klt", "--no-progress"]
+    assert replay_main([*args, "--publish-rate", "10"]) == 0
+    text = capsys.readouterr().out
+    half = (len(seq) + 1) // 2
+    assert f"{half} feature messages" in text and f"{len(seq)} frames tracked, {half} published" in text
+    feats, imu = _read(out)
+    assert [f[1] for f in feats] == [int(s) for s in seq.stamps_ns[::2]]  # every 2nd 20 Hz frame
+    assert len(imu) == len([r for r in SensorSource(seq.asl_dir, topics=["/imu0"]).records()])
+    for (_, t0, a, _), (_, t1, b, _) in itertools.pairwise(feats):
+        for fid, ((_, row),) in b.items():
+            if fid in a:
+                expected = (row[:2] - a[fid][0][1][:2]) / ((t1 - t0) * 1e-9)
+                np.testing.assert_allclose(row[5:7], expected, rtol=1e-3, atol=1e-4)
+    with pytest.raises(SystemExit):  # only with --features-bag
+        replay_main([str(seq.asl_dir), "--publish-rate", "10"])
+    assert "--publish-rate applies to --features-bag" in capsys.readouterr().err

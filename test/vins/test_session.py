@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -201,7 +202,7 @@ def test_publish_rate_tracks_every_frame_and_publishes_at_the_rate(tmp_path, pan
     published = [k for k, o in enumerate(outs) if o.features is not None]
     assert published == list(range(0, len(pan.frames), 2))  # 20 Hz in, 10 Hz out: every 2nd frame
     assert s.counters.throttled == len(pan.frames) - len(published) and s.counters.tracked == len(pan.frames)
-    for a, b in zip(published, published[1:], strict=False):
+    for a, b in itertools.pairwise(published):
         cur, prev = outs[b].features.cameras[0], outs[a].features.cameras[0]
         same = ref[b].cameras[0]
         # the tracking is the same as when every frame is published: same ids, pixels, points
