@@ -35,6 +35,7 @@ from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_i
 from nsflow_ros.core import detect_corners, load_encoder, to_gray
 from nsflow_ros.core.methods import LMMethod, SolveKind, make_method
 from nsflow_ros.core.tracker import GFTT_QUALITY
+from nsflow_ros.data.perturb import PERTURBATIONS
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.timing import make_frames, time_encoder, timing_stats
 from nsflow_ros.evaluation.timing import timed as _timed
@@ -361,6 +362,14 @@ def format_table(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _size(text: str) -> tuple[int, int]:
+    """``WxH`` -> (W, H), both positive (argparse type)."""
+    w, sep, h = text.lower().partition("x")
+    if not (sep and w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0):
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1280x800, got {text!r}")
+    return int(w), int(h)
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``nsflow-bench`` / ``ros2 run nsflow_ros bench``."""
     parser = argparse.ArgumentParser(prog=program_name("nsflow-bench"), description=__doc__.split("\n\n")[0])
@@ -387,6 +396,25 @@ def main(args: list[str] | None = None) -> int:
         "--methods", default="nsflow,nsflow_lk,classical,klt",
         help="comma-separated tracking methods of the whole-tracker benchmark (default "
         "nsflow,nsflow_lk,classical,klt; klt is always run as the baseline)",
+    )
+    parser.add_argument(
+        "--modes", default="mono,stereo",
+        help="comma-separated modes of the whole-tracker benchmark: mono, stereo (default both)",
+    )
+    parser.add_argument(
+        "--large", type=_size, default=None, metavar="WxH",
+        help="also run the whole-tracker benchmark on the sample up-sampled to WxH (e.g. 1280x800, a larger "
+        "camera; its exact flow scaled alike) with the trackers' downsample set to --downsample, each "
+        "method's CPU time there over its own at 752x480 (default: not)",
+    )
+    parser.add_argument(
+        "--downsample", type=positive_int, default=2, metavar="N",
+        help="the trackers' downsample in the --large runs (1, 2 or 4; default 2)",
+    )
+    parser.add_argument(
+        "--perturb", choices=tuple(PERTURBATIONS), default="none",
+        help="perturb the whole-tracker benchmark's frames: the illumination levels small / large or dark "
+        "(low light with sensor noise; default none)",
     )
     parser.add_argument(
         "--node-seconds", type=non_negative_float, default=20.0,
@@ -450,9 +478,11 @@ def main(args: list[str] | None = None) -> int:
             if cv_threads is None:
                 cv_threads = setting("opencv_threads").default
             res["tracker"] = run_tracker_benchmark(
-                opts.tracker_seconds, methods, model=opts.model, threads=opts.threads, progress=not opts.json,
+                opts.tracker_seconds, methods, [m.strip() for m in opts.modes.split(",") if m.strip()],
+                model=opts.model, threads=opts.threads, progress=not opts.json,
                 providers=opts.providers,
                 opencv_threads=int(cv_threads),
+                large=opts.large, downsample=opts.downsample, perturb=opts.perturb,
             )
         if opts.node_seconds > 0:
             from nsflow_ros.ros.bench_live import run_live_benchmark

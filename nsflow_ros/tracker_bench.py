@@ -6,19 +6,27 @@ alike. Per method and mode it reports wall and CPU time per frame (CPU time is t
 its threads, so work spread over a pool counts in full), their ratios to ``klt`` (VINS's own front-end,
 measured in the same run) and the quality against the exact optical flow
 (:class:`nsflow_ros.data.scoring.FrameQuality`).
+
+A larger camera is stood in for by the sample up-sampled with ``cv2.resize`` (``large``, e.g. 1280x800 or
+1504x960; its exact flow scaled by the same factors): those modes run with ``downsample`` beside the 752x480
+ones, and each method's CPU time there is also given over its own at 752x480. The frames can be perturbed
+first by any perturbation of :data:`nsflow_ros.data.perturb.PERTURBATIONS` (e.g. ``dark``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from nsflow_ros import threads as process_threads
+from nsflow_ros.core.downsample import resize_camera
 from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.errors import UnsupportedEncoderError
 from nsflow_ros.core.methods import BASELINE, METHODS
@@ -28,7 +36,7 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.timing import timing_stats
 from nsflow_ros.resources import DEFAULT_CONFIG, STEREO_CONFIG, share_file
 
-__all__ = ["MODES", "format_tracker_table", "run_tracker_benchmark"]
+__all__ = ["MODES", "ResizedSample", "format_tracker_table", "run_tracker_benchmark"]
 
 MODES = ("mono", "stereo")
 CONFIGS = {
@@ -37,11 +45,40 @@ CONFIGS = {
 }
 
 
+class ResizedSample:
+    """A sample sequence seen through ``cv2.resize`` to ``size``: its exact flow in the resized pixels.
+
+    A pixel x of the resized image is ``(x + 0.5) / s - 0.5`` of the sample's (per axis, s = new / old
+    size), so a flow f of the sample is ``s f`` here, exactly.
+    """
+
+    def __init__(self, sample: Any, size: tuple[int, int]) -> None:
+        cam = sample.cameras[0]
+        self.sample = sample
+        self.size = (int(size[0]), int(size[1]))
+        self.scale = np.array([size[0] / cam.width, size[1] / cam.height])
+
+    def image(self, image: np.ndarray) -> np.ndarray:
+        """A sample image at this size (bilinear)."""
+        return cv2.resize(image, self.size, interpolation=cv2.INTER_LINEAR)
+
+    def time(self, i: int) -> float:
+        return float(self.sample.time(i))
+
+    def flow(self, i: int, j: int, pixels: Any, cam: int = 0, cam_j: int | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """The sample's exact flow at resized pixels, in resized pixels (see the class docstring)."""
+        small = (np.asarray(pixels, np.float64) + 0.5) / self.scale - 0.5
+        flow, visible = self.sample.flow(i, j, small, cam, cam_j)
+        return flow * self.scale, visible
+
+
 class _Run:
     """One method in one mode: its tracker, its timings and its quality."""
 
-    def __init__(self, tracker: FeatureTracker) -> None:
+    def __init__(self, tracker: FeatureTracker, scale: float = 1.0) -> None:
         self.tracker = tracker
+        self.scale = scale  # resized pixels per 752x480 pixel
         self.total: list[float] = []
         self.cpu: list[float] = []
         self.stages: dict[str, list[float]] = {}
@@ -70,6 +107,9 @@ class _Run:
         out["stages"] = {k: timing_stats(v)["median_ms"] for k, v in self.stages.items()}
         out["cpu_stages"] = {k: timing_stats(v)["median_ms"] for k, v in self.cpu_stages.items()}
         out.update(self.quality.figures())
+        if self.scale != 1.0 and self.quality.err:  # the same threshold in 752x480 pixels
+            err = np.concatenate(self.quality.err)
+            out["error_over_1px_at_752_share"] = float(np.mean(err > self.scale))
         return out
 
 
@@ -85,6 +125,9 @@ def run_tracker_benchmark(
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
+    large: tuple[int, int] | None = None,
+    downsample: int = 1,
+    perturb: str = "none",
 ) -> dict[str, Any]:
     """Time the whole tracker per frame for each method and mode, interleaved, with its quality.
 
@@ -101,15 +144,22 @@ def run_tracker_benchmark(
         cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
             folder removed afterwards.
         progress: a progress bar on stderr.
+        large: also run every mode on the sample up-sampled to this (width, height), as a larger camera
+            (modes named e.g. ``stereo 1280x800 /2``); None = not.
+        downsample: the trackers' ``downsample`` in the ``large`` modes.
+        perturb: a perturbation of :data:`~nsflow_ros.data.perturb.PERTURBATIONS` applied to the frames
+            (seeded by ``seed``) before any resize.
 
     Returns:
         ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}},
         "cpu_ratios": ...}``: figures hold ``total`` and ``cpu`` (median / p90 ms), ``stages`` and
-        ``cpu_stages`` (median ms) and the quality; the ratios are medians over ``klt``'s, wall and CPU.
+        ``cpu_stages`` (median ms) and the quality; the ratios are medians over ``klt``'s, wall and CPU;
+        with ``large``, ``"native_cpu_ratios"``: ``{large mode: {method: CPU median / its 752x480 one}}``.
 
     Raises:
         NSFlowError: an unknown method or mode, or a model / config that cannot be loaded.
     """
+    from nsflow_ros.data.perturb import make_perturber
     from nsflow_ros.data.sample import make_sample_sequence
     from nsflow_ros.vins.config import load_vins_config
     from nsflow_ros.vins.tracker import tracker_from_config
@@ -122,23 +172,36 @@ def run_tracker_benchmark(
                           f"methods: {list(METHODS)}, modes: {list(MODES)}")
     if not duration > 0:
         raise NSFlowError(f"duration must be > 0 s, got {duration}")
+    perturber = make_perturber(perturb, seed)  # an unknown name fails here, before any work
     tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
     try:
         root = Path(tmp.name if tmp else cache_dir) / f"sample-seed{seed}-{duration:g}s"
         seq = make_sample_sequence(root, seed=seed, duration=duration, stereo=True, formats=("asl",),
                                    progress=progress)
         runs: dict[str, dict[str, _Run]] = {}
+        views: dict[str, ResizedSample | None] = {}  # mode -> the resized view (None: 752x480)
         left_out: dict[str, str] = {}
-        for mode in modes:
+        variants = [(mode, None) for mode in modes]
+        if large is not None:
+            variants += [(mode, ResizedSample(seq, large)) for mode in modes]
+        for mode, view in variants:
             cfg = load_vins_config(share_file(CONFIGS[mode]))
             over: dict[str, Any] = {"stereo": mode == "stereo", "num_threads": threads,
                                     "providers": providers}
             if model is not None:
                 over["model_path"] = model
-            runs[mode] = {}
+            key = mode
+            if view is not None:
+                w, h = view.size
+                cfg = dataclasses.replace(cfg, cameras=tuple(resize_camera(c, w, h) for c in cfg.cameras),
+                                          image_width=w, image_height=h)
+                over["downsample"] = downsample
+                key = f"{mode} {w}x{h} /{downsample}"
+            runs[key], views[key] = {}, view
             for m in names:
                 try:
-                    runs[mode][m] = _Run(tracker_from_config(cfg, {**over, "method": m}))
+                    runs[key][m] = _Run(tracker_from_config(cfg, {**over, "method": m}),
+                                        1.0 if view is None else float(view.scale.mean()))
                 except UnsupportedEncoderError as err:  # e.g. OpenCV's LK and unbounded descriptors
                     left_out[m] = str(err)
         names = [m for m in names if m not in left_out]
@@ -150,17 +213,27 @@ def run_tracker_benchmark(
         stereo = "stereo" in modes
         with process_threads.opencv_threads(opencv_threads) as used_cv:
             for i in frames:
-                left = seq.image(i, 0)
-                right = seq.image(i, 1) if stereo else None
+                left = perturber(seq.image(i, 0), seq.time(i))
+                right = perturber(seq.image(i, 1), seq.time(i)) if stereo else None
+                resized: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
                 # Frame by frame, every method and mode in turn.
-                for mode, by_method in runs.items():
+                for key, by_method in runs.items():
+                    view = views[key]
+                    l_img, r_img = left, right
+                    if view is not None:
+                        if view.size not in resized:  # once per frame for every mode and method
+                            resized[view.size] = (view.image(left),
+                                                  None if right is None else view.image(right))
+                        l_img, r_img = resized[view.size]
                     for run in by_method.values():
-                        run.step(seq, i, left, right if mode == "stereo" else None)
+                        run.step(view or seq, i, l_img, r_img if key.startswith("stereo") else None)
     finally:
         if tmp is not None:
             tmp.cleanup()
     out: dict[str, Any] = {"setup": {"frames": len(seq), "size": [752, 480], "duration_s": duration,
-                                     "methods": names, "left_out": left_out, "modes": list(modes),
+                                     "methods": names, "left_out": left_out, "modes": list(runs),
+                                     "large": None if large is None else list(large),
+                                     "downsample": downsample, "perturb": perturb,
                                      "interleaved": True,
                                      "configs": {m: CONFIGS[m] for m in modes},
                                      "encoder_provider": _provider(runs),
@@ -171,7 +244,18 @@ def run_tracker_benchmark(
         for key, kind in (("ratios", "total"), ("cpu_ratios", "cpu")):
             base = out[mode][BASELINE][kind]["median_ms"]
             out[key][mode] = {m: out[mode][m][kind]["median_ms"] / base for m in names if m != BASELINE}
+    if large is not None:
+        out["native_cpu_ratios"] = {
+            key: {m: out[key][m]["cpu"]["median_ms"] / out[_native(key)][m]["cpu"]["median_ms"]
+                  for m in names}
+            for key in runs if views[key] is not None
+        }
     return out
+
+
+def _native(key: str) -> str:
+    """The 752x480 mode of a mode key ("stereo 1280x800 /2" -> "stereo")."""
+    return key.split()[0]
 
 
 def _provider(runs: dict[str, dict[str, _Run]]) -> str:
@@ -211,4 +295,18 @@ def format_tracker_table(res: dict[str, Any]) -> str:
                 f"{stereo}  {st}"
             )
     lines.append("CPU ms: the process's CPU time per frame over all its threads; x klt: median over klt's")
+    for key, ratios in res.get("native_cpu_ratios", {}).items():
+        w, h = s["large"]
+        lines.append(
+            f"{key}: the sample up-sampled to {w}x{h} (exact flow scaled), tracked with downsample "
+            f"{s['downsample']}; CPU per frame over the same method's at 752x480: "
+            + ", ".join(f"{m} {r:.2f}x" for m, r in ratios.items())
+        )
+        shares = []
+        for m, f in res[key].items():
+            native = res[_native(key)][m]["error_over_1px_share"]
+            at752 = f.get("error_over_1px_at_752_share", float("nan"))
+            shares.append(f"{m} {1 - f['error_over_1px_share']:.1%} (at 752x480 scale {1 - at752:.1%}; "
+                          f"752x480 run {1 - native:.1%})")
+        lines.append(f"  features within 1 px of the truth, in {w}x{h} pixels: " + "; ".join(shares))
     return "\n".join(lines)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from nsflow_ros.bench import main
@@ -91,3 +92,35 @@ def test_cli_runs_only_the_tracker_part_as_json(capsys):
     assert json.loads(capsys.readouterr().out)["tracker"]["setup"]["opencv_threads"] == 2
     assert main([*args, "--methods", "nope"]) == 1
     assert "unknown method" in capsys.readouterr().err
+
+
+def test_a_large_camera_runs_downsampled_beside_752x480_on_dark_frames(tmp_path):
+    res = run_tracker_benchmark(0.3, ["classical"], ["stereo"], cache_dir=tmp_path, threads=1,
+                                opencv_threads=1, large=(1504, 960), downsample=2, perturb="dark")
+    key = "stereo 1504x960 /2"
+    assert res["setup"]["modes"] == ["stereo", key] and res["setup"]["perturb"] == "dark"
+    for method in ("classical", "klt"):
+        big, small = res[key][method], res["stereo"][method]
+        # the same scene tracked at half the size of the up-sampled images: errors in 1504 px about twice
+        assert 1.2 * small["error_median_px"] < big["error_median_px"] < 3.5 * small["error_median_px"]
+        assert big["carried_share"] > 0.8 and big["stereo_matched_share"] > 0.7
+        assert 0 <= big["error_over_1px_at_752_share"] <= big["error_over_1px_share"]
+        ratio = res["native_cpu_ratios"][key][method]
+        assert ratio == pytest.approx(big["cpu"]["median_ms"] / small["cpu"]["median_ms"])
+    table = format_tracker_table(res)
+    assert f"{key}: the sample up-sampled to 1504x960" in table and "at 752x480 scale" in table
+
+
+def test_resized_sample_flow_is_the_exact_flow_scaled(tmp_path):
+    from nsflow_ros.data.sample import make_sample_sequence
+    from nsflow_ros.tracker_bench import ResizedSample
+
+    seq = make_sample_sequence(tmp_path / "s", seed=0, duration=0.1, stereo=False, formats=("asl",),
+                               progress=False)
+    view = ResizedSample(seq, (1504, 960))
+    px = np.array([[100.0, 50.0], [400.25, 300.5]])
+    flow, vis = view.flow(0, 1, 2 * (px + 0.5) - 0.5)
+    small, vis_small = seq.flow(0, 1, px)
+    np.testing.assert_allclose(flow, 2 * small)
+    np.testing.assert_array_equal(vis, vis_small)
+    assert view.image(seq.image(0)).shape == (960, 1504)

@@ -26,6 +26,7 @@ __all__ = [
     "downsample_camera",
     "downsample_image",
     "downsample_mask",
+    "resize_camera",
     "to_full_resolution",
     "to_tracking_resolution",
 ]
@@ -62,6 +63,23 @@ def _check_size(width: int, height: int, factor: int, what: str) -> None:
         )
 
 
+def resize_camera(camera: CameraModel, width: int, height: int) -> CameraModel:
+    """The camera as its images resized to ``width`` x ``height`` by ``cv2.resize`` see it.
+
+    Per axis with ``s = new size / old size``: focal lengths times s, principal point
+    ``(c + 0.5) s - 0.5``; the distortion acts on normalised coordinates and stays. Benchmarks use it for
+    up-sampled copies of the sample (a stand-in for a larger camera).
+    """
+    focal, centre = _PIXEL_PARAMETERS[type(camera)]
+    scale = (width / camera.width, height / camera.height)
+    changes: dict[str, float | int] = {"width": int(width), "height": int(height)}
+    for key, sc in zip(focal, scale, strict=True):
+        changes[key] = getattr(camera, key) * sc
+    for key, sc in zip(centre, scale, strict=True):
+        changes[key] = (getattr(camera, key) + 0.5) * sc - 0.5
+    return dataclasses.replace(camera, **changes)
+
+
 def downsample_camera(camera: CameraModel, factor: int) -> CameraModel:
     """The camera as its images decimated by ``factor`` see it (the convention of the module docstring).
 
@@ -76,13 +94,7 @@ def downsample_camera(camera: CameraModel, factor: int) -> CameraModel:
     if d == 1:
         return camera
     _check_size(camera.width, camera.height, d, f"camera ({camera.name})")
-    focal, centre = _PIXEL_PARAMETERS[type(camera)]
-    changes: dict[str, float | int] = {"width": camera.width // d, "height": camera.height // d}
-    for key in focal:
-        changes[key] = getattr(camera, key) / d
-    for key in centre:
-        changes[key] = (getattr(camera, key) + 0.5) / d - 0.5
-    return dataclasses.replace(camera, **changes)
+    return resize_camera(camera, camera.width // d, camera.height // d)
 
 
 def downsample_image(image: np.ndarray, factor: int) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -709,3 +710,89 @@ def test_the_debug_image_needs_no_rosbags_typestore():
     ref = image_message(ros2_store(), 0, "", bgr, "bgr8")
     assert (msg.height, msg.width, msg.encoding, msg.step) == (ref.height, ref.width, ref.encoding, ref.step)
     assert bytes(msg.data) == ref.data.tobytes()
+
+
+# -- large cameras and the estimator's rate ---------------------------------------------------------------
+
+
+def _large_config(tmp_path: Path, prefix: str) -> tuple[Path, object]:
+    """A config for the synthetic images up-sampled 2x (640x480), and its camera."""
+    from nsflow_ros.core.camera import PinholeCamera
+
+    config = write_config(tmp_path, prefix)
+    cam = syn.camera()
+    big = PinholeCamera(width=2 * cam.width, height=2 * cam.height, fx=2 * cam.fx, fy=2 * cam.fy,
+                        cx=(cam.cx + 0.5) * 2 - 0.5, cy=(cam.cy + 0.5) * 2 - 0.5)
+    big.save_yaml(tmp_path / "cam0.yaml")
+    text = config.read_text().replace(f"image_width: {cam.width}", f"image_width: {big.width}")
+    config.write_text(text.replace(f"image_height: {cam.height}", f"image_height: {big.height}"))
+    return config, big
+
+
+def _up(img: np.ndarray) -> np.ndarray:
+    return cv2.resize(img, (2 * img.shape[1], 2 * img.shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
+def test_downsample_publishes_in_the_full_resolution_calibration_and_refuses_3(tmp_path, prefix, pan):
+    config, big = _large_config(tmp_path, prefix)
+    h = Harness(config, prefix, downsample=2)
+    try:
+        assert h.tracker.tracker.cameras[0].width == syn.W and h.tracker.tracker.full_cameras[0] is not None
+        prev = None
+        for k in range(4):
+            h.send(0, image_msg(_up(pan.frames[k]), T0 + pan.stamps[k]))
+            pts, ch = _cloud_arrays(h.clouds[-1])
+            rows = {fid: v[0][1] for fid, v in decode_fusion(pts, ch).items()}
+            uv = np.array([r[3:5] for r in rows.values()])
+            assert len(uv) > 40 and uv[:, 0].max() > syn.W  # pixels of the 640 px image ...
+            np.testing.assert_allclose(np.array([r[:2] for r in rows.values()]), big.lift(uv), atol=1e-5)
+            if prev is not None:  # ... that follow the true motion, in full-resolution pixels
+                common = [i for i in rows if i in prev]
+                start = (np.array([prev[i][3:5] for i in common]) + 0.5) / 2 - 0.5
+                truth = 2 * (pan.truth(k - 1, k, start) + 0.5) - 0.5
+                assert np.median(np.hypot(*(np.array([rows[i][3:5] for i in common]) - truth).T)) < 0.4
+            prev = rows
+        (res,) = _set_remote(h, downsample=3)
+        assert not res.successful and res.reason == "downsample must be one of 1, 2, 4, got 3"
+        assert h.tracker.get_parameter("downsample").value == 2 and h.tracker.tracker.settings.downsample == 2
+        h.send(0, image_msg(_up(pan.frames[4]), T0 + pan.stamps[4]))  # the node goes on as before
+        assert _cloud_arrays(h.clouds[-1])[1][2].max() > syn.W
+    finally:
+        h.close()
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        with pytest.raises(Exception, match="downsample must be one of 1, 2, 4, got 3"):
+            TrackerNode(context=ctx, parameter_overrides=[Parameter("config_file", value=str(config)),
+                                                          Parameter("downsample", value=3)])
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+def test_publish_rate_tracks_every_frame_and_publishes_every_nth(tmp_path, prefix, pan):
+    h = Harness(write_config(tmp_path, prefix), prefix, publish_rate=10.0, late_frame_ms=0.0)
+    try:
+        for k in range(len(pan.frames)):
+            processed = h.tracker.stats.frames_processed
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]), expect_cloud=k % 2 == 0)
+            assert h.spin_until(lambda p=processed: h.tracker.stats.frames_processed > p, 5.0)
+        half = len(pan.frames) // 2
+        assert len(h.clouds) == half and h.tracker.session.counters.throttled == half
+        stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in h.clouds]
+        np.testing.assert_allclose(stamps, T0 + pan.stamps[::2], atol=1e-9)
+        frames = [{fid: v[0][1] for fid, v in decode_fusion(*_cloud_arrays(m)).items()} for m in h.clouds]
+        for a, b in itertools.pairwise(frames):  # velocities over the published 0.1 s
+            common = [i for i in b if i in a]
+            assert len(common) > 30
+            for i in common:
+                np.testing.assert_allclose(b[i][5:7], (b[i][0:2] - a[i][0:2]) / 0.1, atol=2e-3)
+        (res,) = _set_remote(h, publish_rate=0.0)  # every frame again
+        assert res.successful
+        before = len(h.clouds)
+        for k in range(2):
+            h.send(0, image_msg(pan.frames[k], T0 + 1.0 + pan.stamps[k]))
+        assert len(h.clouds) == before + 2
+        (res,) = _set_remote(h, publish_rate=-5.0)
+        assert not res.successful and "publish_rate" in res.reason
+    finally:
+        h.close()
