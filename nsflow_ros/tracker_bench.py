@@ -268,6 +268,7 @@ def format_tracker_table(res: dict[str, Any]) -> str:
     """The whole-tracker figures as a text table, one row per mode and method."""
     s = res["setup"]
     threads = s.get("encoder_threads")
+    wm = max(7, *(len(m) + 1 for m in s["modes"]))  # the mode column
     lines = [
         f"whole tracker (VINS-style, shipped EuRoC configs, flow-back on), {s['frames']} frames "
         f"{s['size'][0]}x{s['size'][1]} of the sample sequence, methods interleaved; encoder on "
@@ -275,8 +276,9 @@ def format_tracker_table(res: dict[str, Any]) -> str:
         f"{'all cores' if threads is None else threads}, OpenCV threads {s.get('opencv_threads', '?')}",
         *(f"left out: {why}" for why in s.get("left_out", {}).values()),
         "",
-        f"{'mode':7s}{'method':11s}{'median ms':>10s}{'p90 ms':>8s}{'x klt':>7s}{'CPU ms':>8s}{'x klt':>7s}"
-        f"{'carried':>9s}{'err px':>8s}{'>1px':>7s}{'stereo':>8s}{'s.err px':>9s}{'s.>1px':>7s}"
+        f"{'mode':{wm}s}{'method':11s}{'median ms':>10s}{'p90 ms':>8s}{'x klt':>7s}"
+        f"{'CPU ms':>8s}{'x klt':>7s}{'carried':>9s}{'err px':>8s}{'>1px':>7s}{'stereo':>8s}"
+        f"{'s.err px':>9s}{'s.>1px':>7s}"
         "  stages (median ms, wall / CPU)",
     ]
     for mode in s["modes"]:
@@ -289,7 +291,7 @@ def format_tracker_table(res: dict[str, Any]) -> str:
             stereo = (f"{f['stereo_matched_share']:8.3f}{f['stereo_error_median_px']:9.3f}"
                       f"{f['stereo_error_over_1px_share']:7.1%}" if "stereo_matched_share" in f else " " * 24)
             lines.append(
-                f"{mode:7s}{m:11s}{f['total']['median_ms']:10.2f}{f['total']['p90_ms']:8.2f}{ratio:6.2f}x"
+                f"{mode:{wm}s}{m:11s}{f['total']['median_ms']:10.2f}{f['total']['p90_ms']:8.2f}{ratio:6.2f}x"
                 f"{cpu:8.2f}{cpu_ratio:6.2f}x"
                 f"{f['carried_share']:9.3f}{f['error_median_px']:8.3f}{f['error_over_1px_share']:7.1%}"
                 f"{stereo}  {st}"
