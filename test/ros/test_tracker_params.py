@@ -60,7 +60,7 @@ def test_the_node_parameters_are_the_settings_table():
     assert all(spec(k).vins_key == k for k in VINS_KEYS)
     assert set(SESSION_SETTINGS) <= {p.name for p in PARAMETERS}
     rebuild = {"method", "model_path", "num_threads", "equalize", "providers", "tensorrt_fp16",
-               "tensorrt_cache"}
+               "tensorrt_cache", "downsample"}
     assert {p.name for p in PARAMETERS if p.mode is Mode.REBUILD} == rebuild
     text = render_params_yaml()
     for p in PARAMETERS:  # the mode reaches the params file's comments
