@@ -38,7 +38,7 @@ REPLAY_ARGUMENTS = {
     "path": (None, "required: ROS 1 .bag, ROS 2 bag folder / .mcap / .db3, or EuRoC ASL folder to replay"),
     "rate": ("1.0", "replay speed factor (0 = as fast as possible)"),
     "start": ("0.0", "seconds to skip"),
-    "perturb": ("none", "perturbation: none, small or large (illumination) or dark (low light, sensor noise)"),
+    "perturb": ("none", "perturbation: none, small, large (illumination) or dark (low light with noise)"),
 }
 
 

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros import threads as process_threads
-from nsflow_ros.core.downsample import resize_camera
+from nsflow_ros.core.downsample import check_downsample, resize_camera
 from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.errors import UnsupportedEncoderError
 from nsflow_ros.core.methods import BASELINE, METHODS
@@ -173,6 +173,7 @@ def run_tracker_benchmark(
     if not duration > 0:
         raise NSFlowError(f"duration must be > 0 s, got {duration}")
     perturber = make_perturber(perturb, seed)  # an unknown name fails here, before any work
+    check_downsample(downsample)
     tmp = tempfile.TemporaryDirectory() if cache_dir is None else None
     try:
         root = Path(tmp.name if tmp else cache_dir) / f"sample-seed{seed}-{duration:g}s"

@@ -124,3 +124,16 @@ def test_resized_sample_flow_is_the_exact_flow_scaled(tmp_path):
     np.testing.assert_allclose(flow, 2 * small)
     np.testing.assert_array_equal(vis, vis_small)
     assert view.image(seq.image(0)).shape == (960, 1504)
+
+
+def test_cli_large_downsample_and_perturb_options(capsys):
+    args = ["--tracker-seconds", "0.15", "--no-stages", "--node-seconds", "0", "--threads", "1",
+            "--methods", "klt", "--modes", "mono"]
+    assert main([*args, "--large", "1280x800", "--downsample", "2", "--perturb", "dark"]) == 0
+    out = capsys.readouterr().out
+    assert "mono 1280x800 /2 klt" in out and "CPU per frame over the same method's at 752x480: klt" in out
+    with pytest.raises(SystemExit):
+        main([*args, "--large", "1280by800"])
+    assert "expected WIDTHxHEIGHT such as 1280x800, got '1280by800'" in capsys.readouterr().err
+    assert main([*args, "--large", "1280x800", "--downsample", "3"]) == 1
+    assert capsys.readouterr().err.strip() == "nsflow-bench: downsample must be one of 1, 2, 4, got 3"

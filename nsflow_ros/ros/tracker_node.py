@@ -233,7 +233,10 @@ class TrackerNode(Node):
             f"{cfg.dialect} config {cfg.path} ({'stereo' if s.stereo else 'mono'}, {cfg.image_width}x"
             f"{cfg.image_height}); method {s.method} (encoder on {encoder_provider(self.tracker.encoder)}), "
             f"layout {self.layout}, max_cnt {s.max_cnt}, min_dist "
-            f"{s.min_dist:g}, flow_back {s.flow_back}, F-RANSAC {s.reject_with_f}, IMU prediction {use_imu}; "
+            f"{s.min_dist:g}, flow_back {s.flow_back}, F-RANSAC {s.reject_with_f}, IMU prediction {use_imu}"
+            + (f", downsample {s.downsample}" if s.downsample != 1 else "")
+            + (f", publish_rate {self.session.publish_rate:g} Hz" if self.session.publish_rate else "")
+            + "; "
             f"{transport} images on {images}"
             + (f", IMU on {self._subs[-1].topic_name}" if use_imu else "")
             + f"; features on {self._feature_pub.topic_name}"

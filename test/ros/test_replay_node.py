@@ -202,3 +202,22 @@ def test_console_replay_applies_ros_args_remaps_and_waits(seq):
     assert proc.returncode == 0, err
     stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in got]
     assert stamps == [int(s) for s in seq.stamps_ns[:6]]  # from frame 0, on the remapped topic
+
+
+def test_cli_dark_perturbation_from_the_registry(seq, tmp_path, capsys):
+    from nsflow_ros.data.perturb import make_perturber
+    from nsflow_ros.data.sources import SensorSource
+
+    out = tmp_path / "dark"
+    args = [str(seq.asl_dir), "--topics", "/cam0/image_raw", "--perturb", "dark", "--seed", "4"]
+    assert replay_main([*args, "--write-bag", str(out)]) == 0
+    dark = make_perturber("dark", 4)
+    plain = list(SensorSource(seq.asl_dir, topics=["/cam0/image_raw"]).records())
+    written = list(SensorSource(out).records())
+    assert len(written) == len(plain) > 0
+    for a, b in zip(plain, written, strict=True):
+        assert np.array_equal(b.image, dark(a.image, a.stamp_ns * 1e-9))
+    with pytest.raises(SystemExit):
+        replay_main([str(seq.asl_dir), "--perturb", "night"])
+    assert re.search(r"invalid choice: 'night' \(choose from '?none'?, '?small'?, '?large'?, '?dark'?\)",
+                     capsys.readouterr().err)
