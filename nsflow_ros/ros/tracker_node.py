@@ -430,6 +430,7 @@ class TrackerNode(Node):
             "cpu_ms_per_frame": _cpu_per_frame(time.process_time() - self._cpu_start, s.frames_processed),
             "track_images_published": self.track_images_published,
             "restarts": self.session.counters.restarts,
+            "features_gated": self.session.counters.gated,
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p90": _percentile(lat, 90),
         }

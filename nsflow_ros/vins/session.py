@@ -94,6 +94,7 @@ class SessionCounters:
         resets: track resets after time went backwards (VINS-Fusion layout).
         throttled: frames tracked but not published (VINS-Mono ``freq``).
         rebuilds: new trackers built after a setting change.
+        gated: tracked features dropped by the ``max_sigma`` gate.
     """
 
     tracked: int = 0
@@ -103,6 +104,7 @@ class SessionCounters:
     resets: int = 0
     throttled: int = 0
     rebuilds: int = 0
+    gated: int = 0
 
     @property
     def skipped_by_policy(self) -> int:
@@ -349,6 +351,7 @@ class FrontEndSession:
         except CoreError as err:
             return FrameOutcome(None, False, skipped=Skip.TRACKER, note=str(err))
         self._last_stamp = stamp
+        self.counters.gated += frame.gated
         if self.gyro is not None:
             with self._gyro_lock:
                 self.gyro.prune(stamp)
