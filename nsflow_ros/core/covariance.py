@@ -130,15 +130,16 @@ def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: st
 
 
 def _from_normal_equations(hess: np.ndarray, variance: np.ndarray) -> np.ndarray:
-    """variance * (J^T J)^-1 per point, [uu, uv, vv]; inf where J^T J is singular."""
+    """variance * (J^T J)^-1 per point, [uu, uv, vv]; inf variances (0 covariance) where J^T J is singular."""
     h11, h12, h22 = hess[:, 0], hess[:, 1], hess[:, 2]
     det = h11 * h22 - h12 * h12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        k = np.where(det > 0, variance / det, np.inf)
+    good = det > 0
     out = np.empty((hess.shape[0], 3))
-    out[:, 0] = k * h22
-    out[:, 1] = np.where(det > 0, -k * h12, 0.0)
-    out[:, 2] = k * h11
+    out[:] = [np.inf, 0.0, np.inf]
+    k = variance[good] / det[good]
+    out[good, 0] = k * h22[good]
+    out[good, 1] = -k * h12[good]
+    out[good, 2] = k * h11[good]
     return out
 
 
@@ -221,4 +222,5 @@ def max_sigma(cov: np.ndarray) -> np.ndarray:
     tr = c[:, 0] + c[:, 2]
     diff = c[:, 0] - c[:, 2]
     with np.errstate(invalid="ignore"):
-        return np.sqrt(np.maximum(0.5 * (tr + np.sqrt(diff * diff + 4.0 * c[:, 1] ** 2)), 0.0))
+        out = np.sqrt(np.maximum(0.5 * (tr + np.sqrt(diff * diff + 4.0 * c[:, 1] ** 2)), 0.0))
+    return np.where(np.isinf(tr), np.inf, out)  # a singular J^T J: no bound at all

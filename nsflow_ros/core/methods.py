@@ -418,22 +418,23 @@ class LMMethod(TrackingMethod):
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        new, status, _ = self._solve(kind, frame1, frame2, pts, start, prior)
+        new, status, _ = self.solve_result(kind, frame1, frame2, pts, start, prior)
         return new, status
 
     def solve_with_covariance(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        new, status, res = self._solve(kind, frame1, frame2, pts, start, prior)
+        new, status, res = self.solve_result(kind, frame1, frame2, pts, start, prior)
         # The solver's own final J^T J and cost: a few operations per point, no pass over the window.
         elements = self.lm.window * self.lm.window * frame2.channels
         return new, status, lm_covariance(res.hessian, res.cost, elements, self.covariance_scale.scale)
 
-    def _solve(
+    def solve_result(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
+        """:meth:`solve` with the solver's full result (cost, J^T J, ...), e.g. for the evaluation."""
         p = self.policy
         if kind.is_check:
             return self._track_pair(frame1, frame2, pts, start, CHECK_LEVELS, jacobian=p.check_jacobian,
