@@ -17,6 +17,7 @@ Covariances are [sigma_uu, sigma_uv, sigma_vv] in pixels^2 of the full-resolutio
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from collections.abc import Mapping
@@ -56,7 +57,8 @@ class CovarianceScale:
 
     Attributes:
         scale: s (> 0); 1.0 when no fitted value was found.
-        source: "metadata", a sidecar file's name, "registry", or "uncalibrated".
+        source: "metadata", a sidecar file's name, "registry", or "uncalibrated" (with the reason when a
+            sidecar's scale was fitted on another model file: its ``model_sha256`` differs).
     """
 
     scale: float = 1.0
@@ -65,7 +67,7 @@ class CovarianceScale:
     @property
     def calibrated(self) -> bool:
         """Whether the scale was fitted (else the raw Gauss-Newton covariance is used)."""
-        return self.source != "uncalibrated"
+        return not self.source.startswith("uncalibrated")
 
 
 def sidecar_path(model: str | Path) -> Path:
@@ -122,11 +124,23 @@ def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: st
             if not isinstance(scales, dict):
                 raise CoreError(f"{side}: expected an object with 'scales' by method, got {table!r}")
             found = _scale_of(scales, method, str(side))
+            fitted = table.get("model_sha256")
+            if found is not None and fitted is not None and fitted != _sha256(Path(model)):
+                # a model replaced under the same name: its scale must be fitted again
+                return CovarianceScale(1.0, f"uncalibrated ({side.name} was fitted on another model file)")
             if found is not None:
                 return CovarianceScale(found, side.name)
     if registry is not None:
         return CovarianceScale(float(registry), "registry")
     return CovarianceScale()
+
+
+def _sha256(path: Path) -> str:
+    """The file's SHA-256 (models are kilobytes: a scale fitted on another file is caught at load)."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as err:
+        raise CoreError(f"cannot read the model {path}: {err}") from err
 
 
 def _from_normal_equations(hess: np.ndarray, variance: np.ndarray) -> np.ndarray:
@@ -220,7 +234,7 @@ def max_sigma(cov: np.ndarray) -> np.ndarray:
     """
     c = np.asarray(cov, dtype=np.float64)
     tr = c[:, 0] + c[:, 2]
-    diff = c[:, 0] - c[:, 2]
     with np.errstate(invalid="ignore"):
+        diff = c[:, 0] - c[:, 2]
         out = np.sqrt(np.maximum(0.5 * (tr + np.sqrt(diff * diff + 4.0 * c[:, 1] ** 2)), 0.0))
     return np.where(np.isinf(tr), np.inf, out)  # a singular J^T J: no bound at all

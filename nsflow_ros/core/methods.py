@@ -32,6 +32,7 @@ __all__ = [
     "BASELINE",
     "CHECK_LEVELS",
     "CLAHE",
+    "COVARIANCE_SCALES",
     "DEPLOYED_LM",
     "KLT_CRITERIA",
     "KLT_GUIDED_MAX_LEVEL",
@@ -605,6 +606,10 @@ class MethodSpec:
         return replace(self, lm=replace(self.lm, levels=levels)) if self.lm is not None else self
 
 
+COVARIANCE_SCALES: Mapping[str, float] = MappingProxyType({"classical": 4.257, "klt": 14.29})
+"""The fitted covariance scales of the methods without a model, as ``python -m
+nsflow_ros.evaluation.covariance fit`` prints them (the learned methods' are stored with their model)."""
+
 METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     "nsflow": MethodSpec(
         "nsflow", "NSFlow", "learned encoder + the LM solver (NumPy)", EncoderSource.LEARNED,
@@ -616,11 +621,11 @@ METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     ),
     "classical": MethodSpec(
         "classical", "LM (intensity)", "image intensity + the same LM solver", EncoderSource.INTENSITY,
-        lm=DEPLOYED_LM, policy=SolvePolicy(),
+        lm=DEPLOYED_LM, policy=SolvePolicy(), covariance_scale=COVARIANCE_SCALES["classical"],
     ),
     "klt": MethodSpec(
         "klt", "OpenCV KLT", "OpenCV calcOpticalFlowPyrLK on the gray image, as VINS-Fusion calls it",
-        EncoderSource.NONE, klt=KLTConfig(),
+        EncoderSource.NONE, klt=KLTConfig(), covariance_scale=COVARIANCE_SCALES["klt"],
     ),
 })
 """The registry of tracking methods (learned methods first)."""

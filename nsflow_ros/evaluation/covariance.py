@@ -719,10 +719,6 @@ def _jsonable(x: Any) -> Any:
 # -- the fit ------------------------------------------------------------------------------------------
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def fit(ctx: EvalContext, setup: CovarianceSetup) -> dict[str, float]:
     """Each method's NLL-optimal scale (:func:`fit_scale`) on ``setup``'s data, all groups pooled."""
     data = collect(ctx, setup, scaled=False)
@@ -767,7 +763,7 @@ def main(args: Sequence[str] | None = None) -> int:
         print(f"{name}: scale {s:.4g}")
     if not opts.no_write and learned:
         side = sidecar_path(model)
-        doc = {"scales": learned, "model_sha256": _sha256(model),
+        doc = {"scales": learned, "model_sha256": hashlib.sha256(model.read_bytes()).hexdigest(),
                "fitted_on": "training photos' homography pairs and sample sequence seed 1, every level",
                "command": f"python -m nsflow_ros.evaluation.covariance fit --model {model.name}"}
         side.write_text(json.dumps(doc, indent=2) + "\n")

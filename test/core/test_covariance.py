@@ -158,6 +158,9 @@ def test_scale_comes_from_metadata_then_sidecar_then_registry(tmp_path):
     sidecar_path(model).write_text(json.dumps({"scales": {"nsflow": 5.0}}))
     got = read_scale("nsflow", {}, model)
     assert (got.scale, got.source) == (5.0, "enc.covariance.json")
+    sidecar_path(model).write_text(json.dumps({"scales": {"nsflow": 5.0}, "model_sha256": "0" * 64}))
+    stale = read_scale("nsflow", {}, model)  # fitted on another file: not used
+    assert stale.scale == 1.0 and not stale.calibrated and "another model" in stale.source
     meta = {METADATA_KEY: json.dumps({"nsflow": 7.5})}
     assert read_scale("nsflow", meta, model).scale == 7.5
     assert read_scale("nsflow_lk", meta, model, registry=2.0).source == "registry"

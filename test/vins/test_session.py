@@ -189,3 +189,21 @@ def test_every_tracker_the_session_builds_is_warmed_up_before_its_first_frame(tm
     assert warmed == [s.tracker]
     s.update(method="klt")  # a rebuild
     assert warmed == [warmed[0], s.tracker] and s.tracker is not warmed[0]
+
+
+def test_publish_covariance_follows_the_layout_unless_set_and_max_sigma_is_live(tmp_path, pan):
+    from nsflow_ros.vins.messages import encode
+
+    for dialect, setting, channels in (("fusion", -1, 12), ("fusion", 0, 9), ("mono", -1, 5), ("mono", 1, 8)):
+        s = _session(tmp_path, dialect, publish_covariance=setting)
+        outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(6)]
+        frame = [o.features for o in outs if o.features is not None][-1]  # mono: throttled to freq
+        assert encode(frame, s.layout).channels.shape[0] == channels, (dialect, setting)
+    s = _session(tmp_path)
+    for k in range(3):
+        s.process(T0 + pan.stamps[k], pan.frames[k])
+    assert s.update(max_sigma=1e-6) == ["max_sigma is now 1e-06"]
+    out = s.process(T0 + pan.stamps[3], pan.frames[3])
+    assert out.features.gated > 0 and s.counters.gated == out.features.gated
+    with pytest.raises(ConfigError, match="max_sigma"):
+        s.update(max_sigma=-2.0)
