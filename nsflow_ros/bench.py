@@ -424,6 +424,11 @@ def main(args: list[str] | None = None) -> int:
         help="the node runs' late_frame_ms (a frame that waited longer for the tracker skips its reverse "
         f"checks; 0 = always check; default: the node's, {setting('late_frame_ms').default:g})",
     )
+    parser.add_argument(
+        "--covariance", action="store_true",
+        help="the whole-tracker benchmark also runs every method with publish_covariance on (as "
+        "<method>+cov, interleaved): what the per-feature covariance costs",
+    )
     parser.add_argument("--no-stages", action="store_true",
                         help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
     parser.add_argument(
@@ -452,7 +457,7 @@ def main(args: list[str] | None = None) -> int:
             res["tracker"] = run_tracker_benchmark(
                 opts.tracker_seconds, methods, model=opts.model, threads=opts.threads, progress=not opts.json,
                 providers=opts.providers,
-                opencv_threads=int(cv_threads),
+                opencv_threads=int(cv_threads), covariance=opts.covariance,
             )
         if opts.node_seconds > 0:
             from nsflow_ros.ros.bench_live import run_live_benchmark

@@ -85,6 +85,7 @@ def run_tracker_benchmark(
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
+    covariance: bool = False,
 ) -> dict[str, Any]:
     """Time the whole tracker per frame for each method and mode, interleaved, with its quality.
 
@@ -101,6 +102,8 @@ def run_tracker_benchmark(
         cache_dir: where the sample sequence is rendered (reused when it is there); None = a temporary
             folder removed afterwards.
         progress: a progress bar on stderr.
+        covariance: also run every method with ``publish_covariance`` on, as ``<method>+cov``, interleaved
+            with the others: the covariance's cost is its CPU ratio over the method's own.
 
     Returns:
         ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}},
@@ -138,10 +141,16 @@ def run_tracker_benchmark(
             runs[mode] = {}
             for m in names:
                 try:
-                    runs[mode][m] = _Run(tracker_from_config(cfg, {**over, "method": m}))
+                    runs[mode][m] = _Run(tracker_from_config(cfg, {**over, "method": m,
+                                                                    "publish_covariance": False}))
+                    if covariance:
+                        runs[mode][f"{m}+cov"] = _Run(tracker_from_config(cfg, {**over, "method": m,
+                                                                                 "publish_covariance": True}))
                 except UnsupportedEncoderError as err:  # e.g. OpenCV's LK and unbounded descriptors
                     left_out[m] = str(err)
         names = [m for m in names if m not in left_out]
+        if covariance:
+            names += [f"{m}+cov" for m in names]
         frames = range(len(seq))
         if progress:
             from nsflow_ros.progress import progress_bar
