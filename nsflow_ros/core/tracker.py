@@ -397,6 +397,8 @@ class FeatureTracker:
                 "its own encoder"
             )
         self.method: TrackingMethod = method
+        if s.covariance:
+            method.covariance_scale  # noqa: B018 - a malformed stored scale fails here, not on a frame
         self.body_R_cam0 = None if body_R_cam0 is None else np.asarray(body_R_cam0, dtype=np.float64)
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")

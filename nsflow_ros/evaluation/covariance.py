@@ -572,6 +572,10 @@ def _figure(results: dict[str, dict[str, Any]], curves: dict[str, np.ndarray], p
     xs = np.geomspace(*lim, 10)
     ax1.plot(xs, xs, "k--", lw=0.8, label="ideal")
     ax1.fill_between(xs, 0.8 * xs, 1.25 * xs, color="gray", alpha=0.15, label="0.8-1.25")
+    from matplotlib.ticker import NullFormatter
+
+    for axis in (ax1.xaxis, ax1.yaxis):
+        axis.set_minor_formatter(NullFormatter())  # log axes: the decade labels alone stay readable
     ax1.set_xlabel("predicted sigma per axis (px, decile RMS)")
     ax1.set_ylabel("actual RMS error per axis (px)")
     ax1.set_title("Reliability per decile (inliers < 2 px, all data)")
@@ -590,7 +594,7 @@ def _figure(results: dict[str, dict[str, Any]], curves: dict[str, np.ndarray], p
     return save_figure(fig, path)
 
 
-def _verdict(results: dict[str, dict[str, Any]], rot: dict[str, dict[str, list]]) -> list[str]:
+def _verdict(results: dict[str, dict[str, Any]]) -> list[str]:
     t = TARGETS
     lines = ["**Against the targets** (all held-out data pooled, per method):", ""]
     for m, rows in results.items():
@@ -686,7 +690,7 @@ def run(ctx: EvalContext) -> Section:
         "final window cost; min-eig = minus the Shi-Tomasi minimum eigenvalue at the point; FB = "
         "forward-backward distance)." + quick_note(ctx.quick),
         _tables(results),
-        "\n".join(_verdict(results, rot)),
+        "\n".join(_verdict(results)),
         "Relative rotation of each sample-sequence frame pair from the points that pass the flow-back check: "
         "5-point RANSAC, then Sampson refinement over its inliers with one variance for all points "
         "(isotropic) or with each point's Sigma (weighted), against the true rotation:",

@@ -238,6 +238,10 @@ class TrackerNode(Node):
             + (f", IMU on {self._subs[-1].topic_name}" if use_imu else "")
             + f"; features on {self._feature_pub.topic_name}"
         )
+        if s.covariance:  # what the covariance channels are scaled by, and whether it was fitted
+            scale = self.tracker.method.covariance_scale
+            self.get_logger().info(f"covariance scale {scale.scale:.4g} ({scale.source}), max_sigma "
+                                   f"{s.max_sigma:g} px (0 = off)")
 
     # -- accessors -------------------------------------------------------------------------------------
 
