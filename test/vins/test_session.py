@@ -194,11 +194,13 @@ def test_every_tracker_the_session_builds_is_warmed_up_before_its_first_frame(tm
 def test_publish_covariance_follows_the_layout_unless_set_and_max_sigma_is_live(tmp_path, pan):
     from nsflow_ros.vins.messages import encode
 
-    for dialect, setting, channels in (("fusion", -1, 12), ("fusion", 0, 9), ("mono", -1, 5), ("mono", 1, 8)):
-        s = _session(tmp_path, dialect, publish_covariance=setting)
+    cases = (("fusion", -1, "classical", 12), ("fusion", 0, "classical", 9), ("fusion", -1, "klt", 9),
+             ("fusion", 1, "klt", 12), ("mono", -1, "classical", 5), ("mono", 1, "classical", 8))
+    for dialect, setting, method, channels in cases:  # -1: on for the LM methods in the fusion layout
+        s = _session(tmp_path, dialect, publish_covariance=setting, method=method)
         outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(6)]
         frame = [o.features for o in outs if o.features is not None][-1]  # mono: throttled to freq
-        assert encode(frame, s.layout).channels.shape[0] == channels, (dialect, setting)
+        assert encode(frame, s.layout).channels.shape[0] == channels, (dialect, setting, method)
     s = _session(tmp_path)
     for k in range(3):
         s.process(T0 + pan.stamps[k], pan.frames[k])
