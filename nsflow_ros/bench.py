@@ -452,6 +452,11 @@ def main(args: list[str] | None = None) -> int:
         help="the node runs' late_frame_ms (a frame that waited longer for the tracker skips its reverse "
         f"checks; 0 = always check; default: the node's, {setting('late_frame_ms').default:g})",
     )
+    parser.add_argument(
+        "--covariance", action="store_true",
+        help="the whole-tracker benchmark also runs every method with publish_covariance on (as "
+        "<method>+cov, interleaved): what the per-feature covariance costs",
+    )
     parser.add_argument("--no-stages", action="store_true",
                         help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
     parser.add_argument(
@@ -481,7 +486,7 @@ def main(args: list[str] | None = None) -> int:
                 opts.tracker_seconds, methods, [m.strip() for m in opts.modes.split(",") if m.strip()],
                 model=opts.model, threads=opts.threads, progress=not opts.json,
                 providers=opts.providers,
-                opencv_threads=int(cv_threads),
+                opencv_threads=int(cv_threads), covariance=opts.covariance,
                 large=opts.large, downsample=opts.downsample, perturb=opts.perturb,
             )
         if opts.node_seconds > 0:

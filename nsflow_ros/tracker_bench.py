@@ -128,6 +128,7 @@ def run_tracker_benchmark(
     large: tuple[int, int] | None = None,
     downsample: int = 1,
     perturb: str = "none",
+    covariance: bool = False,
 ) -> dict[str, Any]:
     """Time the whole tracker per frame for each method and mode, interleaved, with its quality.
 
@@ -149,6 +150,8 @@ def run_tracker_benchmark(
         downsample: the trackers' ``downsample`` in the ``large`` modes.
         perturb: a perturbation of :data:`~nsflow_ros.data.perturb.PERTURBATIONS` applied to the frames
             (seeded by ``seed``) before any resize.
+        covariance: also run every method with ``publish_covariance`` on, as ``<method>+cov``, interleaved
+            with the others: the covariance's cost is its CPU ratio over the method's own.
 
     Returns:
         ``{"setup": ..., "mono": {method: figures}, "stereo": ..., "ratios": {mode: {method: x}},
@@ -201,11 +204,18 @@ def run_tracker_benchmark(
             runs[key], views[key] = {}, view
             for m in names:
                 try:
-                    runs[key][m] = _Run(tracker_from_config(cfg, {**over, "method": m}),
-                                        1.0 if view is None else float(view.scale.mean()))
+                    scale = 1.0 if view is None else float(view.scale.mean())
+                    runs[key][m] = _Run(tracker_from_config(cfg, {**over, "method": m,
+                                                                   "publish_covariance": False}), scale)
+                    if covariance:
+                        runs[key][f"{m}+cov"] = _Run(tracker_from_config(cfg, {**over, "method": m,
+                                                                                "publish_covariance": True}),
+                                                     scale)
                 except UnsupportedEncoderError as err:  # e.g. OpenCV's LK and unbounded descriptors
                     left_out[m] = str(err)
         names = [m for m in names if m not in left_out]
+        if covariance:
+            names += [f"{m}+cov" for m in names]
         frames = range(len(seq))
         if progress:
             from nsflow_ros.progress import progress_bar

@@ -22,6 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from nsflow_ros.core.covariance import CovarianceScale, lm_covariance, read_scale, window_covariance
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
@@ -31,6 +32,7 @@ __all__ = [
     "BASELINE",
     "CHECK_LEVELS",
     "CLAHE",
+    "COVARIANCE_SCALES",
     "DEPLOYED_LM",
     "KLT_CRITERIA",
     "KLT_GUIDED_MAX_LEVEL",
@@ -265,6 +267,18 @@ class TrackingMethod(ABC):
         """The registry name."""
         return self.spec.name
 
+    @property
+    def covariance_scale(self) -> CovarianceScale:
+        """The fitted scale of this method's covariances: its model's (metadata or sidecar file), else its
+        registry entry's; read once (CoreError: a malformed stored scale)."""
+        found = getattr(self, "_covariance_scale", None)
+        if found is None:
+            enc = self.encoder
+            found = read_scale(self.name, getattr(enc, "metadata", None), getattr(enc, "path", None),
+                               self.spec.covariance_scale)
+            self._covariance_scale = found
+        return found
+
     def encoder_input(self, image: np.ndarray, gray: np.ndarray) -> np.ndarray:
         """What the encoder gets: the gray image for gray encoders, else the image."""
         if self.encoder is None or getattr(self.encoder, "input_channels", 3) == 1:
@@ -306,6 +320,15 @@ class TrackingMethod(ABC):
         Returns:
             (N, 2) finite positions and (N,) status.
         """
+
+    @abstractmethod
+    def solve_with_covariance(
+        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
+        start: np.ndarray | None = None, prior: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`solve`, and each point's calibrated covariance in frame 2
+        (:mod:`~nsflow_ros.core.covariance`): (N, 3) [sigma_uu, sigma_uv, sigma_vv], px^2, meaningless where
+        the status is False."""
 
 
 def _fill_prior(pts: np.ndarray, prior: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -371,6 +394,18 @@ class LMMethod(TrackingMethod):
         *, residual_test: bool = False, jacobian: Jacobian | None = None, eps: float | None = None,
         coarse_window: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
+        new, status, _ = self._track_pair(frame1, frame2, pts, start, levels, first_level,
+                                          residual_test=residual_test, jacobian=jacobian, eps=eps,
+                                          coarse_window=coarse_window)
+        return new, status
+
+    def _track_pair(
+        self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
+        start: np.ndarray | None = None, levels: int | None = None, first_level: np.ndarray | None = None,
+        *, residual_test: bool = False, jacobian: Jacobian | None = None, eps: float | None = None,
+        coarse_window: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
+        """:meth:`track_pair` with the solver's full result."""
         cfg = replace(self.lm, levels=levels or self.lm.levels, jacobian=jacobian or self.lm.jacobian,
                       eps=eps or self.lm.eps, coarse_window=self.lm.coarse_window if coarse_window else None)
         flow0 = None if start is None else start - pts
@@ -378,19 +413,36 @@ class LMMethod(TrackingMethod):
         status = res.status
         if residual_test and np.isfinite(self.policy.max_residual) and status.any():
             status = status & (self.residual_ratio(res) <= self.policy.max_residual)
-        return np.where(np.isfinite(res.flow), pts + res.flow, pts), status
+        return np.where(np.isfinite(res.flow), pts + res.flow, pts), status, res
 
     def solve(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
+        new, status, _ = self.solve_result(kind, frame1, frame2, pts, start, prior)
+        return new, status
+
+    def solve_with_covariance(
+        self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
+        start: np.ndarray | None = None, prior: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        new, status, res = self.solve_result(kind, frame1, frame2, pts, start, prior)
+        # The solver's own final J^T J and cost: a few operations per point, no pass over the window.
+        elements = self.lm.window * self.lm.window * frame2.channels
+        return new, status, lm_covariance(res.hessian, res.cost, elements, self.covariance_scale.scale)
+
+    def solve_result(
+        self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
+        start: np.ndarray | None = None, prior: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
+        """:meth:`solve` with the solver's full result (cost, J^T J, ...), e.g. for the evaluation."""
         p = self.policy
         if kind.is_check:
-            return self.track_pair(frame1, frame2, pts, start, CHECK_LEVELS, jacobian=p.check_jacobian,
-                                   eps=p.check_eps)
+            return self._track_pair(frame1, frame2, pts, start, CHECK_LEVELS, jacobian=p.check_jacobian,
+                                    eps=p.check_eps)
         if start is not None:  # the IMU prediction, trusted as VINS trusts it
             usable = np.isfinite(start).all(axis=1)
-            return self.track_pair(
+            return self._track_pair(
                 frame1, frame2, pts, np.where(usable[:, None], start, pts), PREDICTED_LEVELS,
                 residual_test=True,
             )
@@ -398,12 +450,12 @@ class LMMethod(TrackingMethod):
         if p.prior_levels > 0 and prior is not None:
             known = np.isfinite(prior).all(axis=1)
         if prior is None or not known.any():  # no prior, or the median of nothing: all from zero flow
-            return self.track_pair(frame1, frame2, pts, residual_test=True)
+            return self._track_pair(frame1, frame2, pts, residual_test=True)
         flow0 = _fill_prior(pts, prior, known)
         first = np.where(known, p.prior_levels, p.fill_levels or self.lm.levels).astype(np.int64) - 1
         # Every point starts near its answer: the coarse window, there for starts far off, is not needed.
-        return self.track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,
-                               coarse_window=False)
+        return self._track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,
+                                coarse_window=False)
 
 
 class KLTMethod(TrackingMethod):
@@ -444,6 +496,18 @@ class KLTMethod(TrackingMethod):
             guided = np.where(usable[:, None], start, pts)
             return self.track_pair(frame1, frame2, pts, guided, KLT_GUIDED_MAX_LEVEL + 1)
         return self.track_pair(frame1, frame2, pts)
+
+    def solve_with_covariance(
+        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
+        start: np.ndarray | None = None, prior: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        new, status = self.solve(kind, frame1, frame2, pts, start, prior)
+        # OpenCV keeps neither J^T J nor the residual: both from the windows at the solution.
+        cov = np.full((len(pts), 3), np.nan)
+        if status.any():
+            cov[status] = window_covariance(frame1, frame2, pts[status], new[status], self.window[0],
+                                            self.covariance_scale.scale)
+        return new, status, cov
 
 
 class DescriptorKLTMethod(KLTMethod):
@@ -490,6 +554,8 @@ class MethodSpec:
         lm, policy: LM solver settings and solve policy (LM methods only).
         klt: OpenCV LK's window and criteria (OpenCV methods only).
         clahe: the equalisation applied when the tracker equalises.
+        covariance_scale: the fitted scale of the covariances of a method without a model
+            (:mod:`~nsflow_ros.core.covariance`); None = none fitted (a learned method's is its model's).
 
     Raises:
         CoreError: neither or both of (lm, policy) and klt.
@@ -504,6 +570,7 @@ class MethodSpec:
     policy: SolvePolicy | None = None
     klt: KLTConfig | None = None
     clahe: Clahe = CLAHE
+    covariance_scale: float | None = None
 
     def __post_init__(self) -> None:
         is_lm = self.lm is not None and self.policy is not None
@@ -539,6 +606,10 @@ class MethodSpec:
         return replace(self, lm=replace(self.lm, levels=levels)) if self.lm is not None else self
 
 
+COVARIANCE_SCALES: Mapping[str, float] = MappingProxyType({"classical": 4.257, "klt": 14.29})
+"""The fitted covariance scales of the methods without a model, as ``python -m
+nsflow_ros.evaluation.covariance fit`` prints them (the learned methods' are stored with their model)."""
+
 METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     "nsflow": MethodSpec(
         "nsflow", "NSFlow", "learned encoder + the LM solver (NumPy)", EncoderSource.LEARNED,
@@ -550,11 +621,11 @@ METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     ),
     "classical": MethodSpec(
         "classical", "LM (intensity)", "image intensity + the same LM solver", EncoderSource.INTENSITY,
-        lm=DEPLOYED_LM, policy=SolvePolicy(),
+        lm=DEPLOYED_LM, policy=SolvePolicy(), covariance_scale=COVARIANCE_SCALES["classical"],
     ),
     "klt": MethodSpec(
         "klt", "OpenCV KLT", "OpenCV calcOpticalFlowPyrLK on the gray image, as VINS-Fusion calls it",
-        EncoderSource.NONE, klt=KLTConfig(),
+        EncoderSource.NONE, klt=KLTConfig(), covariance_scale=COVARIANCE_SCALES["klt"],
     ),
 })
 """The registry of tracking methods (learned methods first)."""

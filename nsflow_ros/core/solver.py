@@ -166,6 +166,8 @@ class TrackResult:
         contrast: (N,) the level-0 template's squared deviation from its window mean, summed over window
             and channels (2 cost / contrast = 0: a perfect match).
         history: per-iteration records when ``record=True``, else empty.
+        hessian: (N, 3) the solver's own level-0 J^T J at the final flow, [h11, h12, h22] (the Gauss-Newton
+            matrix the last step used: a per-feature covariance needs no second pass over the window).
     """
 
     flow: np.ndarray
@@ -174,6 +176,7 @@ class TrackResult:
     iterations: np.ndarray
     contrast: np.ndarray
     history: list[IterationRecord] = field(default_factory=list)
+    hessian: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @functools.cache
@@ -633,7 +636,7 @@ def track(
             iterations[sel] += it
     # level 0 holds every point
     status = _valid(pts, u, state[:, _HESS], pyr1.shape, pyr1.channels, cfg)
-    return TrackResult(u, status, state[:, _COST], iterations, contrast, history or [])
+    return TrackResult(u, status, state[:, _COST], iterations, contrast, history or [], state[:, _HESS])
 
 
 def _valid(

@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.core.camera import CameraModel
+from nsflow_ros.core.covariance import DETECTION_VARIANCE, max_sigma
 from nsflow_ros.core.detector import detect_corners
 from nsflow_ros.core.downsample import (
     check_downsample,
@@ -101,6 +102,11 @@ class TrackerSettings:
         tensorrt_fp16: let TensorRT build half-precision engines.
         tensorrt_cache: folder of TensorRT's engine cache; None = no cache.
         downsample: track on images decimated by this factor (1, 2 or 4), publish at full resolution.
+        publish_covariance: give every feature its calibrated covariance (:attr:`CameraFeatures.covariance`,
+            :mod:`~nsflow_ros.core.covariance`), for the feature message.
+        max_sigma: drop a tracked point whose predicted standard deviation along its major axis exceeds this
+            (px of the full-resolution image), as the reverse checks drop one (counted in
+            :attr:`FrameFeatures.gated`); 0 = off.
 
     Raises:
         CoreError: an unknown method or an out-of-range value.
@@ -121,6 +127,8 @@ class TrackerSettings:
     tensorrt_fp16: bool = False
     tensorrt_cache: str | None = None
     downsample: int = 1
+    publish_covariance: bool = False
+    max_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         check_downsample(self.downsample)
@@ -132,6 +140,8 @@ class TrackerSettings:
             raise CoreError(f"min_dist must be finite and >= 0, got {self.min_dist}")
         if self.reject_with_f and not self.F_threshold > 0:
             raise CoreError(f"F_threshold must be > 0 when reject_with_f is on, got {self.F_threshold}")
+        if not (math.isfinite(self.max_sigma) and self.max_sigma >= 0):
+            raise CoreError(f"max_sigma must be finite and >= 0 (0 = off), got {self.max_sigma}")
         if self.num_threads is not None and self.num_threads < 1:
             raise CoreError(f"num_threads must be >= 1 or None, got {self.num_threads}")
         self.execution_providers()  # names checked here, availability when the encoder loads
@@ -143,6 +153,11 @@ class TrackerSettings:
         if unknown:
             raise CoreError(f"unknown tracker setting(s) {unknown}; valid: {sorted(names)}")
         return replace(self, **dict(overrides))
+
+    @property
+    def covariance(self) -> bool:
+        """Whether the tracker computes covariances: to publish them or to gate by them."""
+        return self.publish_covariance or self.max_sigma > 0
 
     def execution_providers(self) -> ExecutionProviders:
         """The encoder's execution providers with the TensorRT options (EncoderError: an unknown name)."""
@@ -163,9 +178,13 @@ class CameraFeatures:
         velocities: (vx, vy) of the undistorted point per second; 0 for ids new to this camera.
         track_counts: frames each id has been tracked on camera 0 (1 = detected in this frame).
         previous: the id's pixel position on this camera in the previous frame; NaN where it had none.
+        covariance: with ``publish_covariance``, each pixel position's calibrated covariance [sigma_uu,
+            sigma_uv, sigma_vv] in px^2, from the solve that placed it (temporal on camera 0, stereo on
+            camera 1; a corner detected in this frame: its whole-pixel rounding, 1/12 px^2); else None.
 
     Shape:
         ids, track_counts: (N,) int64. pixels, undistorted, velocities, previous: (N, 2) float64.
+        covariance: (N, 3) float64.
     """
 
     camera_id: int
@@ -175,6 +194,7 @@ class CameraFeatures:
     velocities: np.ndarray
     track_counts: np.ndarray
     previous: np.ndarray
+    covariance: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -190,6 +210,7 @@ class FrameFeatures:
         image_size: (width, height) of the images (full resolution, as given).
         timings: wall time of the stages in milliseconds (encode, track, detect, stereo, total).
         cpu_timings: the process's CPU time over all its threads in the same stages, in milliseconds.
+        gated: tracked points dropped because their predicted sigma exceeded ``max_sigma`` (both cameras).
     """
 
     stamp: float
@@ -197,6 +218,7 @@ class FrameFeatures:
     image_size: tuple[int, int]
     timings: dict[str, float] = field(default_factory=dict)
     cpu_timings: dict[str, float] = field(default_factory=dict)
+    gated: int = 0
 
     @property
     def num_cameras(self) -> int:
@@ -304,19 +326,22 @@ def _lookup(ids: np.ndarray, table_ids: np.ndarray, values: np.ndarray) -> np.nd
 
 @dataclass(frozen=True)
 class _Tracks:
-    """One camera's features in the making: ids, track counts, pixels and previous pixels (NaN: new)."""
+    """One camera's features in the making: ids, track counts, pixels, previous pixels (NaN: new) and the
+    pixels' covariances (NaN when not computed)."""
 
     ids: np.ndarray
     counts: np.ndarray
     pixels: np.ndarray
     previous: np.ndarray
+    cov: np.ndarray
 
     @staticmethod
     def empty() -> _Tracks:
-        return _Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)))
+        return _Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
+                       np.zeros((0, 3)))
 
     def __getitem__(self, sel: np.ndarray) -> _Tracks:
-        return _Tracks(self.ids[sel], self.counts[sel], self.pixels[sel], self.previous[sel])
+        return _Tracks(self.ids[sel], self.counts[sel], self.pixels[sel], self.previous[sel], self.cov[sel])
 
     def append(self, other: _Tracks) -> _Tracks:
         pairs = zip(vars(self).values(), vars(other).values(), strict=True)
@@ -396,6 +421,8 @@ class FeatureTracker:
                 "its own encoder"
             )
         self.method: TrackingMethod = method
+        if s.covariance:
+            method.covariance_scale  # noqa: B018 - a malformed stored scale fails here, not on a frame
         self.body_R_cam0 = None if body_R_cam0 is None else np.asarray(body_R_cam0, dtype=np.float64)
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")
@@ -403,6 +430,7 @@ class FeatureTracker:
         self.mask = None if mask is None else downsample_mask(_check_mask(mask, self.full_cameras[0]),
                                                               self._down)
         self._next_id = 0
+        self._gated = 0  # points the max_sigma gate dropped in the current frame
         self.reset()
 
     # -- state -----------------------------------------------------------------------------------------
@@ -474,24 +502,32 @@ class FeatureTracker:
         size: tuple[int, int],
         start: np.ndarray | None = None,
         prior: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """A solve, the border check and its reverse check (none when ``check`` is None): (positions in
-        frame 2, status).
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A solve, the border check, its reverse check (none when ``check`` is None) and the ``max_sigma``
+        gate: (positions in frame 2, status, covariances: NaN unless ``settings.covariance``).
 
         A ``start`` (the IMU prediction) that leaves fewer than :data:`PREDICTION_MIN_TRACKED` points is
         dropped and the solve repeated without it, as VINS does.
         """
         m = self.method
-        new, status = m.solve(kind, frame1, frame2, pts, start, prior)
+        solve = m.solve_with_covariance if self.settings.covariance else m.solve
+        new, status, *cov = solve(kind, frame1, frame2, pts, start, prior)
         if start is not None and int(status.sum()) < PREDICTION_MIN_TRACKED:
-            new, status = m.solve(kind, frame1, frame2, pts, None, prior)
+            new, status, *cov = solve(kind, frame1, frame2, pts, None, prior)
         status &= _in_border(new, size, BORDER_PX)
         if check is not None and self.settings.flow_back and status.any():
             # Only live points are checked: the others are dropped anyway.
             idx = np.flatnonzero(status)
             back, ok = m.solve(check, frame2, frame1, new[idx], pts[idx])
             status[idx] = ok & (np.hypot(*(back - pts[idx]).T) <= FLOW_BACK_THRESHOLD_PX)
-        return new, status
+        if not cov:
+            return new, status, np.full((len(pts), 3), np.nan)
+        if self.settings.max_sigma > 0:
+            # sigma in tracking pixels against a limit in full-resolution pixels; NaN / inf count as wide
+            wide = status & ~(max_sigma(cov[0]) * self._down <= self.settings.max_sigma)
+            self._gated += int(wide.sum())
+            status &= ~wide
+        return new, status, cov[0]
 
     def _predict(self, gyro: np.ndarray | None, stamp: float) -> np.ndarray | None:
         if not self.settings.use_imu_prediction or gyro is None:
@@ -558,10 +594,11 @@ class FeatureTracker:
         # constant velocity: each id moves as it did into the previous frame
         prior = prev.pixels + (prev.pixels - prev.previous)
         back = SolveKind.FLOW_BACK if checks else None
-        pts, status = self._track(
+        pts, status, cov = self._track(
             SolveKind.FORWARD, back, self._frame, frame0, prev.pixels, size, predicted, prior
         )
-        tracks = _Tracks(prev.ids[status], prev.track_counts[status] + 1, pts[status], prev.pixels[status])
+        tracks = _Tracks(prev.ids[status], prev.track_counts[status] + 1, pts[status], prev.pixels[status],
+                         cov[status])
         return tracks, prev.undistorted[status]
 
     def _reject_mask_detect(
@@ -581,7 +618,9 @@ class FeatureTracker:
         k = new.shape[0]
         ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
         self._next_id += k
-        return tracks.append(_Tracks(ids, np.ones(k, np.int64), new, np.full((k, 2), np.nan)))
+        cov = np.zeros((k, 3))
+        cov[:, 0::2] = DETECTION_VARIANCE if s.covariance else np.nan
+        return tracks.append(_Tracks(ids, np.ones(k, np.int64), new, np.full((k, 2), np.nan), cov))
 
     def _lift(self, camera: int, tracks: _Tracks, before: CameraFeatures, dt: float) -> CameraFeatures:
         """Step 6: undistorted points and velocities against ``before``."""
@@ -592,7 +631,8 @@ class FeatureTracker:
             full = to_full_resolution(pts, self._down)
             un = self.full_cameras[camera].lift(full) if pts.size else np.zeros((0, 2))
         vel = _velocities(tracks.ids, un, before.ids, before.undistorted, dt)
-        return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous)
+        cov = tracks.cov if self.settings.publish_covariance else None
+        return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous, cov)
 
     def _stereo(
         self, image1: np.ndarray, frame0: Any, left: _Tracks, size: tuple[int, int], dt: float, checks: bool
@@ -605,9 +645,10 @@ class FeatureTracker:
             disparity = r.pixels - _lookup(r.ids, prev.ids, prev.pixels)
             prior = left.pixels + _lookup(left.ids, r.ids, disparity)
             back = SolveKind.STEREO_BACK if checks else None
-            rpts, st = self._track(SolveKind.STEREO, back, frame0, frame1, left.pixels, size, None, prior)
+            rpts, st, cov = self._track(SolveKind.STEREO, back, frame0, frame1, left.pixels, size, None,
+                                        prior)
             ids = left.ids[st]
-            right = _Tracks(ids, left.counts[st], rpts[st], _lookup(ids, r.ids, r.pixels))
+            right = _Tracks(ids, left.counts[st], rpts[st], _lookup(ids, r.ids, r.pixels), cov[st])
         return self._lift(1, right, self._right, dt)
 
     def _commit(self, stamp: float, frame0: Any, left: CameraFeatures, right: CameraFeatures | None) -> None:
@@ -632,12 +673,14 @@ class FeatureTracker:
         return self.settings.min_dist / self._down
 
     def _full_resolution(self, cam: CameraFeatures) -> CameraFeatures:
-        """A camera's features with pixels in full-resolution pixels (points and velocities already are)."""
+        """A camera's features with pixels (and covariances, px^2) in full-resolution pixels (points and
+        velocities already are)."""
         if self._down == 1:
             return cam
         d = self._down
+        cov = None if cam.covariance is None else cam.covariance * float(d * d)
         return replace(cam, pixels=to_full_resolution(cam.pixels, d),
-                       previous=to_full_resolution(cam.previous, d))
+                       previous=to_full_resolution(cam.previous, d), covariance=cov)
 
     # -- main entry ------------------------------------------------------------------------------------
 
@@ -673,6 +716,7 @@ class FeatureTracker:
         timings: dict[str, float] = {}
         cpu: dict[str, float] = {}
         predicted = self._predict(gyro, stamp)  # before any state changes: may raise on bad samples
+        self._gated = 0
         with _timed(timings, cpu, "encode"):
             gray0, frame0 = self._prepare(image0, "image0")
         with _timed(timings, cpu, "track"):
@@ -690,4 +734,4 @@ class FeatureTracker:
         timings["total"] = (time.perf_counter() - t_start) * 1e3
         cpu["total"] = (time.process_time() - c_start) * 1e3
         cams = tuple(self._full_resolution(c) for c in ((left,) if right is None else (left, right)))
-        return FrameFeatures(float(stamp), cams, full_size, timings, cpu)
+        return FrameFeatures(float(stamp), cams, full_size, timings, cpu, self._gated)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from nsflow_ros.evaluation import capture, convergence, efficiency, pairs, sequences, trackable
+from nsflow_ros.evaluation import capture, convergence, covariance, efficiency, pairs, sequences, trackable
 from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.section import Section
@@ -45,6 +45,11 @@ ANALYSES: list[Analysis] = [
         capture.KEY,
         "share within 1 px tracked from zero flow over 5-30 px: photo shifts, EuRoC-baseline stereo",
         capture.run,
+    ),
+    Analysis(
+        covariance.KEY,
+        "per-feature covariance: calibration, ranking of bad features, weighted relative rotation",
+        covariance.run,
     ),
     Analysis(
         efficiency.KEY, "parameters, FLOPs, encoder and whole-tracker milliseconds (Table II)", efficiency.run

@@ -241,6 +241,10 @@ class TrackerNode(Node):
             + (f", IMU on {self._subs[-1].topic_name}" if use_imu else "")
             + f"; features on {self._feature_pub.topic_name}"
         )
+        if s.covariance:  # what the covariance channels are scaled by, and whether it was fitted
+            scale = self.tracker.method.covariance_scale
+            self.get_logger().info(f"covariance scale {scale.scale:.4g} ({scale.source}), max_sigma "
+                                   f"{s.max_sigma:g} px (0 = off)")
 
     # -- accessors -------------------------------------------------------------------------------------
 
@@ -433,6 +437,7 @@ class TrackerNode(Node):
             "cpu_ms_per_frame": _cpu_per_frame(time.process_time() - self._cpu_start, s.frames_processed),
             "track_images_published": self.track_images_published,
             "restarts": self.session.counters.restarts,
+            "features_gated": self.session.counters.gated,
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p90": _percentile(lat, 90),
         }

@@ -8,6 +8,11 @@ Two layouts, both with ``points[i] = (x, y, 1)``, the undistorted normalised coo
 * VINS-Mono: five channels [id * num_of_cam + camera_id, u, v, velocity_x, velocity_y], only points tracked
   for more than one frame, camera by camera.
 
+A frame whose features carry covariances (the tracker's ``publish_covariance``) adds three channels after
+these, [sigma_uu, sigma_uv, sigma_vv] in px^2 (:data:`COVARIANCE_CHANNELS`): channels 9-11 of the
+VINS-Fusion layout, 5-7 of the VINS-Mono one. Neither stock estimator reads them (VINS-Fusion reads
+channels 0-8, VINS-Mono 0-4); docs/vins_fusion.md has a patch that weights its factors by them.
+
 Feature ids travel as float32 channel values, exact only below 2^24, so both encoders publish them modulo
 :data:`ID_MODULUS` (VINS-Mono: modulo ``ID_MODULUS // num_of_cam``, so that ``id * num_of_cam + camera``
 stays below 2^24 too), which keeps ids unique within any window an estimator holds however long the run.
@@ -27,6 +32,7 @@ from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.errors import NSFlowError
 
 __all__ = [
+    "COVARIANCE_CHANNELS",
     "FUSION_CHANNELS",
     "ID_MODULUS",
     "LAYOUTS",
@@ -35,6 +41,7 @@ __all__ = [
     "FeatureMessageError",
     "Layout",
     "decode",
+    "decode_covariances",
     "decode_fusion",
     "decode_mono",
     "encode",
@@ -67,6 +74,9 @@ MONO_CHANNELS: tuple[str, ...] = (
     "velocity_y_of_point",
 )
 """Channel names of the VINS-Mono layout, as its feature_tracker node names them."""
+
+COVARIANCE_CHANNELS: tuple[str, ...] = ("sigma_uu", "sigma_uv", "sigma_vv")
+"""Channels a frame with covariances adds after its layout's own: the pixel covariance in px^2."""
 
 ID_MODULUS = 2**24
 """Published ids are taken modulo this: float32, the channels' type, holds every integer below it exactly."""
@@ -124,8 +134,14 @@ def published_ids(ids: np.ndarray, layout: Layout, num_of_cam: int = 1) -> np.nd
     return np.asarray(ids, np.int64) % modulus
 
 
+def _covariances(frame: FrameFeatures) -> bool:
+    """Whether the frame's features carry covariances (all cameras do or none: one tracker setting)."""
+    return any(c.covariance is not None for c in frame.cameras)
+
+
 def encode_fusion(frame: FrameFeatures) -> FeatureCloud:
-    """Encode a frame in the VINS-Fusion layout: nine channels, published ids ascending, camera 0 first."""
+    """Encode a frame in the VINS-Fusion layout: nine channels, published ids ascending, camera 0 first;
+    twelve with the features' covariances (channels 9-11)."""
     cams = frame.cameras
     ids = published_ids(np.concatenate([c.ids for c in cams]), "fusion")
     cam_ids = np.concatenate([np.full(len(c), c.camera_id, np.int64) for c in cams])
@@ -134,11 +150,17 @@ def encode_fusion(frame: FrameFeatures) -> FeatureCloud:
     un = np.concatenate([c.undistorted for c in cams])[order]
     vel = np.concatenate([c.velocities for c in cams])[order]
     columns = [ids[order], cam_ids[order], px[:, 0], px[:, 1], vel[:, 0], vel[:, 1]]
-    return _cloud(un, columns, FUSION_CHANNELS)
+    if not _covariances(frame):
+        return _cloud(un, columns, FUSION_CHANNELS)
+    cov = np.concatenate([c.covariance for c in cams])[order]  # type: ignore[misc]
+    zeros = np.zeros(len(ids))
+    columns += [zeros, zeros, zeros, cov[:, 0], cov[:, 1], cov[:, 2]]
+    return _cloud(un, columns, FUSION_CHANNELS + COVARIANCE_CHANNELS)
 
 
 def encode_mono(frame: FrameFeatures, num_of_cam: int = 1) -> FeatureCloud:
-    """Encode a frame in the VINS-Mono layout: five channels, points with track count > 1, camera by camera.
+    """Encode a frame in the VINS-Mono layout: five channels, points with track count > 1, camera by camera;
+    eight with the features' covariances (channels 5-7).
 
     Args:
         num_of_cam: VINS ``NUM_OF_CAM``, the multiplier of the id channel (1 for VINS-Mono).
@@ -150,13 +172,18 @@ def encode_mono(frame: FrameFeatures, num_of_cam: int = 1) -> FeatureCloud:
     for c in frame.cameras:
         keep = c.track_counts > 1
         wrapped = published_ids(c.ids[keep], "mono", num_of_cam)
+        cov = c.covariance[keep] if c.covariance is not None else np.zeros((int(keep.sum()), 3))
         parts.append((wrapped * num_of_cam + c.camera_id, c.pixels[keep], c.undistorted[keep],
-                      c.velocities[keep]))
+                      c.velocities[keep], cov))
     ids = np.concatenate([p[0] for p in parts])
     px = np.concatenate([p[1] for p in parts])
     un = np.concatenate([p[2] for p in parts])
     vel = np.concatenate([p[3] for p in parts])
-    return _cloud(un, [ids, px[:, 0], px[:, 1], vel[:, 0], vel[:, 1]], MONO_CHANNELS)
+    columns = [ids, px[:, 0], px[:, 1], vel[:, 0], vel[:, 1]]
+    if not _covariances(frame):
+        return _cloud(un, columns, MONO_CHANNELS)
+    cov = np.concatenate([p[4] for p in parts])
+    return _cloud(un, [*columns, cov[:, 0], cov[:, 1], cov[:, 2]], MONO_CHANNELS + COVARIANCE_CHANNELS)
 
 
 def encode(frame: FrameFeatures, layout: Layout, num_of_cam: int = 1) -> FeatureCloud:
@@ -215,6 +242,34 @@ def decode_mono(points: np.ndarray, channels: np.ndarray, num_of_cam: int = 1) -
         v = int(ch[0, i] + 0.5)
         row = np.array([pts[i, 0], pts[i, 1], pts[i, 2], ch[1, i], ch[2, i], ch[3, i], ch[4, i]])
         out.setdefault(v // num_of_cam, []).append((v % num_of_cam, row))
+    return out
+
+
+def decode_covariances(
+    points: np.ndarray, channels: np.ndarray, layout: Layout, num_of_cam: int = 1
+) -> dict[int, list[tuple[int, np.ndarray]]]:
+    """The covariances a message carries, as the patched estimator of docs/vins_fusion.md reads them:
+    ``{feature_id: [(camera_id, [sigma_uu, sigma_uv, sigma_vv]), ...]}`` (ids and cameras decoded as
+    :func:`decode` does); empty when the message has no covariance channels.
+
+    Shape:
+        points: (N, 3). channels: (C, N).
+    """
+    if layout not in LAYOUTS:
+        raise FeatureMessageError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    first = len(FUSION_CHANNELS) if layout == "fusion" else len(MONO_CHANNELS)
+    decode(points, channels, layout, num_of_cam)  # the same checks as the estimator's part
+    ch = np.asarray(channels, dtype=np.float64)
+    if ch.shape[0] < first + len(COVARIANCE_CHANNELS):
+        return {}
+    out: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for i in range(ch.shape[1]):
+        if layout == "fusion":
+            fid, cam = int(ch[0, i]), int(ch[1, i])
+        else:
+            v = int(ch[0, i] + 0.5)
+            fid, cam = v // num_of_cam, v % num_of_cam
+        out.setdefault(fid, []).append((cam, ch[first:first + len(COVARIANCE_CHANNELS), i].copy()))
     return out
 
 

@@ -101,6 +101,7 @@ class SessionCounters:
         resets: track resets after time went backwards (VINS-Fusion layout).
         throttled: frames tracked but not published (VINS-Mono ``freq``, ``publish_rate``).
         rebuilds: new trackers built after a setting change.
+        gated: tracked features dropped by the ``max_sigma`` gate.
     """
 
     tracked: int = 0
@@ -110,6 +111,7 @@ class SessionCounters:
     resets: int = 0
     throttled: int = 0
     rebuilds: int = 0
+    gated: int = 0
 
     @property
     def skipped_by_policy(self) -> int:
@@ -397,6 +399,7 @@ class FrontEndSession:
         except CoreError as err:
             return FrameOutcome(None, False, skipped=Skip.TRACKER, note=str(err))
         self._last_stamp = stamp
+        self.counters.gated += frame.gated
         if self.gyro is not None:
             with self._gyro_lock:
                 self.gyro.prune(stamp)

@@ -249,10 +249,26 @@ SETTINGS: tuple[Setting, ...] = (
         "it), off for 'fusion' (VINS-Fusion does not).",
         tracker=True, session=True, switch=True),
     Setting(
+        "publish_covariance", KEEP, Mode.LIVE,
+        "Publish each feature's calibrated pixel covariance (sigma_uu, sigma_uv, sigma_vv in px^2, from the "
+        "final solve's J^T J and residual, scaled as fitted for the method and model) as three channels "
+        "after the layout's own: 9-11 of 'fusion', 5-7 of 'mono'; the stock estimators ignore them "
+        "(docs/vins_fusion.md: a patch that uses them), 0/1. -1 = on for the 'fusion' layout with an LM "
+        "method ('nsflow', 'classical': the solver's own J^T J, no measurable cost), off for the OpenCV LK "
+        "methods ('klt', 'nsflow_lk': formed from the windows, about a fifth of their frame's CPU) and "
+        "for 'mono'.",
+        tracker=True, session=True, switch=True),
+    Setting(
+        "max_sigma", 0.0, Mode.LIVE,
+        "Drop a tracked feature whose predicted standard deviation along its covariance's major axis "
+        "exceeds this, as the flow-back check drops one (counted as gated on /diagnostics); 0 = off.",
+        unit="px", tracker=True, session=True, minimum=0),
+    Setting(
         "output_layout", "", Mode.READ_ONLY,
-        "Feature message layout: 'fusion' (VINS-Fusion channels: id, camera, u, v, vx, vy + 3 zeros) or "
-        "'mono' (VINS-Mono channels: id * NUM_OF_CAM + camera, u, v, vx, vy; first frame dropped, freq "
-        "throttling, restart on stamp gaps). '' = the dialect of the config file."),
+        "Feature message layout: 'fusion' (VINS-Fusion channels: id, camera, u, v, vx, vy + 3 zeros, then "
+        "the covariance's 3 with publish_covariance) or 'mono' (VINS-Mono channels: id * NUM_OF_CAM + "
+        "camera, u, v, vx, vy; first frame dropped, freq throttling, restart on stamp gaps). '' = the "
+        "dialect of the config file."),
     Setting(
         "feature_topic", "/feature_tracker/feature", Mode.READ_ONLY,
         "Topic of the features (sensor_msgs/PointCloud, reliable, keep-last 2000); the VINS estimators "
@@ -382,7 +398,10 @@ def session_tracker_fields(values: Mapping[str, Any], layout: str) -> dict[str, 
     """The TrackerSettings fields of the settings without a VINS key, from setting values by name.
 
     An unset value (:func:`is_unset`) takes the default and :attr:`Setting.none_value` becomes None;
-    ``reject_with_f`` unset is on for the ``mono`` layout (VINS-Mono runs it), off for ``fusion``.
+    ``reject_with_f`` unset is on for the ``mono`` layout (VINS-Mono runs it), off for ``fusion``;
+    ``publish_covariance`` unset is on for ``fusion`` (channels 9 and up, which its estimator never reads)
+    with an LM method, whose solver hands the covariance over at no cost, off for the OpenCV LK methods
+    (it would cost them about a fifth of their frame) and for ``mono`` (its five channels unchanged).
     """
     out: dict[str, Any] = {}
     for s in SETTINGS:
@@ -393,6 +412,11 @@ def session_tracker_fields(values: Mapping[str, Any], layout: str) -> dict[str, 
             value = s.default
         if s.name == "reject_with_f" and is_unset(value):
             out[s.name] = layout == "mono"
+        elif s.name == "publish_covariance" and is_unset(value):
+            from nsflow_ros.core.methods import METHODS  # not at import: --help needs no OpenCV
+
+            spec = METHODS.get(str(out.get("method")))
+            out[s.name] = layout == "fusion" and spec is not None and spec.is_lm
         elif s.none_value is not None and value == s.none_value:
             out[s.name] = None
         else:

@@ -129,3 +129,27 @@ def test_the_full_resolution_mask_follows_the_downsample():
     assert t.mask.shape == (syn.H, syn.W)
     out = t.process(0.0, frames[0]).cameras[0]
     assert len(out) > 10 and out.pixels[:, 0].min() >= big.width // 2 - 1
+
+
+def test_covariances_and_max_sigma_are_in_full_resolution_pixels():
+    seq = syn.translating(3)
+    frames, big = _large(seq)
+    settings = TrackerSettings(method="classical", min_dist=40, downsample=2, publish_covariance=True)
+    same = FeatureTracker([big], settings)
+    widest = 0.0  # the largest sigma of a tracked point over the run (full-resolution px)
+    for k in range(3):
+        a = same.process(float(seq.stamps[k]), frames[k]).cameras[0]
+        old = np.isfinite(a.previous[:, 0])
+        widest = max(widest, float(np.sqrt(a.covariance[old, 0].max(initial=0.0))))
+    assert a.covariance is not None and a.covariance.shape == (len(a), 3)
+    tracked = np.isfinite(a.previous[:, 0])
+    # a 2x2 px^2 block per point, positive definite
+    det = a.covariance[:, 0] * a.covariance[:, 2] - a.covariance[:, 1] ** 2
+    assert np.all(a.covariance[:, 0] > 0) and np.all(det > 0)
+    # new corners: whole-pixel rounding of the tracking image, 1/12 px^2 there, 4/12 at full resolution
+    assert np.allclose(a.covariance[~tracked, 0], 4 / 12)
+    # the gate reads full-resolution sigma: at 0.75x the widest, that point goes (its sigma in tracking
+    # pixels, half of it, would pass)
+    gate = FeatureTracker([big], settings.with_overrides({"max_sigma": 0.75 * widest}))
+    gated = sum(gate.process(float(seq.stamps[k]), frames[k]).gated for k in range(3))
+    assert gated > 0

@@ -486,3 +486,32 @@ def test_update_settings_refuses_unknown_and_invalid_values(pan):
         tracker.update_settings({"max_count": 10})
     with pytest.raises(CoreError, match="max_cnt"):
         tracker.update_settings({"max_cnt": 0})
+
+
+def test_covariance_is_carried_without_changing_a_track(pan, pan_result):
+    plain = pan_result
+    with_cov = _run(FeatureTracker([syn.camera()], _classical(publish_covariance=True)), pan)
+    for a, b in zip(plain, with_cov, strict=True):
+        ca, cb = a.cameras[0], b.cameras[0]
+        np.testing.assert_array_equal(ca.ids, cb.ids)
+        np.testing.assert_array_equal(ca.pixels, cb.pixels)  # bit-identical tracks
+        assert ca.covariance is None and cb.covariance.shape == (len(cb), 3) and b.gated == 0
+        new = cb.track_counts == 1
+        np.testing.assert_allclose(cb.covariance[new], [[1 / 12, 0, 1 / 12]] * int(new.sum()))
+        tracked = cb.covariance[~new]
+        assert np.all(tracked[:, 0] > 0) and np.all(tracked[:, 0] * tracked[:, 2] > tracked[:, 1] ** 2)
+
+
+def test_max_sigma_drops_and_counts_wide_points(pan):
+    loose = _run(FeatureTracker([syn.camera()], _classical(max_sigma=100.0)), pan, 4)
+    assert all(f.gated == 0 for f in loose) and loose[-1].cameras[0].covariance is None
+    tracker = FeatureTracker([syn.camera()], _classical(max_sigma=1e-6))  # tighter than any point
+    frames = _run(tracker, pan, 4)
+    # the same state up to frame 0: what the loose run carried into frame 1 is what the gate dropped
+    assert frames[1].gated == int((loose[1].cameras[0].track_counts > 1).sum()) > 0
+    for cur in frames[1:]:
+        assert cur.gated > 0 and np.all(cur.cameras[0].track_counts == 1)  # nothing carried over
+    tracker.update_settings({"max_sigma": 0.0})
+    assert tracker.settings.covariance is False
+    with pytest.raises(CoreError, match="max_sigma"):
+        _classical(max_sigma=-1.0)

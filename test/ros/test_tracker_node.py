@@ -186,7 +186,9 @@ def test_mono_fusion_layout_end_to_end(tmp_path, prefix, pan):
             t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             assert t == pytest.approx(T0 + pan.stamps[k], abs=1e-9) and msg.header.frame_id == "cam0"
             pts, ch = _cloud_arrays(msg)
-            assert ch.shape[0] == 9 and np.all(ch[6:] == 0) and 0 < len(pts) <= 120
+            # VINS-Fusion's nine (6-8 zero), then sigma_uu, sigma_uv, sigma_vv (publish_covariance's default)
+            assert ch.shape[0] == 12 and np.all(ch[6:9] == 0) and 0 < len(pts) <= 120
+            assert np.all(ch[9] > 0) and np.all(ch[11] > 0) and np.all(ch[9] * ch[11] > ch[10] ** 2)
             feats = decode_fusion(pts, ch)
             assert all(len(v) == 1 and v[0][0] == 0 for v in feats.values())
             rows = {fid: v[0][1] for fid, v in feats.items()}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +13,11 @@ from nsflow_ros.data.sample import make_sample_sequence
 from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.draw import draw_tracks, track_colour
 from nsflow_ros.vins.messages import (
+    COVARIANCE_CHANNELS,
     ID_MODULUS,
     FeatureMessageError,
     decode,
+    decode_covariances,
     decode_fusion,
     decode_mono,
     encode,
@@ -168,3 +171,44 @@ def test_debug_image_colours_and_layout(stereo_frame):
     rx, ry = np.rint(stereo_frame.cameras[1].pixels[0]).astype(int)
     assert tuple(out[ry, rx + 320 + 2]) == (0, 255, 0)
     assert draw_tracks(stereo_frame, img).shape == (240, 320, 3)
+
+
+def _with_covariance(frame: FrameFeatures) -> FrameFeatures:
+    cams = []
+    for c in frame.cameras:
+        n = len(c)
+        cov = np.c_[0.1 + 0.01 * c.ids + c.camera_id, 0.001 * c.ids, 0.2 + 0.02 * c.ids].reshape(n, 3)
+        cams.append(replace(c, covariance=cov))
+    return replace(frame, cameras=tuple(cams))
+
+
+def test_fusion_covariance_is_channels_9_to_11_and_the_estimator_reads_the_same(stereo_frame):
+    cov_frame = _with_covariance(stereo_frame)
+    plain, cloud = encode_fusion(stereo_frame), encode_fusion(cov_frame)
+    assert plain.channels.shape[0] == 9 and cloud.channels.shape == (12, 7)
+    assert cloud.names[9:] == COVARIANCE_CHANNELS
+    np.testing.assert_array_equal(cloud.channels[:9], plain.channels)  # what VINS-Fusion reads: unchanged
+    np.testing.assert_array_equal(cloud.points, plain.points)
+    stock = decode_fusion(cloud.points, cloud.channels)
+    stock_plain = decode_fusion(plain.points, plain.channels)
+    assert stock.keys() == stock_plain.keys()
+    for fid in stock:
+        for (ca, ra), (cb, rb) in zip(stock[fid], stock_plain[fid], strict=True):
+            assert ca == cb and np.array_equal(ra, rb)
+    covs = decode_covariances(cloud.points, cloud.channels, "fusion")
+    for cam in cov_frame.cameras:
+        for j, fid in enumerate(cam.ids):
+            (got,) = [v for c, v in covs[int(fid)] if c == cam.camera_id]
+            np.testing.assert_allclose(got, cam.covariance[j], rtol=1e-6)
+    assert decode_covariances(plain.points, plain.channels, "fusion") == {}
+
+
+def test_mono_covariance_only_when_the_frame_carries_it(stereo_frame):
+    plain = encode_mono(stereo_frame, num_of_cam=2)
+    cloud = encode_mono(_with_covariance(stereo_frame), num_of_cam=2)
+    assert plain.channels.shape[0] == 5 and cloud.channels.shape[0] == 8
+    np.testing.assert_array_equal(cloud.channels[:5], plain.channels)
+    covs = decode_covariances(cloud.points, cloud.channels, "mono", num_of_cam=2)
+    right = _with_covariance(stereo_frame).cameras[1]
+    j = int(np.flatnonzero(right.ids == 7)[0])
+    np.testing.assert_allclose(dict(covs[7])[1], right.covariance[j], rtol=1e-6)

@@ -228,3 +228,23 @@ def test_publish_rate_replaces_freq_in_the_mono_layout(tmp_path, pan):
     # freq 10 in the config would publish every 2nd frame; 5 Hz lets every 4th through (frames 4 and 8 of
     # 0.05 s; VINS-Mono skips the first one that passes)
     assert published == [8] and s.counters.throttled == len(pan.frames) - 1 - 2
+
+
+def test_publish_covariance_follows_the_layout_unless_set_and_max_sigma_is_live(tmp_path, pan):
+    from nsflow_ros.vins.messages import encode
+
+    cases = (("fusion", -1, "classical", 12), ("fusion", 0, "classical", 9), ("fusion", -1, "klt", 9),
+             ("fusion", 1, "klt", 12), ("mono", -1, "classical", 5), ("mono", 1, "classical", 8))
+    for dialect, setting, method, channels in cases:  # -1: on for the LM methods in the fusion layout
+        s = _session(tmp_path, dialect, publish_covariance=setting, method=method)
+        outs = [s.process(T0 + pan.stamps[k], pan.frames[k]) for k in range(6)]
+        frame = [o.features for o in outs if o.features is not None][-1]  # mono: throttled to freq
+        assert encode(frame, s.layout).channels.shape[0] == channels, (dialect, setting, method)
+    s = _session(tmp_path)
+    for k in range(3):
+        s.process(T0 + pan.stamps[k], pan.frames[k])
+    assert s.update(max_sigma=1e-6) == ["max_sigma is now 1e-06"]
+    out = s.process(T0 + pan.stamps[3], pan.frames[3])
+    assert out.features.gated > 0 and s.counters.gated == out.features.gated
+    with pytest.raises(ConfigError, match="max_sigma"):
+        s.update(max_sigma=-2.0)

@@ -1,0 +1,94 @@
+"""The covariance analysis: its metrics on known distributions, the weighted rotation, a quick run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nsflow_ros.evaluation import covariance as cv
+from nsflow_ros.evaluation.context import EvalContext
+from nsflow_ros.evaluation.methods import KLT, NSFLOW, eval_method
+from nsflow_ros.evaluation.registry import ANALYSES
+
+
+def _gaussian(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Errors drawn from per-point covariances (sigmas 0.05-0.5 px, random orientation)."""
+    rng = np.random.default_rng(seed)
+    s1, s2 = rng.uniform(0.05, 0.5, n), rng.uniform(0.05, 0.5, n)
+    th = rng.uniform(0, np.pi, n)
+    c, s = np.cos(th), np.sin(th)
+    cov = np.c_[c * c * s1**2 + s * s * s2**2, c * s * (s1**2 - s2**2), s * s * s1**2 + c * c * s2**2]
+    z = rng.normal(size=(n, 2))
+    err = np.c_[c * s1 * z[:, 0] - s * s2 * z[:, 1], s * s1 * z[:, 0] + c * s2 * z[:, 1]]
+    return err, cov
+
+
+def test_a_true_covariance_is_calibrated_and_its_scale_is_one():
+    err, cov = _gaussian(20000)
+    cal = cv.calibration(err, cov)
+    assert abs(cal["inside_68"] - 0.68) < 0.015 and abs(cal["inside_95"] - 0.95) < 0.01
+    assert 0.9 < cal["decile_ratio_min"] <= cal["decile_ratio_max"] < 1.1
+    assert cal["nll_gain"] > 0.15  # per-point sigmas beat the best single one
+    assert cv.fit_scale(err, cov) == pytest.approx(1.0, abs=0.03)
+    assert cv.fit_scale(err, cov / 9.0) == pytest.approx(9.0, rel=0.03)  # a 3x optimistic sigma
+
+
+def test_ranking_metrics_on_known_orders():
+    err = np.linspace(0, 3, 301)
+    bad = err > 1.0
+    assert cv.auroc(err, bad) == 1.0 and cv.auroc(-err, bad) == 0.0
+    assert cv.auroc(np.zeros_like(err), bad) == 0.5  # ties count half
+    assert np.isnan(cv.auroc(err, np.zeros_like(bad)))
+    ratio, curve, oracle = cv.ause_ratio(err, err)
+    assert ratio == 0.0 and np.array_equal(curve, oracle)
+    rand, _, _ = cv.ause_ratio(np.random.default_rng(0).permutation(err), err)
+    assert 0.8 < rand < 1.2
+    assert cv.auroc(np.array([1.0, np.inf]), np.array([False, True])) == 1.0  # lost check = most uncertain
+
+
+def test_weighting_by_the_true_covariance_lowers_the_rotation_error():
+    rng = np.random.default_rng(3)
+    pts = np.c_[rng.uniform(-4, 4, (200, 2)), rng.uniform(4, 12, 200)]
+    r_true, _ = np.linalg.qr(np.eye(3) + 0.02 * rng.normal(size=(3, 3)))
+    r_true *= np.sign(np.linalg.det(r_true))
+    t = np.array([0.3, 0.05, 0.02])
+    x1 = pts[:, :2] / pts[:, 2:]
+    cam2 = pts @ r_true.T + t
+    x2 = cam2[:, :2] / cam2[:, 2:]
+    f = 400.0
+    sig = np.where(rng.uniform(size=200) < 0.3, 2.0, 0.1) / f  # a third of the points noisy
+    x2n = x2 + rng.normal(size=(200, 2)) * sig[:, None]
+    cov = np.c_[sig**2, np.zeros(200), sig**2]
+    iso, wtd = cv.weighted_rotation_error(x1, x2n, cov, r_true, threshold=6.0 / f)
+    assert wtd < iso
+
+
+@pytest.fixture(scope="module")
+def ctx(tmp_path_factory):
+    root = tmp_path_factory.mktemp("covariance")
+    (root / "report").mkdir()
+    methods = [eval_method(NSFLOW, threads=1), eval_method(KLT)]
+    return EvalContext(methods=methods, quick=True, out_dir=root / "report", progress=False, threads=1,
+                       extra={"covariance": {"cache_dir": str(root / "cache")}})
+
+
+def test_quick_run_reports_every_metric_per_method(ctx):
+    assert "covariance" in [a.key for a in ANALYSES]
+    sec = cv.run(ctx)
+    assert sec.key == "covariance" and sec.figures[0].is_file()
+    for name in (NSFLOW, KLT):
+        pooled = sec.data["results"][name]["all"]
+        assert pooled["points"] > 100 and pooled["calibration"]["inliers"] > 100
+        assert set(pooled["ranking"]) == set(cv.SIGNALS)
+        assert 0.0 <= pooled["calibration"]["inside_68"] <= pooled["calibration"]["inside_95"] <= 1.0
+        assert sec.data["rotation"][name]  # weighted and isotropic rotation errors per level
+    assert "AUROC" in sec.markdown and "Quick mode" in sec.markdown
+    scale, source = sec.data["scales"][NSFLOW]
+    assert scale > 1 and source.endswith(".covariance.json")  # the shipped model's fitted scale
+
+
+def test_fit_command_prints_each_method_s_scale(tmp_path, capsys):
+    assert cv.main(["fit", "--quick", "--no-write", "--out", str(tmp_path), "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    for name in ("nsflow", "nsflow_lk", "classical", "klt"):
+        assert f"{name}: scale" in out
