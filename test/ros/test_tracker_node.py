@@ -267,9 +267,11 @@ def test_garbage_frames_are_skipped_and_features_keep_coming(tmp_path, prefix, p
         h.send(0, image_msg(pan.frames[0], T0 + 10.1))
         assert len(h.clouds) == good + 1
         stats = h.tracker.stats
-        assert stats.bad["encoding:bayer_rggb8"] == 2 and stats.bad["step"] == 2
-        assert stats.bad["truncated"] == 2
-        assert stats.bad["duplicate_stamp"] == 1 and stats.images_undecodable + stats.frames_refused == 10
+        assert stats.detail["encoding:bayer_rggb8"] == 2 and stats.detail["step"] == 2
+        assert stats.detail["truncated"] == 2 and stats.detail["encoding:32FC1"] == 2
+        assert dict(stats.lost) == {"wrong_encoding": 4, "undecodable": 4, "wrong_size": 1, "repeated_stamp": 1}
+        # each image counted once: tracked, or under one cause
+        assert stats.images_received == 2 * len(pan.frames) + 3 == stats.frames_processed + 10
     finally:
         h.close()
 
@@ -587,8 +589,8 @@ def test_png_compressed_input_gives_the_raw_features_and_corrupt_data_is_counted
             np.testing.assert_array_equal(gp, wp)
             np.testing.assert_array_equal(gc, wc)
         stats = h.tracker.stats
-        assert stats.images_undecodable == 2
-        assert stats.bad["corrupt:png"] == 1 and stats.bad["format:webp"] == 1
+        assert dict(stats.lost) == {"undecodable": 1, "wrong_encoding": 1}
+        assert stats.detail["truncated:png"] == 1 and stats.detail["format:webp"] == 1
         assert stats.frames_processed == len(pan.frames)
     finally:
         h.close()
