@@ -83,7 +83,7 @@ CAUSES: tuple[Cause, ...] = (
           "VINS-Mono layout: a stamp more than 1 s after the previous frame's; the estimator restarts"),
     Cause("left_at_stop", "frame", "left at the stop", Kind.STOP,
           "still waiting for the tracker when the node stopped"),
-    Cause("reset_backwards", "frame", "tracks reset (stamp backwards)", Kind.EVENT,
+    Cause("reset_backwards", "frame", "stamp backwards (tracks reset)", Kind.EVENT,
           "VINS-Fusion layout: the stamp is older than the previous frame's; the tracks restart and the "
           "frame is tracked (it also counts as processed)"),
 )
