@@ -202,3 +202,33 @@ def test_console_replay_applies_ros_args_remaps_and_waits(seq):
     assert proc.returncode == 0, err
     stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in got]
     assert stamps == [int(s) for s in seq.stamps_ns[:6]]  # from frame 0, on the remapped topic
+
+
+def test_a_truncated_bag_is_published_up_to_the_cut_and_says_where_it_ends(seq, tmp_path):
+    import shutil
+
+    import rclpy
+
+    from nsflow_ros.data.errors import DataError
+
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    shutil.copy(seq.ros2_dir / "metadata.yaml", cut / "metadata.yaml")
+    (mcap,) = seq.ros2_dir.glob("*.mcap")
+    data = mcap.read_bytes()
+    (cut / mcap.name).write_bytes(data[: int(len(data) * 0.55)])  # cut within the first second
+    readable = []
+    with pytest.raises(DataError):
+        readable.extend(replay_stream(ReplayOptions(cut)))
+    assert readable
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = rclpy.create_node("cut_source", context=ctx)
+        # the wait for a subscriber reads ahead: what it read before the cut is still published
+        with pytest.raises(DataError, match=rf"truncated.* \(the {len(readable)} messages before it were "
+                                            "published\\)"):
+            publish_stream(node, replay_stream(ReplayOptions(cut)), rate=0, clock=False, progress=False,
+                           wait_subscribers=1, wait_timeout=0.1)
+    finally:
+        rclpy.shutdown(context=ctx)
