@@ -194,7 +194,7 @@ def test_a_mono_source_stored_in_colour_stays_mono():
     ("fmt", "data", "cause", "match"),
     [
         ("bgr8; jpeg compressed bgr8", b"\xff\xd8 not a jpeg" * 4, "truncated:jpeg", "cut short: JPEG"),
-        ("bgr8; jpeg compressed bgr8", b"\xff\xd8 not a jpeg" * 4 + b"\xff\xd9", "corrupt:jpeg", "not valid JPEG"),
+        ("bgr8; jpeg compressed bgr8", b"\xff\xd8 no jpeg" * 4 + b"\xff\xd9", "corrupt:jpeg", "not valid"),
         ("mono8; png compressed mono8", b"", "corrupt:png", "0 bytes"),
         ("16UC1; compressedDepth png", b"\x00" * 20, "format:compressedDepth png", "'16UC1; compressedDepth"),
         ("bgr8; qoi compressed bgr8", b"qoif", "format:qoi", "unsupported compressed image format"),
