@@ -520,7 +520,7 @@ class TrackerNode(Node):
             if c["latency_ms_p50"] is not None
             else ""
         )
-        causes = ", ".join(f"{x.label} {c[x.name]}" for x in CAUSES)
+        causes = ", ".join(f"{x.unit}s {x.label} {c[x.name]}" for x in CAUSES if c[x.name]) or "none"
         return (
             f"images received {c['images_received']}, frames received {c['frames_received']}, processed "
             f"{c['frames_processed']} (late, without the reverse checks: {c['frames_unchecked']}), published "
