@@ -51,8 +51,8 @@ class ImageDecodeError(DataError):
 
     Attributes:
         cause: a short key of the failure kind ("encoding:<name>", "size", "step", "truncated",
-            "oversized"; for compressed images "format:<name>" and "corrupt:<codec>"), for counting
-            failures by kind.
+            "oversized"; for compressed images "format:<name>", "truncated:<codec>" and "corrupt:<codec>"),
+            for counting failures by kind.
     """
 
     def __init__(self, message: str, cause: str) -> None:
@@ -199,6 +199,24 @@ def _codec(fmt: str, data: bytes, where: str) -> tuple[str, str]:
     return codec, original
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_ENDS = (("PNG", _PNG_SIGNATURE, b"IEND\xaeB`\x82"), ("JPEG", b"\xff\xd8", b"\xff\xd9"))
+"""(name, start signature, end marker): a PNG ends with its IEND chunk, a JPEG with its EOI marker."""
+
+
+def _cut_short(data: np.ndarray) -> str:
+    """The codec name ("PNG", "JPEG") of data that starts as one but lacks its end marker, else "".
+
+    Checked before decoding because libpng writes one line straight to stderr for every truncated image,
+    and a few bytes' comparison costs nothing beside the decode.
+    """
+    head, tail = data[:8].tobytes(), data[-32:].tobytes()
+    for name, start, end in _ENDS:
+        if head.startswith(start) and end not in tail:
+            return name
+    return ""
+
+
 def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
     """Pixels of a sensor_msgs/CompressedImage (JPEG or PNG), decoded by OpenCV.
 
@@ -213,8 +231,9 @@ def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
         ``(image, encoding)``: encoding mono8, mono16, bgr8 or bgra8.
 
     Raises:
-        ImageDecodeError: a format other than JPEG / PNG, data that does not decode, or pixels with no raw
-            encoding (16-bit colour).
+        ImageDecodeError: a format other than JPEG / PNG, data cut short (no end marker; refused before the
+            decoder, which would write to stderr), data that does not decode, or pixels with no raw encoding
+            (16-bit colour).
 
     Shape:
         image: (H, W) uint8 / uint16 for mono, (H, W, 3|4) uint8 for colour.
@@ -224,6 +243,12 @@ def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
     data = data.reshape(-1).view(np.uint8)
     fmt = str(msg.format)
     codec, original = _codec(fmt, data[:8].tobytes(), where)
+    cut = _cut_short(data)
+    if cut:
+        raise ImageDecodeError(
+            f"{where}compressed image ({fmt!r}, {data.size} bytes) is cut short: {cut} data without its end "
+            "marker", f"truncated:{cut.lower()}",
+        )
     try:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     except cv2.error:

@@ -1,65 +1,198 @@
-"""The ``tracker`` node's counters: one set of names for its status line, /diagnostics and summary file."""
+"""The ``tracker`` node's counters: one table of causes for its status line, /diagnostics and summary file.
+
+Every image that reaches the node ends in exactly one place: part of a frame, or counted under one image
+cause (undecodable, wrong encoding, wrong size, unpaired). Every frame ends tracked or under one frame
+cause (repeated stamp, superseded, ...). A new cause is one more :class:`Cause` row in :data:`CAUSES`; its
+counter, status-line words, ``/diagnostics`` key-values and summary-file key follow from the row.
+"""
 
 from __future__ import annotations
 
+import threading
 from collections import Counter
 from dataclasses import dataclass, field, fields
+from enum import StrEnum
 from typing import Any
 
-__all__ = ["WINDOWED", "NodeCounters"]
+__all__ = ["CAUSES", "Cause", "Kind", "NodeCounters", "cause", "image_cause"]
+
+
+class Kind(StrEnum):
+    """What a cause says about the input or the node (it sets the status level)."""
+
+    REFUSED = "refused"
+    """Bad input: the image or frame cannot be used (WARN; ERROR when nothing was tracked)."""
+    BEHIND = "behind"
+    """The tracker was busy: the node itself gave the frame up (WARN, "falling behind")."""
+    POLICY = "policy"
+    """The VINS front-end's policy skipped the frame (INFO: it is what VINS-Mono does)."""
+    STOP = "stop"
+    """Still waiting when the node stopped (summary only)."""
+    EVENT = "event"
+    """Something noteworthy about a frame that was still tracked (not a loss; WARN)."""
+
+
+@dataclass(frozen=True)
+class Cause:
+    """One reason an image or frame was not tracked (or an event of a tracked frame).
+
+    Attributes:
+        key: the counter's name without its unit, e.g. ``undecodable``; the summary file's key is
+            ``<unit>s_<key>`` (``images_undecodable``).
+        unit: ``image`` (counted before pairing, per camera image) or ``frame`` (an image or stereo pair).
+        label: the words of the status line and ``/diagnostics``, e.g. ``wrong size``.
+        kind: what it says (:class:`Kind`).
+        meaning: one sentence for the documentation.
+    """
+
+    key: str
+    unit: str
+    label: str
+    kind: Kind
+    meaning: str
+
+    @property
+    def name(self) -> str:
+        """The summary file's key: ``images_undecodable``, ``frames_superseded``, ..."""
+        return f"{self.unit}s_{self.key}"
+
+
+CAUSES: tuple[Cause, ...] = (
+    Cause("undecodable", "image", "undecodable", Kind.REFUSED,
+          "data that does not decode: a truncated or corrupt JPEG / PNG, raw data shorter or longer than "
+          "step x height, a step shorter than a row"),
+    Cause("wrong_encoding", "image", "wrong encoding", Kind.REFUSED,
+          "an encoding or compressed format the node does not take (bayer_rggb8, 32FC1, webp, "
+          "compressedDepth, 16-bit colour, ...)"),
+    Cause("wrong_size", "image", "wrong size", Kind.REFUSED,
+          "decoded to another size than the VINS config's image_width x image_height"),
+    Cause("unpaired", "image", "unpaired", Kind.REFUSED,
+          "stereo images whose partner never came within stereo_sync_tolerance (or was refused)"),
+    Cause("repeated_stamp", "frame", "repeated stamp", Kind.REFUSED,
+          "the frame's stamp repeats the previous frame's"),
+    Cause("stamp_backwards", "frame", "stamp backwards", Kind.REFUSED,
+          "VINS-Mono layout: the stamp is older than the previous frame's; the frame is dropped and the "
+          "estimator restarts"),
+    Cause("tracker_error", "frame", "tracker error", Kind.REFUSED,
+          "the tracker raised on the frame (the log names the error once)"),
+    Cause("superseded", "frame", "superseded", Kind.BEHIND,
+          "given up unprocessed for a newer frame while the tracker was busy: the node is falling behind"),
+    Cause("first_frame", "frame", "first frame (VINS-Mono)", Kind.POLICY,
+          "VINS-Mono layout: the first image, at start and after a restart, is dropped as VINS-Mono does"),
+    Cause("restart", "frame", "restart (stamp jump)", Kind.POLICY,
+          "VINS-Mono layout: a stamp more than 1 s after the previous frame's; the estimator restarts"),
+    Cause("left_at_stop", "frame", "left at the stop", Kind.STOP,
+          "still waiting for the tracker when the node stopped"),
+    Cause("reset_backwards", "frame", "stamp backwards (tracks reset)", Kind.EVENT,
+          "VINS-Fusion layout: the stamp is older than the previous frame's; the tracks restart and the "
+          "frame is tracked (it also counts as processed)"),
+)
+"""Every cause, in the order of the status line. Add a row here for a new one (see the module docstring)."""
+
+_BY_KEY = {c.key: c for c in CAUSES}
+
+_IMAGE_CAUSES = {"encoding": "wrong_encoding", "format": "wrong_encoding", "size": "wrong_size"}
+"""The image decoder's cause prefixes (:class:`~nsflow_ros.data.images.ImageDecodeError`) that are not
+``undecodable``."""
+
+
+def cause(key: str) -> Cause:
+    """The :data:`CAUSES` row of ``key``.
+
+    Raises:
+        KeyError: naming the unknown key and the known ones.
+    """
+    try:
+        return _BY_KEY[key]
+    except KeyError:
+        raise KeyError(f"unknown counter cause {key!r}; known: {', '.join(_BY_KEY)}") from None
+
+
+def image_cause(detail: str) -> str:
+    """The :data:`CAUSES` key of an image decoder's cause (``"format:webp"`` -> ``"wrong_encoding"``)."""
+    return _IMAGE_CAUSES.get(detail.partition(":")[0], "undecodable")
 
 
 @dataclass
 class NodeCounters:
-    """What the node saw and did with images and frames (the session counts its own policy).
+    """What the node saw and did with images and frames; thread-safe (callbacks and the worker count).
 
     Attributes:
         images_received: images that arrived, either camera.
-        images_undecodable: images that could not be decoded.
-        images_unpaired: stereo images whose partner never came.
         frames_received: frames (image pairs for stereo) queued for the tracker.
         frames_processed: frames the tracker ran on.
         frames_unchecked: of those, frames tracked without the reverse checks because they came late.
         frames_published: feature messages published.
-        frames_superseded: frames given up unprocessed for a newer one while the tracker was behind.
-        frames_left_at_stop: frames still waiting when the node stopped.
-        frames_refused: frames the session refused (duplicate stamp, tracker error).
-        frames_missing_upstream: frames lost before the node, inferred from stamp gaps.
-        bad: undecodable images and refused frames by cause (logged once per cause).
+        frames_missing_upstream: frames of which no image reached the node, inferred from stamp gaps.
+        lost: images and frames by :data:`CAUSES` key.
+        detail: the same by the precise cause logged once (``format:webp``, ``truncated:png``, ...).
     """
 
     images_received: int = 0
-    images_undecodable: int = 0
-    images_unpaired: int = 0
     frames_received: int = 0
     frames_processed: int = 0
     frames_unchecked: int = 0
     frames_published: int = 0
-    frames_superseded: int = 0
-    frames_left_at_stop: int = 0
-    frames_refused: int = 0
     frames_missing_upstream: int = 0
-    bad: Counter[str] = field(default_factory=Counter)
+    lost: Counter[str] = field(default_factory=Counter)
+    detail: Counter[str] = field(default_factory=Counter)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def count(self, key: str, n: int = 1, detail: str | None = None) -> None:
+        """Count ``n`` images or frames under cause ``key`` (and its precise ``detail``, if given)."""
+        cause(key)
+        with self._lock:
+            self.lost[key] += n
+            if detail is not None:
+                self.detail[detail] += n
+
+    def add(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to a plain counter (``frames_processed`` ...) under the lock."""
+        with self._lock:
+            setattr(self, name, getattr(self, name) + n)
+
+    def of(self, kind: Kind, unit: str | None = None) -> int:
+        """The sum of the causes of one kind (and unit)."""
+        with self._lock:
+            return sum(self.lost[c.key] for c in CAUSES if c.kind is kind and unit in (None, c.unit))
+
+    # the names the summary file, the benchmarks and earlier tools read
+    @property
+    def images_undecodable(self) -> int:
+        return self.lost["undecodable"]
+
+    @property
+    def images_unpaired(self) -> int:
+        return self.lost["unpaired"]
+
+    @property
+    def frames_superseded(self) -> int:
+        return self.lost["superseded"]
+
+    @property
+    def frames_left_at_stop(self) -> int:
+        return self.lost["left_at_stop"]
+
+    @property
+    def frames_refused(self) -> int:
+        """Frames refused as bad input (repeated stamp, stamp backwards, tracker error)."""
+        return self.of(Kind.REFUSED, "frame")
 
     @property
     def frames_dropped(self) -> int:
-        """Frames received but not tracked: superseded, left at the stop, or refused by the session."""
-        return self.frames_superseded + self.frames_left_at_stop + self.frames_refused
+        """Frames received but not tracked, all causes: received = processed + dropped (+ in flight)."""
+        return sum(self.lost[c.key] for c in CAUSES if c.unit == "frame" and c.kind is not Kind.EVENT)
 
     def totals(self) -> dict[str, int]:
-        """Every count by its name (``bad`` aside), plus ``frames_dropped``."""
-        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "bad"}
+        """Every count by its name: the plain counters, one ``<unit>s_<key>`` per cause, the sums."""
+        with self._lock:
+            out = {f.name: getattr(self, f.name) for f in fields(self)
+                   if isinstance(getattr(self, f.name), int)}
+            out.update({c.name: self.lost[c.key] for c in CAUSES})
+        out["frames_refused"] = self.frames_refused
         out["frames_dropped"] = self.frames_dropped
         return out
 
     def since(self, before: dict[str, Any]) -> dict[str, int]:
-        """The change of the :data:`WINDOWED` counts since an earlier :meth:`totals`."""
-        now = self.totals()
-        return {k: now[k] - before.get(k, 0) for k in WINDOWED}
-
-
-WINDOWED = (
-    "frames_received", "frames_processed", "frames_dropped", "frames_superseded", "frames_unchecked",
-    "images_unpaired", "frames_missing_upstream",
-)
-"""The counts the status line reports per period."""
+        """The change of every count of :meth:`totals` since an earlier :meth:`totals`."""
+        return {k: v - before.get(k, 0) for k, v in self.totals().items()}

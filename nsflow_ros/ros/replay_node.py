@@ -23,6 +23,7 @@ from nsflow_ros.argtypes import (
     program_name,
 )
 from nsflow_ros.core.methods import METHODS
+from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.perturb import PERTURBATIONS
 from nsflow_ros.data.records import RawMessage
 from nsflow_ros.data.replay import COMPRESSIONS, ReplayOptions, parse_remaps, replay_stream
@@ -98,6 +99,11 @@ def publish_stream(
 
     Returns:
         number of messages published.
+
+    Raises:
+        DataError: where the stream stops being readable (a truncated bag), after publishing every message
+            before it; the message says how many were published, as ``--features-bag`` says how many frames
+            it wrote.
     """
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from rosgraph_msgs.msg import Clock
@@ -116,7 +122,7 @@ def publish_stream(
 
     messages = iter(stream)
     if wait_subscribers > 0:
-        head = _head(messages, 1.0)
+        head, cut = _head(messages, 1.0)
         for msg in head:
             publisher(msg)
         cameras = [pubs[m.topic] for m in head if m.msgtype.endswith("Image")]
@@ -125,7 +131,7 @@ def publish_stream(
                 f"no {wait_subscribers} subscriber(s) on a camera topic after {wait_timeout:g} s; "
                 "publishing anyway"
             )
-        messages = chain(head, messages)
+        messages = chain(head, messages if cut is None else _raise(cut))
     # the bar counts tenths of seconds as integers: no 2.5700000000000003 s
     fmt = "{desc}: {percentage:3.0f}%|{bar}| {postfix} [{elapsed}<{remaining}]"
     if not total_s:
@@ -156,6 +162,8 @@ def publish_stream(
                 bar.set_postfix_str(_progress_text(tenths, total_s), refresh=False)
                 bar.update(tenths - shown)
                 shown = tenths
+    except DataError as err:  # the data ends here: say so, with what went out before it
+        raise DataError(f"{err} (the {count} messages before it were published)") from err
     finally:
         bar.close()
     return count
@@ -166,14 +174,23 @@ def _progress_text(tenths: int, total_s: float | None) -> str:
     return f"{done} s" if total_s is None else f"{done}/{total_s:.1f} s"
 
 
-def _head(messages: Iterator[RawMessage], seconds: float) -> list[RawMessage]:
-    """The first ``seconds`` of data (at least one message), taken from ``messages``."""
+def _head(messages: Iterator[RawMessage], seconds: float) -> tuple[list[RawMessage], DataError | None]:
+    """The first ``seconds`` of data (at least one message), taken from ``messages``; with the error that
+    ended the data sooner, so that the messages read before it are still published."""
     head: list[RawMessage] = []
-    for msg in messages:
-        head.append(msg)
-        if msg.stamp_ns - head[0].stamp_ns >= seconds * 1e9:
-            break
-    return head
+    try:
+        for msg in messages:
+            head.append(msg)
+            if msg.stamp_ns - head[0].stamp_ns >= seconds * 1e9:
+                break
+    except DataError as err:
+        return head, err
+    return head, None
+
+
+def _raise(err: DataError) -> Iterator[RawMessage]:
+    raise err
+    yield  # a generator: raises when the messages before it are used up
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -14,6 +14,7 @@ SIGINT and SIGTERM stop it with exit code 0 after its summary line.
 from __future__ import annotations
 
 import json
+import re
 import sys
 import threading
 import time
@@ -42,7 +43,7 @@ from nsflow_ros.data.images import ImageDecodeError, compressed_for_tracker, ima
 from nsflow_ros.data.messages import image_fields
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
-from nsflow_ros.ros.counters import WINDOWED, NodeCounters
+from nsflow_ros.ros.counters import CAUSES, Kind, NodeCounters, cause, image_cause
 from nsflow_ros.ros.errors import ParameterError
 from nsflow_ros.ros.frame_queue import LatestFrames
 from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
@@ -182,9 +183,12 @@ class TrackerNode(Node):
         self.latencies_ms: deque[float] = deque(maxlen=2000)
         self._lat_lock = threading.Lock()
         self._logged_causes: set[str] = set()
+        cameras = 2 if self.session.tracker.settings.stereo else 1
         self._pairer: StereoPairer[tuple[Any, np.ndarray, float]] = StereoPairer(
-            2 if self.session.tracker.settings.stereo else 1, float(p["stereo_sync_tolerance"])
+            cameras, float(p["stereo_sync_tolerance"])
         )
+        self._tolerance_checked = cameras == 1  # checked once a frame period is measured (stereo only)
+        self._last_stamp: float | None = None  # of the last frame handed to the session (worker thread)
         transport = str(p["image_transport"])
         if transport not in IMAGE_TRANSPORTS:
             raise ParameterError(
@@ -199,7 +203,8 @@ class TrackerNode(Node):
         self._stopping = False
         self._cpu_start = time.process_time()
         self._status = _StatusWindow()
-        self._gaps = _StampGaps()
+        self._gaps = [_StampGaps() for _ in range(cameras)]  # per camera, every image that arrived
+        self._missing = [0] * cameras
 
         self._feature_pub = self.create_publisher(PointCloud, str(p["feature_topic"]), FEATURE_QOS)
         self._restart_pub = self.create_publisher(Bool, str(p["restart_topic"]), FEATURE_QOS)
@@ -283,11 +288,16 @@ class TrackerNode(Node):
             values = {q.name: coerce(spec(q.name), q.value) for q in ours}
             period = values.get("status_period")
             session = {k: v for k, v in values.items() if k in SESSION_SETTINGS}
+            tolerance = values.get("stereo_sync_tolerance")
+            if tolerance is not None and (problem := self._tolerance_problem(float(tolerance))):
+                raise ParameterError(f"parameter {problem}")
             with self._lock:
                 notes = self.session.update(**session) if session else []
                 self._set_track_publisher(self.session.show_track)
-            if "stereo_sync_tolerance" in values:  # the pairer runs in this (the executor's) thread
-                self._pairer.tolerance = float(values["stereo_sync_tolerance"])
+            if tolerance is not None:  # the pairer runs in this (the executor's) thread
+                self._pairer.tolerance = float(tolerance)
+                # not measured yet: checked once it is
+                self._tolerance_checked = self._pairer.cameras == 1 or self._frame_period() is not None
         except NSFlowError as err:
             return SetParametersResult(successful=False, reason=str(err))
         if period is not None:
@@ -299,32 +309,78 @@ class TrackerNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------------------
 
-    def _bad(self, cause: str, message: str, *, image: bool = False) -> None:
-        """Log a bad image (undecodable) or frame (refused) once per ``cause``; count every occurrence."""
-        if image:
-            self.stats.images_undecodable += 1
-        else:
-            self.stats.frames_refused += 1
-        self.stats.bad[cause] += 1
-        if cause not in self._logged_causes:
-            self._logged_causes.add(cause)
-            self.get_logger().error(f"skipping frame: {message} (further frames like it are only counted)")
+    def _frame_period(self) -> float | None:
+        """The frame period measured from the stamps of the first camera that has enough of them (s)."""
+        return next((g.period for g in self._gaps if g.period is not None), None)
+
+    def _tolerance_problem(self, tolerance: float) -> str | None:
+        """Why ``tolerance`` cannot pair stereo images safely; None when it can or no period is measured.
+
+        At half the frame period or more, an image can pair with the other camera's image of the next frame.
+        """
+        period = self._frame_period()
+        if self._pairer.cameras == 1 or period is None or tolerance < period / 2:
+            return None
+        return (
+            f"stereo_sync_tolerance: got {tolerance:g} s, expected less than half the frame period measured "
+            f"from the image stamps ({period * 1e3:.1f} ms, {1 / period:.1f} Hz), i.e. < {period / 2:.4g} s: "
+            "images of different frames would pair"
+        )
+
+    def _bad(self, key: str, detail: str, message: str, n: int = 1) -> None:
+        """Count ``n`` images or frames under cause ``key``; log once per precise ``detail``."""
+        self.stats.count(key, n, detail)
+        if detail not in self._logged_causes:
+            self._logged_causes.add(detail)
+            c = cause(key)
+            what = "image" if c.unit == "image" else "frame"
+            self.get_logger().error(
+                f"skipping {what} ({c.label}): {message} (further {what}s like it are only counted)"
+            )
+
+    def _once(self, key: str, message: str) -> None:
+        """Log a warning the first time ``key`` happens; after that it is only counted."""
+        if key not in self._logged_causes:
+            self._logged_causes.add(key)
+            self.get_logger().warning(f"{message} (further ones are only counted)")
 
     def _on_imu(self, msg: Imu) -> None:
         w = msg.angular_velocity
         with self._lock:
             self.session.add_gyro(stamp_to_s(msg.header.stamp), (w.x, w.y, w.z))
 
+    def _note_arrival(self, cam: int, stamp: float) -> None:
+        """Stamp gaps per camera, from every image that arrived (usable or not)."""
+        self._missing[cam] += self._gaps[cam].add(stamp)
+        # a frame is missing when no camera delivered it: the smallest count of the cameras heard from
+        heard = [m for m, g in zip(self._missing, self._gaps, strict=True) if g.seen]
+        self.stats.frames_missing_upstream = min(heard)
+        if not self._tolerance_checked and self._frame_period() is not None:
+            self._tolerance_checked = True
+            problem = self._tolerance_problem(self._pairer.tolerance)
+            if problem:
+                self.get_logger().warning(f"parameter {problem}; set it lower with ros2 param set")
+
     def _on_image(self, cam: int, msg: Image | CompressedImage) -> None:
         t_recv = time.perf_counter()
-        self.stats.images_received += 1
+        self.stats.add("images_received")
+        self._note_arrival(cam, stamp_to_s(msg.header.stamp))
         try:
             img = self._decode(msg)
         except ImageDecodeError as err:
-            self._bad(err.cause, f"camera {cam}: {err}", image=True)
+            self._bad(image_cause(err.cause), err.cause, f"camera {cam}: {err}")
             return
+        cfg = self.session.config
+        h, w = img.shape[:2]
+        if (w, h) != (cfg.image_width, cfg.image_height):
+            self._bad("wrong_size", f"size:{w}x{h}",
+                      f"camera {cam}: image is {w}x{h}, the config's image_width x image_height is "
+                      f"{cfg.image_width}x{cfg.image_height}")
+            return
+        unpaired = self._pairer.unpaired
         pair = self._pairer.add(cam, stamp_to_ns(msg.header.stamp), (msg.header, img, t_recv))
-        self.stats.images_unpaired = self._pairer.unpaired
+        if self._pairer.unpaired > unpaired:
+            self._count_unpaired(self._pairer.unpaired - unpaired)
         if pair is None:
             return
         left, right = pair
@@ -333,11 +389,17 @@ class TrackerNode(Node):
         else:
             self._enqueue(_Frame(left[0], left[1], right[1], min(left[2], right[2])))
 
+    def _count_unpaired(self, n: int) -> None:
+        self._bad("unpaired", "unpaired",
+                  f"{n} stereo image(s) without a partner within stereo_sync_tolerance "
+                  f"{self._pairer.tolerance:g} s", n)
+
     def _enqueue(self, frame: _Frame) -> None:
-        self.stats.frames_missing_upstream += self._gaps.add(stamp_to_s(frame.header.stamp))
-        self.stats.frames_received += 1
+        self.stats.add("frames_received")
         frame.t_queued = time.perf_counter()
-        self.stats.frames_superseded += self._queue.put(frame)
+        superseded = self._queue.put(frame)
+        if superseded:
+            self.stats.count("superseded", superseded)
 
     # -- the worker --------------------------------------------------------------------------------------
 
@@ -353,25 +415,39 @@ class TrackerNode(Node):
                 with self._lock:
                     self._frame(frame, checks)
             except Exception as err:
-                self._bad(f"internal:{type(err).__name__}", f"{type(err).__name__}: {err}")
+                self._bad("tracker_error", f"internal:{type(err).__name__}", f"{type(err).__name__}: {err}")
 
     def _frame(self, item: _Frame, checks: bool = True) -> None:
         stamp = stamp_to_s(item.header.stamp)
+        last, self._last_stamp = self._last_stamp, stamp
+        backwards = last is not None and stamp < last
         out: FrameOutcome = self.session.process(stamp, item.image0, item.image1, checks=checks)
-        if out.skipped in (Skip.DUPLICATE_STAMP, Skip.TRACKER):
-            cause = str(out.skipped) if out.skipped is Skip.DUPLICATE_STAMP else f"tracker:{out.note}"
-            self._bad(cause, out.note)
+        if out.skipped is Skip.DUPLICATE_STAMP:
+            self._bad("repeated_stamp", "repeated_stamp", out.note)
+            return
+        if out.skipped is Skip.TRACKER:  # digits vary from frame to frame, the kind of error does not
+            self._bad("tracker_error", "tracker:" + re.sub(r"[0-9.]+", "#", out.note), out.note)
+            return
+        if out.skipped is Skip.FIRST_FRAME:
+            self.stats.count("first_frame")
             return
         if out.restart:
-            self.get_logger().warning(out.note)
+            if backwards:  # refused: VINS-Mono drops it and restarts
+                self._bad("stamp_backwards", "stamp_backwards", out.note)
+            else:  # a jump forward of more than 1 s: VINS-Mono's policy
+                self.stats.count("restart")
+                self._once("restart", out.note)
             self._restart_pub.publish(Bool(data=True))
             return
         if not out.tracked:
             return
         if out.note:
-            self.get_logger().warning(out.note)
-        self.stats.frames_processed += 1
-        self.stats.frames_unchecked += not checks
+            if backwards:
+                self.stats.count("reset_backwards")
+            self._once("reset_backwards" if backwards else out.note, out.note)
+        self.stats.add("frames_processed")
+        if not checks:
+            self.stats.add("frames_unchecked")
         if out.features is None:
             return
         msg = self._cloud(item.header, out.features)
@@ -380,7 +456,7 @@ class TrackerNode(Node):
             self.latencies_ms.append(latency)
         self._status.add(latency, len(out.features.cameras[0]))
         self._feature_pub.publish(msg)
-        self.stats.frames_published += 1
+        self.stats.add("frames_published")
         if self._track_pub is not None and self._track_due():
             self._publish_track(item.header, out.features, item.image0, item.image1)
 
@@ -421,7 +497,7 @@ class TrackerNode(Node):
     # -- status ----------------------------------------------------------------------------------------
 
     def counters(self) -> dict[str, Any]:
-        """The run's counters: frames received / processed / dropped (and why), published, latency."""
+        """The run's counters: images and frames received / processed / dropped by cause, latency."""
         s = self.stats
         with self._lat_lock:
             lat = list(self.latencies_ms)
@@ -431,9 +507,9 @@ class TrackerNode(Node):
             "method": settings.method,
             "stereo": bool(settings.stereo),
             **s.totals(),
-            "frames_skipped_by_policy": self.session.counters.skipped_by_policy,
-            "dropped": {"superseded": s.frames_superseded, "left_at_stop": s.frames_left_at_stop,
-                        "refused": s.frames_refused},
+            "frames_skipped_by_policy": s.of(Kind.POLICY),
+            "dropped": {c.key: s.lost[c.key] for c in CAUSES
+                        if c.unit == "frame" and c.kind is not Kind.EVENT},
             "cpu_ms_per_frame": _cpu_per_frame(time.process_time() - self._cpu_start, s.frames_processed),
             "track_images_published": self.track_images_published,
             "restarts": self.session.counters.restarts,
@@ -443,54 +519,34 @@ class TrackerNode(Node):
         }
 
     def summary(self) -> str:
-        """One line: frames received / processed / dropped (by cause), published, latency."""
+        """One line: images and frames received / processed / published, every cause, latency."""
         c = self.counters()
         if not c["images_received"]:
             return "no images received"
-        d = c["dropped"]
         lat = (
             f"; latency p50 {c['latency_ms_p50']:.1f} ms, p90 {c['latency_ms_p90']:.1f} ms"
             if c["latency_ms_p50"] is not None
             else ""
         )
+        causes = ", ".join(f"{x.unit}s {x.label} {c[x.name]}" for x in CAUSES if c[x.name]) or "none"
         return (
-            f"frames received {c['frames_received']}, processed {c['frames_processed']} (late, without the "
-            f"reverse checks: {c['frames_unchecked']}), published "
-            f"{c['frames_published']}, dropped {c['frames_dropped']} (superseded by newer frames while the "
-            f"tracker was busy {d['superseded']}, waiting at the stop {d['left_at_stop']}, refused "
-            f"{d['refused']}); images unpaired {c['images_unpaired']}, undecodable "
-            f"{c['images_undecodable']}; frames missing before the node (stamp gaps) "
-            f"{c['frames_missing_upstream']}{lat}"
+            f"images received {c['images_received']}, frames received {c['frames_received']}, processed "
+            f"{c['frames_processed']} (late, without the reverse checks: {c['frames_unchecked']}), published "
+            f"{c['frames_published']}, dropped {c['frames_dropped']}; by cause: {causes}; frames missing "
+            f"before the node (stamp gaps) {c['frames_missing_upstream']}{lat}"
         )
 
     def _report_status(self) -> None:
-        """Log one status line (WARN when frames were dropped) and publish it on /diagnostics."""
+        """Log one status line and publish it on /diagnostics (see :func:`_status_level`)."""
         c = self.counters()
         window = self._status.take(self.stats)
-        level = DiagnosticStatus.OK
-        if window["frames_received"] == 0 and not window["images_unpaired"]:
-            message = f"no images on {', '.join(self._image_topics)}"
-        elif window["frames_dropped"] or window["images_unpaired"] or window["frames_missing_upstream"]:
-            level = DiagnosticStatus.WARN
-            problems = []
-            if window["frames_dropped"]:
-                dropped, received = window["frames_dropped"], window["frames_received"]
-                problems.append(f"falling behind: dropped {dropped} of {received} frames "
-                                f"({window['frames_superseded']} superseded by newer ones)")
-            if window["images_unpaired"]:
-                problems.append(f"{window['images_unpaired']} images without their stereo partner")
-            if window["frames_missing_upstream"]:
-                problems.append(
-                    f"{window['frames_missing_upstream']} frames missing before the node (stamp gaps)"
-                )
-            message = "; ".join(problems)
-        else:
-            message = "tracking"
-        totals = ("frames_received", "frames_processed", "frames_unchecked", "frames_dropped",
-                  "frames_superseded", "frames_published")
+        level, message = _status_level(window, self._image_topics)
         values = {
-            **{_label(k): c[k] for k in totals},
-            **{f"{_label(k)} (period)": window[k] for k in WINDOWED},
+            **{_label(k): c[k] for k in _TOTALS},
+            **{f"{_label(k)} (period)": window[k] for k in _TOTALS},
+            **{f"{x.unit}s {x.label}": c[x.name] for x in CAUSES},
+            **{f"{x.unit}s {x.label} (period)": window[x.name] for x in CAUSES},
+            "frames missing upstream (period)": window["frames_missing_upstream"],
             "features per frame (period)": window["features"],
             "latency p50 ms (period)": window["latency_p50"],
             "latency p90 ms (period)": window["latency_p90"],
@@ -511,13 +567,14 @@ class TrackerNode(Node):
             )
         ]
         self._diag_pub.publish(array_msg)
-        if window["frames_received"] == 0:
+        if window["images_received"] == 0:
             if not window["quiet"]:  # say it once, then stay quiet until images come
                 self.get_logger().info(f"{message} in the last {window['seconds']:.1f} s")
             return
         line = (
-            f"{message} (last {window['seconds']:.1f} s: {window['frames_received']} frames received, "
-            f"{window['frames_processed']} processed, {window['frames_dropped']} dropped"
+            f"{message} (last {window['seconds']:.1f} s: {window['images_received']} images, "
+            f"{window['frames_received']} frames received, {window['frames_processed']} processed, "
+            f"{window['frames_dropped']} dropped"
         )
         if window["latency_p50"] is not None:
             line += (
@@ -525,10 +582,10 @@ class TrackerNode(Node):
                 f"p90 {window['latency_p90']:.1f} ms"
             )
         line += ")"
-        if level == DiagnosticStatus.WARN:
-            self.get_logger().warning(line)
-        else:
+        if level == DiagnosticStatus.OK:
             self.get_logger().info(line)
+        else:  # ERROR on /diagnostics (nothing tracked) is a WARN line: the node itself is fine
+            self.get_logger().warning(line)
 
     # -- shutdown --------------------------------------------------------------------------------------
 
@@ -536,9 +593,12 @@ class TrackerNode(Node):
         """Stop the frame worker (frames still waiting are counted as left at the stop)."""
         with self._stop_lock:
             if not self._stopping:  # frames and images still waiting were not processed
-                self.stats.frames_left_at_stop += self._queue.close()
-                self._pairer.flush()
-                self.stats.images_unpaired = self._pairer.unpaired
+                left = self._queue.close()
+                if left:
+                    self.stats.count("left_at_stop", left)
+                unpaired = self._pairer.flush()
+                if unpaired:  # images still waiting for a partner: it can no longer come
+                    self.stats.count("unpaired", unpaired, "unpaired")
             self._stopping = True
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout)
@@ -565,16 +625,24 @@ class _StampGaps:
         self._intervals: deque[float] = deque(maxlen=history)
         self._last: float | None = None
 
+    @property
+    def seen(self) -> bool:
+        """Whether a stamp has been recorded."""
+        return self._last is not None
+
+    @property
+    def period(self) -> float | None:
+        """The median interval of the recent stamps (s); None before 5 intervals were seen."""
+        return float(np.median(self._intervals)) if len(self._intervals) >= 5 else None
+
     def add(self, stamp: float) -> int:
         """Record a frame's stamp; return how many frames are missing just before it."""
         last, self._last = self._last, stamp
         if last is None or stamp <= last:
             return 0
         dt = stamp - last
-        missing = 0
-        if len(self._intervals) >= 5:
-            period = float(np.median(self._intervals))
-            missing = max(0, round(dt / period) - 1) if period > 0 else 0
+        period = self.period
+        missing = max(0, round(dt / period) - 1) if period else 0
         if not missing:
             self._intervals.append(dt)
         return missing
@@ -597,23 +665,66 @@ class _StatusWindow:
             self._features.append(features)
 
     def take(self, counters: NodeCounters) -> dict[str, Any]:
-        """The period's figures (the ``WINDOWED`` counts, features, latency); starts the next period."""
+        """The period's figures (every count of ``counters``, features, latency); starts the next period."""
         with self._lock:
             lat, feats = self._latencies, self._features
             self._latencies, self._features = [], []
         now = time.monotonic()
+        totals = counters.totals()
         out: dict[str, Any] = {
             "seconds": now - self._t,
-            **counters.since(self._last),
+            **{k: v - self._last.get(k, 0) for k, v in totals.items()},
             "features": float(np.mean(feats)) if feats else 0.0,
             "latency_p50": _percentile(lat, 50),
             "latency_p90": _percentile(lat, 90),
         }
-        self._idle = self._idle + 1 if out["frames_received"] == 0 else 0
+        self._idle = self._idle + 1 if out["images_received"] == 0 else 0
         out["quiet"] = self._idle > 1
         self._t = now
-        self._last = counters.totals()
+        self._last = totals
         return out
+
+
+_TOTALS = ("images_received", "frames_received", "frames_processed", "frames_unchecked", "frames_dropped",
+           "frames_published", "frames_missing_upstream")
+"""The plain counts on /diagnostics (the causes follow them)."""
+
+
+def _by_cause(window: dict[str, Any], kind: Kind) -> str:
+    """ "300 undecodable images, 2 repeated stamp frames" for the causes of ``kind`` counted in ``window``."""
+    return ", ".join(
+        f"{window[c.name]} {c.unit}s {c.label}" if window[c.name] != 1 else f"1 {c.unit} {c.label}"
+        for c in CAUSES if c.kind is kind and window[c.name]
+    )
+
+
+def _status_level(window: dict[str, Any], topics: list[str]) -> tuple[int, str]:
+    """A status period's /diagnostics level and message.
+
+    OK while everything is tracked; WARN when something was refused, superseded or lost upstream, or when
+    nothing was tracked without a refusal; ERROR when images came, nothing was tracked and something was
+    refused. Every count named by cause.
+    """
+    if window["images_received"] == 0:
+        return DiagnosticStatus.OK, f"no images on {', '.join(topics)}"
+    parts = []
+    if refused := _by_cause(window, Kind.REFUSED):
+        parts.append(f"refused {refused}")
+    if window["frames_superseded"]:
+        parts.append(f"falling behind: {window['frames_superseded']} of {window['frames_received']} frames "
+                     "superseded by newer ones")
+    if window["frames_missing_upstream"]:
+        parts.append(f"{window['frames_missing_upstream']} frames missing before the node (stamp gaps)")
+    if events := _by_cause(window, Kind.EVENT):
+        parts.append(events)
+    level = DiagnosticStatus.WARN if parts else DiagnosticStatus.OK
+    if policy := _by_cause(window, Kind.POLICY):
+        parts.append(f"skipped by the VINS-Mono policy: {policy}")
+    if window["frames_processed"] == 0:
+        level = DiagnosticStatus.ERROR if refused else DiagnosticStatus.WARN
+        waiting = f"{window['images_received']} images received, none tracked yet"
+        return level, "nothing tracked: " + ("; ".join(parts) if parts else waiting)
+    return level, "tracking" + (": " + "; ".join(parts) if parts else "")
 
 
 def _label(name: str) -> str:

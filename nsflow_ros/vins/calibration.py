@@ -306,12 +306,22 @@ def read_kalibr_camchain(
         elif index > 0 and reader.data.get("T_cn_cnm1") is not None and cameras[-1].body_T_cam is not None:
             transform = cameras[-1].body_T_cam @ _invert(_matrix(reader, "T_cn_cnm1"))
         else:
-            raise ConfigError(f"{path}: missing key '{name}/T_cam_imu' "
-                              f"(or give body_T_cam{index} separately)")
+            chained = index > 0 and cameras[-1].body_T_cam is not None
+            raise ConfigError(_missing_transform(path, name, index, chained=chained))
         if index == 0:
             td = reader.real("timeshift_cam_imu", default=0.0)
         cameras.append(CameraCalibration(camera, _topic(reader, "rostopic"), transform))
     return tuple(cameras), td
+
+
+def _missing_transform(path: Path, name: str, index: int, *, chained: bool) -> str:
+    """The message for a camera without a transform to the body: the Kalibr key that was looked for, and
+    the option that gives it instead (nsflow-config is the reader's one caller)."""
+    option = f"or give the cam{index} -> body transform with --body-T-cam{index}"
+    if chained:  # Kalibr without an IMU writes cam<n>/T_cn_cnm1, the transform from the camera before it
+        return (f"{path}: missing key '{name}/T_cn_cnm1' (the transform from cam{index - 1}; "
+                f"nor is there '{name}/T_cam_imu'), {option}")
+    return f"{path}: missing key '{name}/T_cam_imu' ({option})"
 
 
 def read_kalibr_imu(path: str | os.PathLike[str]) -> ImuCalibration:

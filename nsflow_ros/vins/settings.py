@@ -342,7 +342,8 @@ SETTINGS: tuple[Setting, ...] = (
         "stereo_sync_tolerance", STEREO_SYNC_TOLERANCE, Mode.LIVE,
         "Largest stamp difference of a stereo pair (as VINS-Fusion's 3 ms): each image pairs with the "
         "nearest image of the other camera within it, and the frame takes the left image's stamp; "
-        "0 = equal stamps only. Images left without a partner are counted as unpaired.",
+        "0 = equal stamps only. Images left without a partner are counted as unpaired. At half the frame "
+        "period measured from the stamps or more, a change is refused (a start-up value is warned about).",
         unit="s", minimum=0),
     Setting(
         "track_image_rate", 10.0, Mode.LIVE,

@@ -193,7 +193,8 @@ def test_a_mono_source_stored_in_colour_stays_mono():
 @pytest.mark.parametrize(
     ("fmt", "data", "cause", "match"),
     [
-        ("bgr8; jpeg compressed bgr8", b"\xff\xd8 not a jpeg at all" * 4, "corrupt:jpeg", "not valid JPEG"),
+        ("bgr8; jpeg compressed bgr8", b"\xff\xd8 not a jpeg" * 4, "truncated:jpeg", "cut short: JPEG"),
+        ("bgr8; jpeg compressed bgr8", b"\xff\xd8 no jpeg" * 4 + b"\xff\xd9", "corrupt:jpeg", "not valid"),
         ("mono8; png compressed mono8", b"", "corrupt:png", "0 bytes"),
         ("16UC1; compressedDepth png", b"\x00" * 20, "format:compressedDepth png", "'16UC1; compressedDepth"),
         ("bgr8; qoi compressed bgr8", b"qoif", "format:qoi", "unsupported compressed image format"),
@@ -209,13 +210,16 @@ def test_corrupt_or_unsupported_compressed_data_names_the_problem(fmt, data, cau
     assert info.value.cause == cause and "/cam0/image_raw/compressed" in str(info.value)
 
 
-def test_truncated_png_and_jpeg_are_corrupt():
+def test_truncated_png_and_jpeg_are_refused_before_the_decoder_writes_to_stderr(capfd):
     for codec in CODECS:
         msg = _compressed("mono8", SMOOTH, codec)
-        msg.data = bytes(msg.data)[: len(msg.data) // 2]
-        with pytest.raises(ImageDecodeError) as info:
-            decode_compressed(msg)
-        assert info.value.cause == f"corrupt:{codec}"
+        data = bytes(msg.data)
+        for cut in (100, len(data) // 2, len(data) - 1):
+            msg.data = data[:cut]
+            with pytest.raises(ImageDecodeError, match=f"cut short: {codec.upper()} data without") as info:
+                decode_compressed(msg)
+            assert info.value.cause == f"truncated:{codec}"
+    assert capfd.readouterr().err == ""  # libpng writes a line per truncated PNG it is given
 
 
 def test_16_bit_colour_png_is_refused_with_what_it_decodes_to():

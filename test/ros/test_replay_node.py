@@ -221,3 +221,33 @@ def test_cli_dark_perturbation_from_the_registry(seq, tmp_path, capsys):
         replay_main([str(seq.asl_dir), "--perturb", "night"])
     assert re.search(r"invalid choice: 'night' \(choose from '?none'?, '?small'?, '?large'?, '?dark'?\)",
                      capsys.readouterr().err)
+
+
+def test_a_truncated_bag_is_published_up_to_the_cut_and_says_where_it_ends(seq, tmp_path):
+    import shutil
+
+    import rclpy
+
+    from nsflow_ros.data.errors import DataError
+
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    shutil.copy(seq.ros2_dir / "metadata.yaml", cut / "metadata.yaml")
+    (mcap,) = seq.ros2_dir.glob("*.mcap")
+    data = mcap.read_bytes()
+    (cut / mcap.name).write_bytes(data[: int(len(data) * 0.55)])  # cut within the first second
+    readable = []
+    with pytest.raises(DataError):
+        readable.extend(replay_stream(ReplayOptions(cut)))
+    assert readable
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = rclpy.create_node("cut_source", context=ctx)
+        # the wait for a subscriber reads ahead: what it read before the cut is still published
+        with pytest.raises(DataError, match=rf"truncated.* \(the {len(readable)} messages before it were "
+                                            "published\\)"):
+            publish_stream(node, replay_stream(ReplayOptions(cut)), rate=0, clock=False, progress=False,
+                           wait_subscribers=1, wait_timeout=0.1)
+    finally:
+        rclpy.shutdown(context=ctx)

@@ -270,9 +270,12 @@ def test_garbage_frames_are_skipped_and_features_keep_coming(tmp_path, prefix, p
         h.send(0, image_msg(pan.frames[0], T0 + 10.1))
         assert len(h.clouds) == good + 1
         stats = h.tracker.stats
-        assert stats.bad["encoding:bayer_rggb8"] == 2 and stats.bad["step"] == 2
-        assert stats.bad["truncated"] == 2
-        assert stats.bad["duplicate_stamp"] == 1 and stats.images_undecodable + stats.frames_refused == 10
+        assert stats.detail["encoding:bayer_rggb8"] == 2 and stats.detail["step"] == 2
+        assert stats.detail["truncated"] == 2 and stats.detail["encoding:32FC1"] == 2
+        assert dict(stats.lost) == {"wrong_encoding": 4, "undecodable": 4, "wrong_size": 1,
+                                    "repeated_stamp": 1}
+        # each image counted once: tracked, or under one cause
+        assert stats.images_received == 2 * len(pan.frames) + 3 == stats.frames_processed + 10
     finally:
         h.close()
 
@@ -590,8 +593,8 @@ def test_png_compressed_input_gives_the_raw_features_and_corrupt_data_is_counted
             np.testing.assert_array_equal(gp, wp)
             np.testing.assert_array_equal(gc, wc)
         stats = h.tracker.stats
-        assert stats.images_undecodable == 2
-        assert stats.bad["corrupt:png"] == 1 and stats.bad["format:webp"] == 1
+        assert dict(stats.lost) == {"undecodable": 1, "wrong_encoding": 1}
+        assert stats.detail["truncated:png"] == 1 and stats.detail["format:webp"] == 1
         assert stats.frames_processed == len(pan.frames)
     finally:
         h.close()
@@ -796,5 +799,195 @@ def test_publish_rate_tracks_every_frame_and_publishes_every_nth(tmp_path, prefi
         assert len(h.clouds) == before + 2
         (res,) = _set_remote(h, publish_rate=-5.0)
         assert not res.successful and "publish_rate" in res.reason
+    finally:
+        h.close()
+
+
+# -- what the node reports: each image counted once under its cause, never a silent status period --------
+
+
+def _feed(h: Harness, cam: int, msg) -> None:
+    """Publish one image and spin until the node has counted it (best-effort QoS: one at a time)."""
+    n = h.tracker.stats.images_received
+    h.pubs[cam].publish(msg)
+    assert h.spin_until(lambda: h.tracker.stats.images_received > n, 5.0), "the image did not arrive"
+
+
+def _settle(h: Harness) -> None:
+    """Spin until the worker has taken every queued frame and finished it."""
+    s = h.tracker.stats
+    assert h.spin_until(lambda: not h.tracker._queue and s.frames_processed + s.frames_dropped
+                        >= s.frames_received, 10.0)
+
+
+def _status(h: Harness) -> tuple[int, str, dict[str, str]]:
+    """Run one status report now; its /diagnostics level, message and key-values."""
+    sent: list = []
+    publish, h.tracker._diag_pub.publish = h.tracker._diag_pub.publish, sent.append
+    try:
+        h.tracker._report_status()
+    finally:
+        h.tracker._diag_pub.publish = publish
+    (status,) = sent[0].status
+    return status.level, status.message, {v.key: v.value for v in status.values}
+
+
+def _lines(capfd, word: str) -> list[str]:
+    return [ln for ln in capfd.readouterr().err.splitlines() if word in ln]
+
+
+def _frame(pan, k: int):
+    return pan.frames[k % len(pan.frames)], pan.right[k % len(pan.frames)]
+
+
+def test_undecodable_stereo_pairs_count_once_without_stamp_gaps_or_decoder_noise(tmp_path, prefix, pan,
+                                                                                  capfd):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, transport="compressed",
+                status_period=0.0, queue_size=32)
+    try:
+        def pair(k: int, cut: bool) -> None:
+            for cam, img in enumerate(_frame(pan, k)):
+                msg = compressed_msg(img, T0 + 0.05 * k)
+                if cut:  # a truncated PNG: libpng would write a line to stderr for each
+                    msg.data = bytes(msg.data)[: len(msg.data) // 2]
+                _feed(h, cam, msg)
+
+        for k in range(6):
+            pair(k, cut=False)
+        _settle(h)
+        assert _status(h)[0] == DiagnosticStatus.OK
+        for k in range(6, 12):
+            pair(k, cut=True)
+        level, message, values = _status(h)
+        # nothing tracked, all refused: ERROR, the counts by cause, no blame on the network
+        assert level == DiagnosticStatus.ERROR
+        assert message == "nothing tracked: refused 12 images undecodable"
+        assert values["images undecodable (period)"] == "12"
+        assert values["frames missing upstream (period)"] == "0"
+        for k in range(12, 14):
+            pair(k, cut=False)
+        _settle(h)
+        s = h.tracker.stats
+        assert dict(s.lost) == {"undecodable": 12} and s.detail["truncated:png"] == 12
+        assert s.frames_missing_upstream == 0 and s.frames_processed == 8
+        assert s.images_received == 2 * s.frames_processed + 12
+        err = capfd.readouterr().err
+        assert "libpng" not in err and "PNG input buffer" not in err
+        assert len([ln for ln in err.splitlines() if "skipping image (undecodable)" in ln]) == 1
+        assert next(ln for ln in err.splitlines() if "nothing tracked" in ln).startswith("[WARN]")
+    finally:
+        h.close()
+
+
+def test_a_camera_30_ms_late_or_silent_is_unpaired_every_period_not_stamp_gaps(tmp_path, prefix, pan, capfd):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, status_period=0.0)
+    try:
+        reports = []
+        for period in range(2):  # two status periods, each with every image unpaired
+            for k in range(12 * period, 12 * period + 12):
+                left, right = _frame(pan, k)
+                _feed(h, 0, image_msg(left, T0 + 0.05 * k))
+                _feed(h, 1, image_msg(right, T0 + 0.05 * k + 0.030))
+            reports.append(_status(h))
+        for level, message, values in reports:
+            assert level == DiagnosticStatus.ERROR and message.startswith("nothing tracked: refused")
+            assert "images unpaired" in message and "falling behind" not in message
+            assert int(values["images unpaired (period)"]) > 0
+        warned = _lines(capfd, "nothing tracked")
+        assert len(warned) == 2 and all(ln.startswith("[WARN]") for ln in warned)
+        # the left camera alone: its images are unpaired, the right camera's are not "missing"
+        for k in range(24, 36):
+            _feed(h, 0, image_msg(_frame(pan, k)[0], T0 + 0.05 * k))
+        h.tracker.stop_worker()
+        s = h.tracker.stats
+        assert s.images_unpaired == s.images_received == 60 and dict(s.lost) == {"unpaired": 60}
+        assert s.frames_missing_upstream == 0 and s.frames_received == 0
+    finally:
+        h.close()
+
+
+def test_refused_frames_are_not_falling_behind(tmp_path, prefix, pan):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix), prefix, status_period=0.0, queue_size=32)
+    try:
+        for k in range(3):
+            h.send(0, image_msg(pan.frames[k], T0 + 0.05 * k))
+        _status(h)
+        for _ in range(4):  # a repeated stamp
+            _feed(h, 0, image_msg(pan.frames[3], T0 + 0.05 * 2))
+        _settle(h)
+        level, message, values = _status(h)
+        assert level == DiagnosticStatus.ERROR
+        assert message == "nothing tracked: refused 4 frames repeated stamp" and "falling" not in message
+        assert values["frames repeated stamp (period)"] == "4" and values["frames superseded"] == "0"
+        for k in range(3, 8):  # the wrong size
+            _feed(h, 0, image_msg(np.zeros((100, 100), np.uint8), T0 + 0.05 * k))
+        level, message, values = _status(h)
+        assert level == DiagnosticStatus.ERROR and message == "nothing tracked: refused 5 images wrong size"
+        h.send(0, image_msg(pan.frames[4], T0 + 0.05 * 8))
+        level, message, _ = _status(h)
+        assert level == DiagnosticStatus.OK and message == "tracking"
+        c = h.tracker.counters()
+        assert c["frames_received"] == c["frames_processed"] + c["frames_dropped"] == 8
+        assert c["dropped"]["repeated_stamp"] == 4 and c["frames_superseded"] == 0
+        assert "wrong size 5" in h.tracker.summary() and "repeated stamp 4" in h.tracker.summary()
+    finally:
+        h.close()
+
+
+def test_frames_that_never_arrived_are_missing_upstream(tmp_path, prefix, pan):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix), prefix, status_period=0.0)
+    try:
+        for k in (0, 1, 2, 3, 4, 5, 6, 9):  # frames 7 and 8 lost on the way
+            h.send(0, image_msg(pan.frames[k % 8], T0 + 0.05 * k))
+        level, message, _ = _status(h)
+        assert level == DiagnosticStatus.WARN
+        assert message == "tracking: 2 frames missing before the node (stamp gaps)"
+    finally:
+        h.close()
+
+
+def test_stamps_going_backwards_reset_the_tracks_once_logged(tmp_path, prefix, pan, capfd):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix), prefix, status_period=0.0)
+    try:
+        for t in (1.0, 1.05, 1.1, 0.5, 0.55, 0.2):
+            h.send(0, image_msg(pan.frames[0], T0 + t))
+        level, message, _ = _status(h)
+        assert level == DiagnosticStatus.WARN
+        assert message == "tracking: 2 frames stamp backwards (tracks reset)"
+        assert h.tracker.stats.frames_processed == 6
+        assert len(_lines(capfd, "time went backwards")) == 1
+    finally:
+        h.close()
+
+
+def test_stereo_sync_tolerance_of_half_the_frame_period_is_refused_or_warned(tmp_path, prefix, pan, capfd):
+    # start-up value at half the 50 ms period: accepted, then warned about once the period is measured
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, stereo_sync_tolerance=0.025)
+    try:
+        (res,) = _set_remote(h, stereo_sync_tolerance=1.0)  # no period measured yet: taken, checked later
+        assert res.successful
+        for k in range(7):
+            left, right = _frame(pan, k)
+            _feed(h, 0, image_msg(left, T0 + 0.05 * k))
+            _feed(h, 1, image_msg(right, T0 + 0.05 * k))
+        warned = _lines(capfd, "expected less than half the frame period")
+        assert len(warned) == 1 and warned[0].startswith("[WARN]")
+        assert "got 1 s, expected less than half the frame period" in warned[0]
+        assert "(50.0 ms, 20.0 Hz)" in warned[0]
+        (res,) = _set_remote(h, stereo_sync_tolerance=0.03)  # now refused with the reason, old value kept
+        assert not res.successful and "50.0 ms" in res.reason and "< 0.025 s" in res.reason
+        assert h.tracker._pairer.tolerance == pytest.approx(1.0)
+        (res,) = _set_remote(h, stereo_sync_tolerance=0.005)
+        assert res.successful and h.tracker._pairer.tolerance == pytest.approx(0.005)
     finally:
         h.close()

@@ -93,8 +93,17 @@ def test_camchain_without_imu_chains_cam1_from_cam0(tmp_path):
     t0, t1 = (np.array(data[f"cam{i}"].pop("T_cam_imu")) for i in (0, 1))
     data["cam1"]["T_cn_cnm1"] = (t1 @ np.linalg.inv(t0)).tolist()
     dump(camchain, data)
-    with pytest.raises(ConfigError, match=r"missing key 'cam0/T_cam_imu'"):
+    with pytest.raises(ConfigError, match=r"missing key 'cam0/T_cam_imu' \(or give the cam0 -> body "
+                                          r"transform with --body-T-cam0\)"):
         read_kalibr_camchain(camchain)
+    shipped = load_vins_config(SHIPPED)
+    del data["cam1"]["T_cn_cnm1"]
+    dump(camchain, data)
+    with pytest.raises(ConfigError, match=r"missing key 'cam1/T_cn_cnm1' \(the transform from cam0; nor is "
+                                          r"there 'cam1/T_cam_imu'\), or give .* with --body-T-cam1$"):
+        read_kalibr_camchain(camchain, [shipped.body_T_cam[0]])
+    data["cam1"]["T_cn_cnm1"] = (t1 @ np.linalg.inv(t0)).tolist()
+    dump(camchain, data)
     shipped = load_vins_config(SHIPPED)
     cameras, _ = read_kalibr_camchain(camchain, [shipped.body_T_cam[0]])
     np.testing.assert_allclose(cameras[1].body_T_cam, shipped.body_T_cam[1], rtol=0, atol=1e-9)
@@ -223,7 +232,9 @@ def test_parse_transform_numbers_and_files(tmp_path):
         (lambda c: c["cam0"].update(intrinsics=[1.0, 2.0, 3.0]), "key 'cam0/intrinsics' must hold 4 numbers"),
         (lambda c: c["cam0"].update(intrinsics=[-458.0, 457.0, 367.0, 248.0]), "'cam0/intrinsics' gives an "
                                                                                "invalid camera"),
-        (lambda c: c["cam1"].pop("T_cam_imu"), "missing key 'cam1/T_cam_imu'"),
+        (lambda c: c["cam1"].pop("T_cam_imu"), "missing key 'cam1/T_cn_cnm1' (the transform from cam0; nor "
+                                               "is there 'cam1/T_cam_imu'), or give the cam1 -> body "
+                                               "transform with --body-T-cam1"),
         (lambda c: c["cam0"]["T_cam_imu"][0].__setitem__(0, 3.0), "'cam0/T_cam_imu' is not a rigid"),
         (lambda c: c["cam0"].update(rostopic="/cam 0"), "'cam0/rostopic' is not a ROS topic name"),
         (lambda c: c.update(cam2=c["cam1"]), "has 3 camera(s); a VINS-Fusion config takes 1 or 2"),
