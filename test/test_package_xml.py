@@ -116,6 +116,7 @@ def test_extras_are_test_depend_and_never_exec_depend():
     run, test = _declared()
     keys = {ROSDEP_KEYS[m] for m in OPTIONAL if m in ROSDEP_KEYS}
     assert keys & run == set(), f"an extra's library is exec_depend (a robot would install it): {keys & run}"
+    assert keys <= test, f"an extra's library is not test_depend: {sorted(keys - test)}"
     used = {m for m in _runtime_imports() if m in OPTIONAL}
     assert used >= {"matplotlib", "skimage", "onnx", "torch"}, f"the scan misses require() calls: {used}"
 

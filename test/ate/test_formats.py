@@ -187,8 +187,9 @@ def test_evo_reads_what_we_write(tmp_path, gt, fmt):
     from evo.tools import file_interface  # the test extra: a missing evo fails, never skips
 
     path = write_trajectory(gt, tmp_path / f"traj.{fmt}", fmt)
-    reader = {"tum": file_interface.read_tum_trajectory_file, "euroc": file_interface.read_euroc_csv_trajectory}
-    theirs = reader[fmt](str(path))
+    fi = file_interface
+    read = fi.read_tum_trajectory_file if fmt == "tum" else fi.read_euroc_csv_trajectory
+    theirs = read(str(path))
     np.testing.assert_allclose(theirs.timestamps, gt.stamps, rtol=0, atol=1e-6)
     np.testing.assert_allclose(theirs.positions_xyz, gt.positions, atol=1e-9)
     np.testing.assert_allclose(theirs.orientations_quat_wxyz, gt.quaternions, atol=1e-8)
