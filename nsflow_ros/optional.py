@@ -10,17 +10,17 @@ runtime modules provably import none of them (test/test_optional.py hides them a
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from types import ModuleType
 
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["EXTRAS", "MissingExtraError", "install_hint", "require"]
+__all__ = ["EXTRAS", "MissingExtraError", "install_hint", "require", "require_extra"]
 
 # Top-level module -> the extra of setup.py that installs it.
 EXTRAS: dict[str, str] = {
     "matplotlib": "eval",
     "skimage": "eval",
-    "scipy": "eval",
     "onnx": "eval",
     "torch": "train",
 }
@@ -59,3 +59,29 @@ def require(module: str, purpose: str) -> ModuleType:
         raise MissingExtraError(
             f"{purpose} needs {top}, which comes with the {extra!r} extra: {install_hint(extra)}"
         ) from err
+
+
+def require_extra(extra: str, tool: str) -> None:
+    """Check up front that every library of ``extra`` is installed, for a ``tool`` that needs them all.
+
+    Args:
+        extra: an extra of setup.py, e.g. ``"eval"``.
+        tool: what needs it, completing "<tool> needs <libraries>", e.g. "the evaluation".
+
+    A tool made of many steps (the evaluation, the demo) would otherwise fail at its first step that
+    imports one, after minutes of work, or once per step.
+
+    Raises:
+        MissingExtraError: naming the missing libraries and the pip command.
+    """
+    missing = []
+    for module in sorted(m for m, e in EXTRAS.items() if e == extra):
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except (ImportError, ValueError):  # a broken or hidden installation counts as missing
+            found = False
+        if not found:
+            missing.append(module)
+    if missing:
+        names = ", ".join(missing)
+        raise MissingExtraError(f"{tool} needs {names}, of the {extra!r} extra: {install_hint(extra)}")
