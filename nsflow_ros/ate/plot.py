@@ -28,6 +28,7 @@ def plot_top_view(result: APEResult, path: str | Path, title: str | None = None,
 
     Raises:
         ATEError: when the result holds fewer than two poses or the file cannot be written.
+        MissingExtraError: no matplotlib (the ``eval`` extra).
     """
     agg = require("matplotlib.backends.backend_agg", "the ATE plot")
     collections = require("matplotlib.collections", "the ATE plot")
