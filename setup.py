@@ -66,6 +66,16 @@ ROS = [
     "ros-jazzy-rmw-fastrtps-cpp",
 ]
 
+# The evaluation, the sample renderer and the demo (textures: scikit-image's and matplotlib's bundled
+# photos), the figures and ATE plots (matplotlib), the FLOP count and the benchmark's random encoder (onnx
+# builds and reads graphs). The node, the replay and the feature bag need none of them (nsflow_ros/optional.py
+# imports them on use and names this extra when one is missing).
+EVAL = [
+    "scikit-image>=0.22",
+    "matplotlib>=3.7",
+    "onnx>=1.15",
+]
+
 setup(
     name=PACKAGE,
     version="0.1.0",
@@ -77,21 +87,19 @@ setup(
         "numpy>=1.24",
         "opencv-python-headless>=4.8",
         "onnxruntime>=1.17",
-        # the efficiency analysis and the benchmark's random encoder read and build ONNX graphs: a 9 MB
-        # wheel beside onnxruntime's 78 MB (protobuf comes with onnxruntime already)
-        "onnx>=1.15",
         "rosbags>=0.11,!=0.11.6",
         "tqdm",
         "pyyaml",  # params-file checks of the tracker (rclpy needs it too)
-        "scikit-image>=0.22",
-        "matplotlib>=3.7",
         *ROS,
     ],
     extras_require={
-        "train": ["torch==2.13.0"],
+        "eval": EVAL,
+        "train": ["torch==2.13.0", *EVAL],
         # optional TensorBoard event files of nsflow-train (the CSV log needs nothing)
         "tensorboard": ["tensorboard>=2.14"],
         "test": [
+            *EVAL,
+            "scipy",  # the tests' own checks (scikit-image brings it already)
             "pytest>=7",
             "ruff",
             "evo>=1.30",

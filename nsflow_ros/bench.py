@@ -39,6 +39,7 @@ from nsflow_ros.data.perturb import PERTURBATIONS
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.timing import make_frames, time_encoder, timing_stats
 from nsflow_ros.evaluation.timing import timed as _timed
+from nsflow_ros.optional import require
 from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
 from nsflow_ros.vins.settings import setting
 
@@ -60,8 +61,8 @@ def paper_encoder_onnx(path: Path, c_in: int = 3, d: int = 3, seed: int = 0) -> 
     3x3 conv -> 8, 3x3 8 -> 8, 1x1 8 -> 16, 1x1 16 -> d, ReLU after each; dynamic height and width. Used
     to time the architecture when no trained model is at hand.
     """
-    import onnx  # a run-time dependency of the package
-    from onnx import TensorProto, helper, numpy_helper
+    onnx = require("onnx", "building the paper's encoder with random weights")
+    TensorProto, helper, numpy_helper = onnx.TensorProto, onnx.helper, onnx.numpy_helper
 
     rng = np.random.default_rng(seed)
     shapes = [(8, c_in, 3, 3), (8, 8, 3, 3), (16, 8, 1, 1), (d, 16, 1, 1)]

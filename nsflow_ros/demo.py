@@ -20,6 +20,7 @@ from typing import Any
 from nsflow_ros.argtypes import non_negative_float, positive_float, program_name
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
+from nsflow_ros.optional import require_extra
 
 __all__ = ["format_summary", "main", "run_demo"]
 
@@ -34,6 +35,7 @@ def run_demo(
     methods: tuple[str, ...] = ("nsflow", "nsflow_lk", "klt"),
 ) -> dict[str, Any]:
     """Run the demo; see the module docstring. Returns the figures per level and method."""
+    require_extra("eval", "the demo")  # its sample's textures and its figures
     import rclpy
 
     from nsflow_ros.core.encoder import DEFAULT_MODEL

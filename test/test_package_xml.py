@@ -7,6 +7,8 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+from nsflow_ros.optional import EXTRAS
+
 ROOT = Path(__file__).resolve().parent.parent
 
 # Top-level module -> rosdep key. The python3-* keys were checked in ros/rosdistro rosdep/python.yaml; the
@@ -38,8 +40,9 @@ ROSDEP_KEYS = {
 }
 # Modules with no rosdep key anywhere in rosdistro: installed with pip (setup.py lists them).
 NO_ROSDEP_KEY = {"onnx", "evo"}
-# Imported only by the optional `train` extra: not a run-time dependency of the ROS package.
-OPTIONAL = {"torch"}
+# Libraries of the extras (eval, train), imported on use through nsflow_ros.optional.require: test_depend,
+# never exec_depend, so that a robot installing only rosdep's exec dependencies goes without them.
+OPTIONAL = set(EXTRAS)
 # Run by the launch files as executables, not imported.
 EXECUTABLES = {"rviz2"}
 
@@ -59,6 +62,8 @@ def _imports(folder: Path) -> dict[str, set[str]]:
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                 names = [node.module]
+            elif _is_require(node):
+                names = [node.args[0].value]
             else:
                 continue
             for name in names:
@@ -66,6 +71,18 @@ def _imports(folder: Path) -> dict[str, set[str]]:
                 if top not in sys.stdlib_module_names and top not in local:
                     found.setdefault(top, set()).add(str(path.relative_to(ROOT)))
     return found
+
+
+def _is_require(node: ast.AST) -> bool:
+    """``require("module", ...)``: an import of an extra's library through nsflow_ros.optional."""
+    return (
+        isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Name)
+        and node.func.id == "require"
+        and bool(node.args)
+        and isinstance(node.args[0], ast.Constant)
+        and isinstance(node.args[0].value, str)
+    )
 
 
 def _declared() -> tuple[set[str], set[str]]:
@@ -93,6 +110,15 @@ def test_package_xml_declares_what_the_code_imports():
     tests = _imports(ROOT / "test")
     needed_by_tests = {ROSDEP_KEYS[m] for m in set(tests) | (OPTIONAL & set(package)) if m in ROSDEP_KEYS}
     assert not needed_by_tests - run - test, f"test_depend missing: {sorted(needed_by_tests - run - test)}"
+
+
+def test_extras_are_test_depend_and_never_exec_depend():
+    run, test = _declared()
+    keys = {ROSDEP_KEYS[m] for m in OPTIONAL if m in ROSDEP_KEYS}
+    assert keys & run == set(), f"an extra's library is exec_depend (a robot would install it): {keys & run}"
+    assert keys <= test, f"an extra's library is not test_depend: {sorted(keys - test)}"
+    used = {m for m in _runtime_imports() if m in OPTIONAL}
+    assert used >= {"matplotlib", "skimage", "onnx", "torch"}, f"the scan misses require() calls: {used}"
 
 
 def test_package_xml_declares_nothing_unused():

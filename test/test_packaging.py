@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from nsflow_ros.data.sample import make_sample_sequence
+
 ROOT = Path(__file__).resolve().parent.parent
 SHORT_NAMES = ("tracker", "replay", "demo", "ate", "bench", "make_sample", "train", "evaluate", "config")
 PACKAGE_FILES = (
@@ -62,9 +64,10 @@ def test_pip_install_in_fresh_venv(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "AMENT_PREFIX_PATH")}
     code = (
         "import rclpy, sensor_msgs.msg, std_msgs.msg, rosgraph_msgs.msg, geometry_msgs.msg, nsflow_ros, sys;"
-        "import diagnostic_msgs.msg, rcl_interfaces.msg, ament_index_python, onnx, importlib.util;"
-        # the extras stay out of a plain install (with torch the venv grows to about 1.8 GB)
-        "assert [m for m in ('torch', 'evo', 'pytest') if importlib.util.find_spec(m)] == [];"
+        "import diagnostic_msgs.msg, rcl_interfaces.msg, ament_index_python, importlib.util;"
+        # the extras stay out of the robot install: no evaluation, figure, training or test library
+        "extras = ('matplotlib', 'skimage', 'scipy', 'onnx', 'torch', 'evo', 'pytest');"
+        "assert [m for m in extras if importlib.util.find_spec(m)] == [], extras;"
         "from nsflow_ros.resources import share_dir;"
         "d = share_dir(); print(d); assert (d / 'config').is_dir(), d;"
         "rclpy.init(); n = rclpy.create_node('pip_check'); n.destroy_node(); rclpy.shutdown()"
@@ -85,10 +88,27 @@ def test_pip_install_in_fresh_venv(tmp_path):
         assert (venv / "bin" / name).exists()
     # the ros2 run names (ate, bench, tracker, ...) are far too generic for a PATH
     assert [s for s in SHORT_NAMES if (venv / "bin" / s).exists()] == []
-    help_out = subprocess.run(
-        [str(venv / "bin" / "nsflow-bench"), "--help"], capture_output=True, text=True, env=env, cwd=tmp_path
+    for name in ("nsflow-tracker", "nsflow-replay", "nsflow-config", "nsflow-bench"):
+        help_out = subprocess.run(
+            [str(venv / "bin" / name), "--help"], capture_output=True, text=True, env=env, cwd=tmp_path
+        )
+        assert help_out.returncode == 0 and f"usage: {name}" in help_out.stdout, help_out.stderr[-2000:]
+    # the robot's work runs without the eval extra: an ASL folder (made here, where the extra is) tracked
+    seq = make_sample_sequence(tmp_path / "seq", seed=4, duration=0.3, stereo=False, formats=("asl",),
+                               progress=False)
+    replay = subprocess.run(
+        [str(venv / "bin" / "nsflow-replay"), str(seq.asl_dir), "--offline", str(tmp_path / "off"),
+         "--no-progress"],
+        capture_output=True, text=True, env=env, cwd=tmp_path,
     )
-    assert help_out.returncode == 0 and "usage: nsflow-bench" in help_out.stdout
+    assert replay.returncode == 0, replay.stderr[-3000:]
+    # a tool of the extra says which in one line
+    sample = subprocess.run(
+        [str(venv / "bin" / "nsflow-make-sample"), "--out", str(tmp_path / "s")],
+        capture_output=True, text=True, env=env, cwd=tmp_path,
+    )
+    assert sample.returncode == 1 and len(sample.stderr.strip().splitlines()) == 1, sample.stderr[-2000:]
+    assert "pip install 'nsflow_ros[eval]'" in sample.stderr
 
 
 @pytest.mark.slow

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from datetime import timedelta
+
 import torch
 
 from nsflow_ros.train.data import PairConfig
@@ -38,14 +40,28 @@ def run(out, batch: int):
     return [r[0] for r in record], torch.stack([r[1] for r in record])
 
 
+def agent_store():
+    """The rendezvous store ``torchrun``'s agent hosts: a TCPStore server bound to a free port by the OS,
+    held open for the whole run (``.port`` names it)."""
+    import torch.distributed as dist
+
+    timeout = timedelta(seconds=120)
+    return dist.TCPStore("127.0.0.1", 0, is_master=True, wait_for_workers=False, timeout=timeout)
+
+
 def worker(rank: int, port: int, out: str, result: str) -> None:
-    """One process of a two-process run, joined through the environment ``torchrun`` sets."""
+    """One process of a two-process run, joined through the environment ``torchrun`` sets.
+
+    As under ``torchrun``, the store is the launcher's (the test's :func:`agent_store`), already listening
+    on ``port``: no worker binds a port, so none can lose it to another process between pick and bind.
+    """
     import os
 
     import torch.distributed as dist
 
     os.environ.update(
-        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2"
+        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2",
+        TORCHELASTIC_USE_AGENT_STORE="True",
     )
     try:
         losses, params = run(out, batch=1)

@@ -11,6 +11,7 @@ import numpy as np
 
 from nsflow_ros.ate.errors import ATEError
 from nsflow_ros.ate.metrics import APEResult
+from nsflow_ros.optional import require
 
 __all__ = ["plot_top_view"]
 
@@ -27,22 +28,23 @@ def plot_top_view(result: APEResult, path: str | Path, title: str | None = None,
 
     Raises:
         ATEError: when the result holds fewer than two poses or the file cannot be written.
+        MissingExtraError: no matplotlib (the ``eval`` extra).
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import LineCollection
-    from matplotlib.figure import Figure
+    agg = require("matplotlib.backends.backend_agg", "the ATE plot")
+    collections = require("matplotlib.collections", "the ATE plot")
+    figure = require("matplotlib.figure", "the ATE plot")
 
     ref = result.ref.positions
     est = result.est.positions
     err = np.asarray(result.errors, dtype=np.float64)
     if len(est) < 2:
         raise ATEError(f"a trajectory plot needs at least 2 poses, got {len(est)}")
-    fig = Figure(figsize=(7.0, 6.0))
-    FigureCanvasAgg(fig)
+    fig = figure.Figure(figsize=(7.0, 6.0))
+    agg.FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     ax.plot(ref[:, 0], ref[:, 1], color="0.6", linestyle="--", linewidth=1.2, label="ground truth")
     segments = np.stack([est[:-1, :2], est[1:, :2]], axis=1)
-    lines = LineCollection(segments, cmap="jet", linewidths=2.0)
+    lines = collections.LineCollection(segments, cmap="jet", linewidths=2.0)
     lines.set_array(0.5 * (err[:-1] + err[1:]))
     lines.set_clim(float(err.min()), float(err.max()) if err.max() > err.min() else float(err.min()) + 1e-9)
     ax.add_collection(lines)

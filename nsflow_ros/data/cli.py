@@ -7,8 +7,8 @@ import sys
 import time
 
 from nsflow_ros.argtypes import positive_float, program_name
-from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.sample import FORMATS, make_sample_sequence
+from nsflow_ros.errors import NSFlowError
 
 __all__ = ["build_parser", "main"]
 
@@ -57,7 +57,7 @@ def main(args: list[str] | None = None) -> int:
             opts.out, seed=opts.seed, duration=opts.duration, rate_hz=opts.rate, stereo=not opts.mono,
             formats=opts.formats, progress=False if opts.no_progress else None, overwrite=opts.overwrite,
         )
-    except DataError as err:
+    except NSFlowError as err:  # a DataError, or the eval extra missing (the textures are its photos)
         print(f"nsflow-make-sample: error: {err}", file=sys.stderr)
         return 1
     except OSError as err:  # disk full, permissions changed while writing

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.data.errors import DataError
+from nsflow_ros.optional import require
 
 __all__ = ["HELDOUT_IMAGES", "TRAIN_IMAGES", "load_photo"]
 
@@ -45,12 +46,10 @@ def load_photo(name: str) -> np.ndarray:
         DataError: no such bundled photo, or it cannot be read.
     """
     if name == "grace_hopper":
-        import matplotlib
-
+        matplotlib = require("matplotlib", "the grace_hopper photo (bundled with matplotlib)")
         path = Path(matplotlib.get_data_path()) / "sample_data" / "grace_hopper.jpg"
     else:
-        import skimage
-
+        skimage = require("skimage", f"the photo {name!r} (bundled with scikit-image)")
         folder = Path(os.path.dirname(skimage.__file__)) / "data"
         matches = sorted(folder.glob(f"{name}.*"))
         if not matches:

@@ -20,6 +20,7 @@ import numpy as np
 
 from nsflow_ros.data.camera import PinholeRadtan, as_points
 from nsflow_ros.data.errors import DataError
+from nsflow_ros.optional import require
 
 __all__ = [
     "TEXTURES",
@@ -48,8 +49,7 @@ _NO_HIT = -1
 
 def texture_dir() -> Path:
     """The folder holding scikit-image's sample photographs."""
-    import skimage
-
+    skimage = require("skimage", "the sample renderer (its textures are scikit-image's photos)")
     return Path(skimage.__file__).resolve().parent / "data"
 
 

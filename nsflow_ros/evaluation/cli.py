@@ -23,6 +23,7 @@ from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import usable_methods
 from nsflow_ros.evaluation.registry import ANALYSES, select
 from nsflow_ros.evaluation.report import command_line, machine_info, now, run_analyses, write_report
+from nsflow_ros.optional import require_extra
 
 __all__ = ["build_parser", "main"]
 
@@ -75,6 +76,7 @@ def main(args: list[str] | None = None) -> int:
     keep_large_buffers()  # as the tracker node does, so that per-frame times compare
     started = now()
     try:
+        require_extra("eval", "the evaluation")  # one line now, rather than one per analysis at its turn
         analyses = select(opts.only, opts.skip)
         model = model_file(opts.model) if opts.model is not None else None
         if model is not None and not model.is_file():

@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 from nsflow_ros import files
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import EvalMethod
+from nsflow_ros.optional import require
 
 __all__ = [
     "CONDITIONS",
@@ -105,11 +106,10 @@ def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
 
 def new_figure(width: float = 8.0, height: float = 4.5) -> Any:
     """A matplotlib ``Figure`` of ``width`` x ``height`` inches on the Agg canvas (no pyplot state)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width, height))
-    FigureCanvasAgg(fig)
+    figure = require("matplotlib.figure", "the evaluation's figures")
+    agg = require("matplotlib.backends.backend_agg", "the evaluation's figures")
+    fig = figure.Figure(figsize=(width, height))
+    agg.FigureCanvasAgg(fig)
     return fig
 
 

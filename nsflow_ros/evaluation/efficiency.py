@@ -25,6 +25,7 @@ from nsflow_ros.evaluation.methods import CLASSICAL, NSFLOW
 from nsflow_ros.evaluation.section import HeadlineRow, Section
 from nsflow_ros.evaluation.targets import headline_row
 from nsflow_ros.evaluation.timing import time_encoder, timing_stats
+from nsflow_ros.optional import require
 
 __all__ = [
     "PAPER_TABLE_II",
@@ -63,17 +64,6 @@ class ModelComplexity:
         return 2 * self.macs
 
 
-def _import_onnx() -> Any:
-    try:
-        import onnx
-    except ImportError as err:
-        raise EvaluationError(
-            "counting parameters and FLOPs reads the ONNX graph and needs the onnx package, a dependency "
-            "of nsflow_ros that is missing here: pip install onnx"
-        ) from err
-    return onnx
-
-
 def onnx_complexity(path: str | Path, width: int = 320, height: int = 240) -> ModelComplexity:
     """Count the parameters and MACs of an ONNX model at a ``width`` x ``height`` input.
 
@@ -88,12 +78,13 @@ def onnx_complexity(path: str | Path, width: int = 320, height: int = 240) -> Mo
         width, height: input size.
 
     Raises:
-        EvaluationError: missing file, no onnx package, an input that is not (N, C, H, W) with a fixed C,
-            or a model onnxruntime cannot run.
+        EvaluationError: missing file, an input that is not (N, C, H, W) with a fixed C, or a model
+            onnxruntime cannot run.
+        MissingExtraError: no onnx package (the ``eval`` extra).
     """
     import onnxruntime as ort
 
-    onnx = _import_onnx()
+    onnx = require("onnx", "counting parameters and FLOPs (it reads the ONNX graph)")
     path = Path(path)
     if not path.is_file():
         raise EvaluationError(f"ONNX model not found: {path}")
@@ -230,7 +221,8 @@ def run(ctx: EvalContext) -> Section:
     ``ctx.extra["efficiency"]`` may hold ``repeats`` (encoder runs) and ``frames`` (tracker frames).
 
     Raises:
-        EvaluationError: no ONNX model, no onnx package, or a run that fails.
+        EvaluationError: no ONNX model, or a run that fails.
+        MissingExtraError: no onnx package (the ``eval`` extra).
     """
     opts = dict(ctx.extra.get(KEY, {}))
     repeats = int(opts.get("repeats", 3 if ctx.quick else 50))

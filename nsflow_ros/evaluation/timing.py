@@ -12,6 +12,7 @@ import numpy as np
 
 from nsflow_ros.core.encoder import Encoder
 from nsflow_ros.evaluation.errors import EvaluationError
+from nsflow_ros.optional import require
 
 __all__ = ["make_frames", "time_encoder", "timed", "timing_stats"]
 
@@ -19,8 +20,7 @@ __all__ = ["make_frames", "time_encoder", "timed", "timing_stats"]
 def make_frames(count: int, size: tuple[int, int] = (752, 480), seed: int = 0) -> list[np.ndarray]:
     """``count`` BGR uint8 frames of ``size`` (width, height): a smooth camera-like motion over a real
     photo (small rotations, zoom and translation per frame, seeded by ``seed``)."""
-    from skimage import data as skdata
-
+    skdata = require("skimage.data", "the benchmark's frames (a scikit-image photo)")
     w, h = size
     base = cv2.resize(cv2.cvtColor(skdata.astronaut(), cv2.COLOR_RGB2BGR), (w + 80, h + 80))
     rng = np.random.default_rng(seed)

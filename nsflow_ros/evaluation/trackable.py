@@ -40,6 +40,7 @@ from nsflow_ros.evaluation.pairs import (
 )
 from nsflow_ros.evaluation.section import HeadlineRow, Section, config_data, quick_note
 from nsflow_ros.evaluation.targets import Clause, Target, headline_row
+from nsflow_ros.optional import require
 
 __all__ = [
     "CLIP_SHARE",
@@ -241,12 +242,12 @@ def trackable_map(
 
 def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
     """Rows = pairs; columns = frame 1 and each method's recovery class per pixel."""
-    from matplotlib.colors import BoundaryNorm, ListedColormap
-    from matplotlib.patches import Patch
+    colors = require("matplotlib.colors", "the trackable-regions figure")
+    patch = require("matplotlib.patches", "the trackable-regions figure").Patch
 
     colours = ["#b2182b", "#ef8a62", "#fddbc7", "#2166ac"]  # <1, <2, <3, not recovered
-    cmap = ListedColormap(colours).with_extremes(bad="#d9d9d9")
-    norm = BoundaryNorm([0, 1, 2, 3, 4], cmap.N)
+    cmap = colors.ListedColormap(colours).with_extremes(bad="#d9d9d9")
+    norm = colors.BoundaryNorm([0, 1, 2, 3, 4], cmap.N)
     cols = 1 + len(names)
     fig = new_figure(2.6 * cols, 2.1 * len(maps) + 0.6)
     axes = np.atleast_2d(fig.subplots(len(maps), cols))
@@ -264,7 +265,7 @@ def _heat_map(maps: list[TrackableMap], names: list[str], path: object) -> None:
             ax.set_yticks([])
     labels = ["< 1 px", "1-2 px", "2-3 px", "not recovered"]
     fig.legend(
-        [Patch(color=c) for c in colours], labels, loc="lower center", ncol=4, fontsize=8, frameon=False
+        [patch(color=c) for c in colours], labels, loc="lower center", ncol=4, fontsize=8, frameon=False
     )
     fig.suptitle("Trackable regions: recovery from a 15 px initial error, per pixel", fontsize=10)
     save_figure(fig, path)

@@ -21,6 +21,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from nsflow_ros.optional import require
+
 __all__ = ["main", "rss_mb", "run_node_benchmark"]
 
 
@@ -36,8 +38,7 @@ def rss_mb() -> float:
 def _frames(
     width: int, height: int, n: int = 40, disparity: float = -8.0
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    from skimage import data as skdata
-
+    skdata = require("skimage.data", "the node benchmark's frames (a scikit-image photo)")
     tex = cv2.cvtColor(skdata.coffee(), cv2.COLOR_RGB2GRAY)
     tex = cv2.resize(tex, (2 * width, 2 * height), interpolation=cv2.INTER_AREA)
     left, right = [], []

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from nsflow_ros.optional import require
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.model import Encoder
 
@@ -32,8 +33,7 @@ def export_onnx(model: Encoder, path: str | os.PathLike[str], metadata: dict[str
     Raises:
         TrainError: a metadata value that is not a string.
     """
-    import onnx
-
+    onnx = require("onnx", "the ONNX export")
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     spec = model.spec

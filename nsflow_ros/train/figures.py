@@ -7,16 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nsflow_ros.optional import require
+
 __all__ = ["plot_loss", "plot_validation"]
 
 
 def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    require("matplotlib", "the training figures").use("Agg")
+    return require("matplotlib.pyplot", "the training figures")
 
 
 def plot_loss(

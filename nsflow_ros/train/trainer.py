@@ -20,6 +20,7 @@ import torch
 
 from nsflow_ros.core.pyramid import Smoothing
 from nsflow_ros.core.solver import LMConfig
+from nsflow_ros.optional import require
 from nsflow_ros.train.basin import basin_loss
 from nsflow_ros.train.data import TRAIN_IMAGES, Pair, PairConfig, initial_flow, load_image
 from nsflow_ros.train.device import resolve_device, resolve_dtype
@@ -132,8 +133,8 @@ class TrainConfig:
 
 def _onnx_checkpoint(path: Path) -> dict[str, object]:
     """An exported encoder's weights and spec."""
-    import onnx
-    from onnx import numpy_helper
+    onnx = require("onnx", "reading an exported encoder")
+    numpy_helper = onnx.numpy_helper
 
     try:
         proto = onnx.load(str(path))

@@ -179,3 +179,30 @@ def test_path_errors(tmp_path):
         read_trajectory(tmp_path / "words.txt")
     with pytest.raises(ATEError, match="explicit format"):
         write_trajectory(read_trajectory(tmp_path / "two" / "vins_result_loop.csv"), tmp_path / "x", "auto")
+
+
+# evo (GPL-3.0) is a test-time cross-check only: a user can check any figure of nsflow-ate with evo.
+@pytest.mark.parametrize("fmt", ["tum", "euroc"])
+def test_evo_reads_what_we_write(tmp_path, gt, fmt):
+    from evo.tools import file_interface  # the test extra: a missing evo fails, never skips
+
+    path = write_trajectory(gt, tmp_path / f"traj.{fmt}", fmt)
+    fi = file_interface
+    read = fi.read_tum_trajectory_file if fmt == "tum" else fi.read_euroc_csv_trajectory
+    theirs = read(str(path))
+    np.testing.assert_allclose(theirs.timestamps, gt.stamps, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(theirs.positions_xyz, gt.positions, atol=1e-9)
+    np.testing.assert_allclose(theirs.orientations_quat_wxyz, gt.quaternions, atol=1e-8)
+
+
+def test_we_read_what_evo_writes(tmp_path, gt):
+    from evo.core.trajectory import PoseTrajectory3D
+    from evo.tools import file_interface
+
+    theirs = PoseTrajectory3D(gt.positions, gt.quaternions, gt.stamps)
+    path = tmp_path / "evo.tum"
+    file_interface.write_tum_trajectory_file(str(path), theirs)
+    back = read_trajectory(path)  # the format detected, as a user runs nsflow-ate on it
+    np.testing.assert_allclose(back.stamps, gt.stamps, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(back.positions, gt.positions, atol=1e-6)
+    np.testing.assert_allclose(back.quaternions, gt.quaternions, atol=1e-6)

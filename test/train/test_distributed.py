@@ -2,22 +2,14 @@
 
 from __future__ import annotations
 
-import socket
-
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 
-from train_ddp import STEPS, run, worker  # noqa: E402
+from train_ddp import STEPS, agent_store, run, worker  # noqa: E402
 
 from nsflow_ros.train.distributed import World, shard  # noqa: E402
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_shards_cover_the_global_batch_once():
@@ -29,7 +21,9 @@ def test_shards_cover_the_global_batch_once():
 def test_two_processes_follow_one_process_with_the_double_batch(tmp_path):
     import torch.multiprocessing as mp
 
-    mp.spawn(worker, args=(_free_port(), str(tmp_path / "ddp"), str(tmp_path / "rank")), nprocs=2, join=True)
+    store = agent_store()  # bound before the workers start, held until they are done
+    mp.spawn(worker, args=(store.port, str(tmp_path / "ddp"), str(tmp_path / "rank")), nprocs=2, join=True)
+    del store
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
     # both ranks hold the same weights after every step, and log the same (averaged) loss
     assert torch.equal(r0["params"], r1["params"]) and r0["losses"] == r1["losses"]
