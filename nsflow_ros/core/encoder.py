@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.core.errors import CoreError, EncoderError
-from nsflow_ros.core.pyramid import Smoothing, gaussian_kernel
+from nsflow_ros.core.pyramid import MAX_CHUNK, Smoothing, gaussian_kernel
 
 __all__ = [
     "CPU_PROVIDER",
@@ -232,11 +232,20 @@ class IntensityEncoder:
         return (gray.astype(np.float32) * (1.0 / 255.0))[..., None]
 
 
+def _output(h: int, w: int, d: int) -> np.ndarray:
+    """The C-contiguous block an encoder output is merged into: (h, w, d), or (h, w, 4) for 2-3 channels,
+    which the descriptor pyramid samples padded (:func:`~nsflow_ros.core.pyramid.sampling_source`)."""
+    return np.empty((h, w, MAX_CHUNK if 1 < d < MAX_CHUNK else d), np.float32)
+
+
 def _merge_into(planes: list[np.ndarray], dst: np.ndarray) -> None:
-    """Interleave d (h, w) planes into the C-contiguous (h, w, d) block ``dst`` in one pass."""
+    """Interleave d (h, w) planes into the C-contiguous (h, w, d) block ``dst`` in one pass; a 4-channel
+    ``dst`` of 2-3 planes gets copies of the leading planes as its padding."""
     if len(planes) == 1:
         dst[..., 0] = planes[0]
-    elif not np.shares_memory(cv2.merge(planes, dst=dst), dst):  # cv2 wrote elsewhere: copy
+        return
+    planes = (planes * 2)[: dst.shape[2]]
+    if not np.shares_memory(cv2.merge(planes, dst=dst), dst):  # cv2 wrote elsewhere: copy
         dst[...] = cv2.merge(planes)
 
 
@@ -418,7 +427,7 @@ class OnnxEncoder:
         With ``smooth`` each strip is smoothed before it is cut; ``halo`` must include the kernel's radius.
         """
         h, w = x.shape[2:]
-        out = np.empty((h, w, self.channels), np.float32)
+        out = _output(h, w, self.channels)
         starts = range(0, h, rows)
 
         def strips(worker: int) -> None:
@@ -436,10 +445,12 @@ class OnnxEncoder:
         strips(0)
         for job in jobs:
             job.result()
-        return out
+        return out[..., : self.channels]
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        """Encode a uint8 (H, W) mono or (H, W, 3) BGR image into a C-contiguous (H, W, d) float32 map.
+        """Encode a uint8 (H, W) mono or (H, W, 3) BGR image into an (H, W, d) float32 map: C-contiguous for
+        1 or 4 channels, else the leading channels of a C-contiguous 4-channel block (the pyramid's
+        padded layout, sampled without a copy).
 
         Mono input to an RGB model is replicated to three channels; colour input to a gray model is grayed.
         """
@@ -454,9 +465,9 @@ class OnnxEncoder:
         h, w = x.shape[2:]
         halo = self.halo
         if halo is None:
-            out = np.empty((h, w, self.channels), np.float32)
+            out = _output(h, w, self.channels)
             _merge_into(self._planes(self._run(x), slice(None)), out)
-            return out
+            return out[..., : self.channels]
         # Strips of about TILE_PIXELS, and at least one per worker.
         rows = self._tile_rows or max(1, min(math.ceil(TILE_PIXELS / w), math.ceil(h / self.threads)))
         k = self._kernel

@@ -1,8 +1,12 @@
 """Descriptor pyramids: what the solver samples.
 
-Each level holds the descriptor map as C-contiguous float32 (H, W, K) chunks of at most 4 channels, since
-``cv2.remap`` is fast only on contiguous maps and exact only up to 4 channels; no derivative maps are
-stored (the solver differentiates sampled patches). Coarser levels are ``cv2.pyrDown`` of the map, far
+Each level holds the descriptor map as float32 (H, W, K) chunks of at most 4 channels, since ``cv2.remap``
+is fast only on contiguous maps and exact only up to 4 channels. A chunk of 1 or 4 channels is C-contiguous;
+one of 2 or 3 is the leading channels of a padded C-contiguous 4-channel buffer
+(:func:`sampling_source`): OpenCV 5's remap has exact fast paths for 1 and 4 interleaved channels, samples 2
+channels at 1/32 px (as OpenCV 4 does all float maps) and 2 or 3 more slowly than 4 (docs/benchmarks.md,
+"Cost per channel"). No derivative maps are stored (the
+solver differentiates sampled patches). Coarser levels are ``cv2.pyrDown`` of the map, far
 cheaper than encoding a smaller image. Optional Gaussian smoothing (:class:`Smoothing`) widens the
 solver's basin on a learned map, whose narrow autocorrelation leaves it a narrow one.
 """
@@ -23,6 +27,7 @@ __all__ = [
     "build_pyramid",
     "descriptor_gradients",
     "gaussian_kernel",
+    "sampling_source",
     "split_channels",
 ]
 
@@ -73,16 +78,46 @@ class Smoothing:
                 raise CoreError(f"Smoothing.{name} must be a finite number >= 0, got {v!r}")
 
 
+def _padded(chunk: np.ndarray) -> np.ndarray:
+    """A 2-3 channel map as the leading channels of a padded C-contiguous 4-channel float32 buffer (what
+    the extra channels hold is never read)."""
+    chunk = np.ascontiguousarray(chunk, np.float32)
+    if chunk.shape[2] == 3:  # OpenCV's SIMD conversion; the fourth channel is 1
+        return cv2.cvtColor(chunk, cv2.COLOR_BGR2BGRA)[..., :3]
+    buf = np.zeros((*chunk.shape[:2], MAX_CHUNK), np.float32)
+    # A pixel's two float32 as one complex64: a strided copy of 8-byte items, not of 2-float rows.
+    buf.view(np.complex64)[..., 0] = chunk.view(np.complex64)[..., 0]
+    return buf[..., :2]
+
+
+def sampling_source(chunk: np.ndarray) -> np.ndarray:
+    """The array ``cv2.remap`` samples for a pyramid chunk: the chunk itself, or for a padded 2-3 channel
+    chunk the 4-channel buffer whose leading channels it is (the extra channels are sampled and dropped)."""
+    base = chunk.base
+    if (
+        1 < chunk.shape[2] < MAX_CHUNK
+        and isinstance(base, np.ndarray)
+        and base.shape == (*chunk.shape[:2], MAX_CHUNK)
+        and base.dtype == np.float32
+        and base.flags.c_contiguous
+        and base.ctypes.data == chunk.ctypes.data
+    ):
+        return base
+    return chunk
+
+
 def split_channels(level: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Split an (H, W, K) map into C-contiguous chunks of at most 4 channels (remap's exact path)."""
-    return tuple(
-        np.ascontiguousarray(level[..., i : i + MAX_CHUNK], dtype=np.float32)
-        for i in range(0, level.shape[2], MAX_CHUNK)
-    )
+    """Split an (H, W, K) map into float32 chunks of at most 4 channels, as a pyramid level holds them: a
+    1 or 4 channel chunk C-contiguous, a 2-3 channel one padded (:func:`sampling_source`)."""
+    out = []
+    for i in range(0, level.shape[2], MAX_CHUNK):
+        part = level[..., i : i + MAX_CHUNK]
+        out.append(_padded(part) if 1 < part.shape[2] < MAX_CHUNK else np.ascontiguousarray(part, np.float32))
+    return tuple(out)
 
 
 def _level(desc: np.ndarray) -> tuple[np.ndarray, ...]:
-    return (desc,) if desc.shape[2] <= MAX_CHUNK else split_channels(desc)
+    return (desc,) if desc.shape[2] == MAX_CHUNK else split_channels(desc)
 
 
 @dataclass(frozen=True)
@@ -90,8 +125,9 @@ class DescriptorPyramid:
     """A frame's descriptor maps at every pyramid level.
 
     Attributes:
-        levels: level 0 first (full resolution); each a tuple of C-contiguous float32 chunks
-            (H_l, W_l, K) with K <= 4, together the C descriptor channels in order.
+        levels: level 0 first (full resolution); each a tuple of float32 chunks (H_l, W_l, K) with
+            K <= 4, together the C descriptor channels in order (2-3 channel chunks padded in memory to 4,
+            :func:`sampling_source`).
         channels: C, the descriptor dimension.
     """
 
@@ -125,6 +161,8 @@ def _check_map(desc: np.ndarray) -> np.ndarray:
         raise CoreError(f"descriptor map is empty or degenerate: shape {desc.shape}")
     if not np.issubdtype(desc.dtype, np.floating):
         raise CoreError(f"descriptor map must be floating point, got dtype {desc.dtype}")
+    if desc.dtype == np.float32 and sampling_source(desc) is not desc:
+        return desc  # already padded (an encoder's output): no copy
     return np.ascontiguousarray(desc, dtype=np.float32)
 
 
@@ -145,7 +183,7 @@ def build_pyramid(desc: np.ndarray, levels: int = 3, smoothing: Smoothing | None
 
     Returns:
         the pyramid, level 0 first; without smoothing, level 0 shares memory with a C-contiguous
-        float32 ``desc`` of at most 4 channels.
+        float32 ``desc`` of at most 4 channels (of 2-3 channels: an encoder's padded output).
 
     Raises:
         CoreError: on a wrong shape or dtype (floating (H, W, C) or (H, W)), or ``levels < 1``.
@@ -156,6 +194,9 @@ def build_pyramid(desc: np.ndarray, levels: int = 3, smoothing: Smoothing | None
         raise CoreError(f"smoothing must be a Smoothing or None, got {type(smoothing).__name__}")
     current = _check_map(desc)
     channels = current.shape[2]
+    if 1 < channels < MAX_CHUNK:
+        # Made, smoothed and sampled as the padded 4-channel block: no copy per level.
+        current = sampling_source(current if sampling_source(current) is not current else _padded(current))
     if smoothing is not None and smoothing.fine > 0:
         current = _smooth(current, smoothing.fine)
     maps = [current]
@@ -169,4 +210,6 @@ def build_pyramid(desc: np.ndarray, levels: int = 3, smoothing: Smoothing | None
         maps.append(current)
     if smoothing is not None and smoothing.coarse > 0:
         maps = maps[:1] + [_smooth(m, smoothing.coarse) for m in maps[1:]]
+    if channels < MAX_CHUNK:
+        return DescriptorPyramid(levels=tuple((m[..., :channels],) for m in maps), channels=channels)
     return DescriptorPyramid(levels=tuple(_level(m) for m in maps), channels=channels)

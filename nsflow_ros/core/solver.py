@@ -6,7 +6,7 @@ levels). An iteration solves (J^T J + lambda I) du = -J^T f in closed form per p
 S dropped (lambda /= nu) or rejects it (lambda *= nu), and stops a point when ||du|| < eps (1 + ||u||) or
 ||J^T f||_inf < eps, or after K_max iterations.
 
-Sampling is exact bilinear with replicated borders: one ``cv2.remap`` per 4 channels fetches a
+Sampling is exact bilinear with replicated borders: one ``cv2.remap`` per chunk of up to 4 channels fetches a
 (window + 2)^2 patch per point, all patches side by side in one image, and J is their Scharr derivative,
 reduced to J^T J, J^T f and S at once, so nothing window-sized outlives an iteration. A point ends with
 ``status`` False when its window leaves the image, is degenerate (flat or saturated texture) or its
@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.core.errors import CoreError
-from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, split_channels
+from nsflow_ros.core.pyramid import DescriptorPyramid, build_pyramid, sampling_source, split_channels
 
 __all__ = [
     "IterationRecord", "Jacobian", "LMConfig", "TrackResult", "sample_windows", "track", "window_centres",
@@ -231,8 +231,8 @@ def _scatter_maps(centers: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarra
     c = centers.astype(np.float32)
     mapx = np.empty((size, m, size), np.float32)
     mapy = np.empty((size, m, size), np.float32)
-    mapx[...] = c[None, :, 0, None] + off[None, None, :]
-    mapy[...] = c[None, :, 1, None] + off[:, None, None]
+    np.add(c[None, :, 0, None], off[None, None, :], out=mapx)  # in place: no temporary to copy
+    np.add(c[None, :, 1, None], off[:, None, None], out=mapy)
     return mapx.reshape(size, m * size), mapy.reshape(size, m * size)
 
 
@@ -245,11 +245,17 @@ def _sample_chunk(
     if maps is None:
         return np.ascontiguousarray(_sample_numpy(chunk, centers, size).transpose(1, 0, 2, 3))
     mapx, mapy = maps
+    src = sampling_source(chunk)  # a padded 2-3 channel chunk is sampled as its 4-channel buffer
     # cv2.remap refuses maps of SHRT_MAX (32767) columns or more: sample many points in blocks.
     step = (_REMAP_MAX_COLS // size) * size
     blocks = [slice(i, i + step) for i in range(0, mapx.shape[1], step)]
-    parts = [cv2.remap(chunk, mapx[:, b], mapy[:, b], _LINEAR, borderMode=_REPLICATE) for b in blocks]
+    parts = [cv2.remap(src, mapx[:, b], mapy[:, b], _LINEAR, borderMode=_REPLICATE) for b in blocks]
     out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    if src is not chunk:  # drop the padding (NumPy copies rows of 2 or 3 floats slowly: whole pixels)
+        if k == 2:
+            out = np.ascontiguousarray(out.view(np.complex64)[..., 0]).view(np.float32)
+        else:
+            out = cv2.cvtColor(out, cv2.COLOR_BGRA2BGR)
     return out.reshape(size, m, size, k)
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from nsflow_ros import CoreError, Smoothing, build_pyramid
-from nsflow_ros.core.pyramid import descriptor_gradients, gaussian_kernel, split_channels
+from nsflow_ros.core.pyramid import descriptor_gradients, gaussian_kernel, sampling_source, split_channels
 
 
 def test_levels_halve_and_hold_the_map():
@@ -16,9 +16,22 @@ def test_levels_halve_and_hold_the_map():
     pyr = build_pyramid(desc, 3)
     assert pyr.num_levels == 3 and pyr.channels == 3 and pyr.shape == (120, 160)
     assert [pyr.level(i).shape for i in range(3)] == [(120, 160, 3), (60, 80, 3), (30, 40, 3)]
-    assert all(c.flags.c_contiguous and c.dtype == np.float32 for lev in pyr.levels for c in lev)
+    # 3 channels are held as the leading ones of a zero-padded 4-channel buffer, which remap samples
+    for lev in pyr.levels:
+        (c,) = lev
+        src = sampling_source(c)
+        assert src.shape == (*c.shape[:2], 4) and src.flags.c_contiguous and src.dtype == np.float32
     np.testing.assert_array_equal(pyr.level(0), desc)
     np.testing.assert_allclose(pyr.level(1), cv2.pyrDown(desc, borderType=cv2.BORDER_REPLICATE), atol=1e-7)
+
+
+def test_one_and_four_channel_chunks_are_sampled_as_they_are():
+    for k in (1, 4):
+        (c,) = build_pyramid(np.random.default_rng(k).random((20, 30, k), dtype=np.float32), 1).levels[0]
+        assert c.flags.c_contiguous and sampling_source(c) is c
+    # a user's channel slice is not mistaken for a padded chunk
+    four = np.random.default_rng(2).random((20, 30, 4), dtype=np.float32)
+    assert sampling_source(four[..., 1:3]) is not four
 
 
 def test_more_than_four_channels_are_chunked_for_remap():
@@ -26,6 +39,8 @@ def test_more_than_four_channels_are_chunked_for_remap():
     pyr = build_pyramid(desc, 2)
     assert [c.shape[2] for c in pyr.levels[0]] == [4, 4, 1] and pyr.channels == 9
     np.testing.assert_array_equal(pyr.level(0), desc)
+    six = build_pyramid(desc[..., :6], 1).levels[0]
+    assert [c.shape[2] for c in six] == [4, 2] and sampling_source(six[1]).shape[2] == 4
 
 
 def test_gradients_of_a_ramp_are_its_slopes():

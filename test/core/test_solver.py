@@ -272,14 +272,17 @@ def test_config_validation(field, value):
         LMConfig(**{field: value})
 
 
-def test_remap_sampler_is_exact_and_matches_numpy_fallback():
+@pytest.mark.parametrize("channels", [1, 2, 3, 4, 6, 9])
+def test_remap_sampler_is_exact_and_matches_numpy_fallback(channels):
     assert solver_mod._remap_is_exact(), "installed OpenCV quantises remap; the slow fallback would be used"
     rng = np.random.default_rng(3)
-    level = rng.random((40, 50, 9), dtype=np.float32)
+    level = rng.random((40, 50, channels), dtype=np.float32)
     centers = rng.uniform(-3, 52, (20, 2))
-    fast = sample_windows(level, centers, 7)
     slow = solver_mod._sample_numpy(level, centers, 7)
-    np.testing.assert_allclose(fast, slow, atol=2e-6)
+    # 2 channels too (OpenCV 5 samples an interleaved 2-channel map at 1/32 px: they are sampled padded)
+    np.testing.assert_allclose(sample_windows(level, centers, 7), slow, atol=5e-6)  # 1/32 px: 1e-3
+    pyramid_level = build_pyramid(level, 1).levels[0]
+    np.testing.assert_allclose(sample_windows(pyramid_level, centers, 7), slow, atol=5e-6)
     # bilinear interpolation of a plane is exact
     yy, xx = np.mgrid[0:40, 0:50].astype(np.float32)
     plane = (0.3 * xx - 0.2 * yy + 1.0)[..., None]
