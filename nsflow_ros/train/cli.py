@@ -92,6 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
         "(unless --distill-weight)",
     )
     p.add_argument(
+        "--light-min", type=float, default=0.0, metavar="S",
+        help="training pairs' illumination change strength uniform in [S, 1] (default 0; higher = stronger "
+        "lighting augmentation)",
+    )
+    p.add_argument(
         "--distill-weight", type=float, default=0.0, metavar="W",
         help="with --teacher: train through the LK layer AND add W x the distillation loss (default 0: "
         "distillation alone)",
@@ -339,6 +344,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             init_mode=opts.init_error[0],
             init_sigma=opts.init_error[1],
             translation=opts.translation,
+            light_min=opts.light_min,
         ),
         val_every=opts.val_every,
         threads=opts.threads,
