@@ -69,6 +69,10 @@ class LMConfig:
         tail_passes: the passes a level runs before ``tail_share`` may end it.
         zero_mean: compare windows up to a constant per channel, so a lighting change's offset costs
             nothing (not the paper's cost).
+        gain: with ``zero_mean``, also compare windows up to a positive gain per channel: each candidate
+            window is scaled by its least-squares gain onto the template (clipped to [1/4, 4]) before the
+            comparison, so the cost stays in the template's units and a flat candidate gains nothing (bias
+            and gain Lucas-Kanade; the step's Jacobian is projected off the gain's direction).
 
     Class attributes (Algorithm 1's): ``lambda_init``, the initial damping, and ``nu``, lambda's factor.
 
@@ -92,6 +96,7 @@ class LMConfig:
     tail_share: float = 0.0
     tail_passes: int = 3
     zero_mean: bool = False
+    gain: bool = False
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -120,6 +125,10 @@ class LMConfig:
             raise CoreError(f"LMConfig.margin must be >= 0 or None, got {self.margin}")
         if not isinstance(self.zero_mean, bool):
             raise CoreError(f"LMConfig.zero_mean must be a bool, got {self.zero_mean!r}")
+        if not isinstance(self.gain, bool):
+            raise CoreError(f"LMConfig.gain must be a bool, got {self.gain!r}")
+        if self.gain and not self.zero_mean:
+            raise CoreError("LMConfig.gain needs zero_mean=True (the gain is fitted to centred windows)")
 
     def as_dict(self) -> dict[str, int | float | str | None]:
         """The settings as plain values (the Jacobian by its name), e.g. for a JSON report."""
@@ -441,6 +450,93 @@ def _normal_equations(
     return sums
 
 
+_GAIN_LO, _GAIN_HI = 0.25, 4.0
+_PER_CHANNEL = "imjk,imjk->mk"
+
+
+def _centred(a: np.ndarray) -> np.ndarray:
+    """(window, M, window, K) values minus their window mean per point and channel."""
+    return a - (_window_sums(a) / (a.shape[0] * a.shape[2]))[None, :, None, :]
+
+
+def _gain_templates(
+    template: list[np.ndarray], template_patch: list[np.ndarray] | None
+) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """The centred templates and, for ESM, the template's normalised Scharr x / y derivatives side by
+    side on the channel axis, (window, M, window, 2K) per chunk (so :func:`_take` filters them)."""
+    centred = [_centred(t) for t in template]
+    if template_patch is None:
+        return centred, None
+    jac = []
+    for tp in template_patch:
+        jx, jy = _scharr_xy(tp)
+        jac.append(np.concatenate([jx, jy], axis=3) * np.float32(1 / 32))
+    return centred, jac
+
+
+def _gain_equations(
+    level: tuple[np.ndarray, ...],
+    centers: np.ndarray,
+    template: list[np.ndarray],
+    window: int,
+    below: np.ndarray | None = None,
+    template_jac: list[np.ndarray] | None = None,
+    template_sums: None = None,
+) -> np.ndarray:
+    """:func:`_normal_equations` (same arguments; ``template_sums`` unused) for the bias and gain
+    residual r = g (w - mean w) - (t - mean t) per channel, g the least-squares gain of the candidate
+    window w onto the centred template t (clipped).
+
+    The cost is then min over g of the zero-mean cost, so its gradient is g J_w^T r at the fitted g
+    (envelope theorem); where g is not clipped the Gauss-Newton matrix takes J's part along the centred
+    window off (Kaufman's variable projection), since the gain re-fits as the window moves. ESM's J is the
+    mean of g J_w and the template's J.
+    """
+    m = centers.shape[0]
+    patches = _sample_level(level, centers, window + 2)
+    sums = np.zeros((m, 6))
+    parts = []
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for p, t in zip(patches, template, strict=True):
+            w = _centred(p[1:-1, :, 1:-1])
+            sww = np.einsum(_PER_CHANNEL, w, w)
+            g = np.einsum(_PER_CHANNEL, w, t) / sww
+            free = (g > _GAIN_LO) & (g < _GAIN_HI)
+            g = np.clip(np.nan_to_num(g, nan=1.0), _GAIN_LO, _GAIN_HI).astype(np.float32)
+            r = w * g[None, :, None, :] - t
+            sums[:, 0] += 0.5 * np.einsum(_SUM, r, r)
+            proj = np.where(free & (sww > 0), 1.0 / sww, 0.0)
+            parts.append((p, w, g, r, proj))
+    rows = None if below is None else np.flatnonzero(sums[:, 0] < below)
+    if rows is not None and rows.size == 0:
+        return sums
+    part = rows is not None and rows.size < m
+    terms = np.zeros((rows.size if part else m, 5))
+    for c, (p, w, g, r, proj) in enumerate(parts):
+        if part:
+            p, w, r = (np.take(a, rows, axis=1) for a in (p, w, r))
+            g, proj = g[rows], proj[rows]
+        k = g.shape[1]
+        jx, jy = _scharr_xy(p)
+        scale = (g * np.float32(1 / 32))[None, :, None, :]
+        jx, jy = jx * scale, jy * scale
+        if template_jac is not None:
+            tj = np.take(template_jac[c], rows, axis=1) if part else template_jac[c]
+            jx, jy = 0.5 * (jx + tj[..., :k]), 0.5 * (jy + tj[..., k:])
+        jx, jy = _centred(jx), _centred(jy)
+        qx, qy = np.einsum(_PER_CHANNEL, w, jx), np.einsum(_PER_CHANNEL, w, jy)
+        terms[:, 0] += np.einsum(_SUM, jx, jx) - np.einsum("mk,mk->m", qx * proj, qx)
+        terms[:, 1] += np.einsum(_SUM, jx, jy) - np.einsum("mk,mk->m", qx * proj, qy)
+        terms[:, 2] += np.einsum(_SUM, jy, jy) - np.einsum("mk,mk->m", qy * proj, qy)
+        terms[:, 3] += np.einsum(_SUM, jx, r)
+        terms[:, 4] += np.einsum(_SUM, jy, r)
+    if part:
+        sums[rows, 1:] = terms
+    else:
+        sums[:, 1:] = terms
+    return sums
+
+
 # Columns of the per-point LM state: flow u, cost S, J^T J (h11, h12, h22), J^T f (g1, g2).
 _U, _COST, _HESS, _GRAD, _TERMS = slice(0, 2), 2, slice(3, 6), slice(6, 8), slice(2, 8)
 
@@ -461,16 +557,19 @@ def _solve_level(
     win = cfg.window_at(level_index)
     # The Jacobian kind is settled here, once per level: ESM carries the template's patches.
     template, tpatch = _templates(level1, pts, win, cfg.jacobian)
-    tsums = _template_sums(template, tpatch) if cfg.zero_mean else None
+    tsums = _template_sums(template, tpatch) if cfg.zero_mean and not cfg.gain else None
     contrast = np.zeros(n)
     if level_index == 0:  # only level 0's is reported
         # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count.
         for c, t in enumerate(template):
             sums = -tsums[c][0] if tsums is not None else _window_sums(t)
             contrast += np.einsum(_SUM, t, t) - np.einsum("mk,mk->m", sums, sums) / (win * win)
+    if cfg.gain:  # the residual model is settled once per level: the gain's equations take its templates
+        template, tpatch = _gain_templates(template, tpatch)
+    equations = _gain_equations if cfg.gain else _normal_equations
     state = np.empty((n, 8))
     state[:, _U] = u
-    state[:, _TERMS] = _normal_equations(level2, pts + u, template, win, None, tpatch, tsums)
+    state[:, _TERMS] = equations(level2, pts + u, template, win, None, tpatch, tsums)
     lam = np.full(n, cfg.lambda_init)
     if cfg.lambda_scale > 0:
         lam = np.maximum(lam, cfg.lambda_scale * np.maximum(state[:, 3], state[:, 5]))
@@ -503,7 +602,7 @@ def _solve_level(
             cand = np.empty_like(s_a)
             np.add(s_a[:, 0], du0, out=cand[:, 0])
             np.add(s_a[:, 1], du1, out=cand[:, 1])
-            cand[:, _TERMS] = _normal_equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a, ts_a)
+            cand[:, _TERMS] = equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a, ts_a)
             accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
             lam_a = lam_a * np.where(accept, 1.0 / cfg.nu, cfg.nu)

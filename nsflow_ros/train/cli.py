@@ -88,7 +88,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--teacher", type=Path, default=None, metavar="ONNX",
         help="distil from this trained encoder (regression on its descriptor maps and their x/y "
-        "differences) instead of training through the LK layer; the LK-layer options are then unused",
+        "differences) instead of training through the LK layer; the LK-layer options are then unused "
+        "(unless --distill-weight)",
+    )
+    p.add_argument(
+        "--light-min", type=float, default=0.0, metavar="S",
+        help="training pairs' illumination change strength uniform in [S, 1] (default 0; higher = stronger "
+        "lighting augmentation)",
+    )
+    p.add_argument(
+        "--distill-weight", type=float, default=0.0, metavar="W",
+        help="with --teacher: train through the LK layer AND add W x the distillation loss (default 0: "
+        "distillation alone)",
     )
     p.add_argument(
         "--init", type=Path, default=None, metavar="CHECKPOINT",
@@ -333,11 +344,13 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             init_mode=opts.init_error[0],
             init_sigma=opts.init_error[1],
             translation=opts.translation,
+            light_min=opts.light_min,
         ),
         val_every=opts.val_every,
         threads=opts.threads,
         val_per_image=opts.val_per_image,
         teacher=opts.teacher,
+        distill_weight=opts.distill_weight,
         init=opts.init,
         smoothing=None if opts.smoothing is None else Smoothing(*opts.smoothing),
         data=data,

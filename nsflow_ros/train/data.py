@@ -78,6 +78,8 @@ class PairConfig:
         init_sigma: size of the initial error in pixels (its meaning depends on ``init_mode``).
         init_mode: training pairs' initial flow: "normal" = GT + N(0, init_sigma^2) per axis; "uniform" =
             GT + an error of length uniform in [0, init_sigma] in a random direction; "zero" = zero flow.
+        light_min: the training pairs' illumination change has a strength uniform in [light_min, 1]
+            (0 = as often none as the strongest; higher = stronger augmentation).
     """
 
     width: int = 320
@@ -89,12 +91,15 @@ class PairConfig:
     window: int = 11
     init_sigma: float = 2.5
     init_mode: str = "normal"
+    light_min: float = 0.0
 
     def __post_init__(self) -> None:
         if self.init_mode not in INIT_MODES:
             raise TrainError(f"PairConfig.init_mode must be one of {INIT_MODES}, got {self.init_mode!r}")
         if self.init_sigma < 0:
             raise TrainError(f"PairConfig.init_sigma must be >= 0, got {self.init_sigma}")
+        if not 0.0 <= self.light_min <= 1.0:
+            raise TrainError(f"PairConfig.light_min must be in [0, 1], got {self.light_min}")
 
 
 @dataclass(frozen=True)

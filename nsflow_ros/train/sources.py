@@ -539,7 +539,7 @@ class PairStream:
     def __getitem__(self, index: int) -> Pair:
         for attempt in range(self.attempts):
             rng = np.random.default_rng([self.seed, int(index), attempt])
-            pair = self.source.sample(rng, self.cfg, float(rng.uniform(0.0, 1.0)))
+            pair = self.source.sample(rng, self.cfg, float(rng.uniform(self.cfg.light_min, 1.0)))
             if len(pair.points) >= self.min_points:
                 return pair
         raise TrainError(

@@ -76,7 +76,10 @@ class TrainConfig:
         scene_cache: folder of the scenes' sample-sequence metadata; None = ``cache`` beside ``out``.
         images: training photos when ``data`` is empty.
         teacher: an ONNX encoder to distil from instead of training through the LK layer (whose settings
-            are then unused).
+            are then unused), unless ``distill_weight`` > 0.
+        distill_weight: with ``teacher``, train through the LK layer and add this weight times the
+            distillation loss (the teacher's maps anchor what the solver's loss alone would trade away:
+            precision and lighting robustness); 0 = distillation alone.
         init: a checkpoint (``encoder.pt`` of an earlier run or an exported ``.onnx``, same spec) to start
             from instead of random weights.
         smoothing: Gaussian smoothing of the descriptor pyramid in the training solver, validation and the
@@ -115,6 +118,7 @@ class TrainConfig:
     threads: int = 2
     images: tuple[str, ...] = TRAIN_IMAGES
     teacher: Path | None = None
+    distill_weight: float = 0.0
     init: Path | None = None
     smoothing: Smoothing | None = None
     data: tuple[DataSpec, ...] = ()
@@ -252,16 +256,20 @@ def batch_loss(
         model: the encoder (or its DistributedDataParallel wrapper).
         pairs: the step's pairs (same frame size).
         cfg: loss and solver settings.
-        teacher: distil from this teacher's maps instead of training through the LK layer.
+        teacher: distil from this teacher's maps: alone, or beside the LK layer's loss with weight
+            ``cfg.distill_weight`` when that is > 0.
     """
     spec: EncoderSpec = getattr(model, "module", model).spec
     device = _device_of(model)
     d = model(_frames(pairs, spec.in_channels, device))
     anchor = 0.0 * d.sum()
+    distilled = None
     if teacher is not None:
         frames = [im for p in pairs for im in (p.image1, p.image2)]
         target = torch.stack([teacher(f) for f in frames]).to(device)
-        return distill_loss(d, target) + anchor, sum(len(p.points) for p in pairs)
+        distilled = distill_loss(d, target)
+        if cfg.distill_weight <= 0:
+            return distilled + anchor, sum(len(p.points) for p in pairs)
     dtype = resolve_dtype(cfg.dtype)
     maps = d.to(dtype)
     total: torch.Tensor = anchor.to(torch.float64)
@@ -271,7 +279,10 @@ def batch_loss(
         if used:
             total = total + loss.to(torch.float64)
             points += used
-    return total / len(pairs), points
+    total = total / len(pairs)
+    if distilled is not None:
+        total = total + cfg.distill_weight * distilled.to(torch.float64)
+    return total, points
 
 
 def train_step(

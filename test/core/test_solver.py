@@ -517,3 +517,63 @@ def test_as_dict_is_plain_values():
     assert d["jacobian"] == "esm" and d["coarse_window"] == 15 and d["window"] == 11
     assert set(d) == {f.name for f in dataclasses.fields(LMConfig)}
     assert "lambda_init" not in d and "nu" not in d  # Algorithm 1's constants, not settings
+
+
+def test_gain_ignores_a_gain_and_an_offset_between_the_frames(textures):
+    h = translation(1.3, -0.7)
+    for gray in textures.values():
+        a, b = warp_pair(gray, h)
+        pts = detect_corners(a, 100, min_distance=10)
+        d1, d2 = IntensityEncoder()(a), IntensityEncoder()(b)
+        gain = LMConfig(zero_mean=True, gain=True, jacobian=Jacobian.ESM)
+        same = track(d1, d2, pts, config=gain)
+        relit = track(d1, 1.8 * d2 + 0.1, pts, config=gain)
+        offset_only = track(d1, 1.8 * d2 + 0.1, pts, config=LMConfig(zero_mean=True, jacobian=Jacobian.ESM))
+        truth = apply_h(h, pts) - pts
+        err = [np.linalg.norm(r.flow - truth, axis=1) for r in (same, relit, offset_only)]
+        assert np.mean(err[0] < 0.5) > 0.9 and np.mean(err[1] < 0.5) > 0.9
+        assert np.median(np.abs(same.flow - relit.flow)) < 1e-3
+        # the cost stays in the template's units: a gain leaves it (and the residual test) unchanged
+        np.testing.assert_allclose(np.median(relit.cost), np.median(same.cost), rtol=0.05)
+        assert np.median(offset_only.cost) > 2 * np.median(relit.cost)
+    with pytest.raises(CoreError, match="gain needs zero_mean"):
+        LMConfig(gain=True)
+    with pytest.raises(CoreError, match="gain must be a bool"):
+        LMConfig(zero_mean=True, gain=1)
+
+
+@pytest.mark.parametrize("jacobian", list(Jacobian))
+def test_gain_normal_equations(jacobian):
+    rng = np.random.default_rng(6)
+    desc = cv2.GaussianBlur(rng.random((40, 50, 5), dtype=np.float32), (0, 0), 1.5)  # chunks of 4 and 1
+    level = build_pyramid(desc, 1).levels[0]
+    centers = rng.uniform(8, 30, (6, 2))
+    shifted = centers + np.array([0.6, -0.4])
+    template, tpatch = solver_mod._gain_templates(*solver_mod._templates(level, centers, 7, jacobian))
+    got = solver_mod._gain_equations(level, shifted, template, 7, None, tpatch)
+    below = np.where(np.arange(6) % 2 == 0, got[:, 0] + 1.0, got[:, 0] - 1e-9)
+    part = solver_mod._gain_equations(level, shifted, template, 7, below, tpatch)
+    np.testing.assert_allclose(part[::2], got[::2], rtol=1e-6)
+    assert not part[1::2, 1:].any()
+
+    def centred(a):
+        return a - a.mean(axis=(1, 2), keepdims=True)
+
+    border = cv2.BORDER_REPLICATE
+    dmaps = [cv2.Scharr(desc, cv2.CV_32F, *o, scale=1 / 32, borderType=border) for o in ((1, 0), (0, 1))]
+    w = centred(sample_windows(desc, shifted, 7).astype(np.float64))
+    t = centred(sample_windows(desc, centers, 7).astype(np.float64))
+    g = np.clip((w * t).sum(axis=(1, 2)) / (w * w).sum(axis=(1, 2)), 0.25, 4.0)[:, None, None, :]
+    f = g * w - t
+    jx, jy = (g * sample_windows(m, shifted, 7) for m in dmaps)
+    if jacobian is Jacobian.ESM:
+        jx, jy = (0.5 * (j + sample_windows(m, centers, 7)) for j, m in zip((jx, jy), dmaps, strict=True))
+    jx, jy = centred(jx), centred(jy)
+    want = _normal_sums(f, jx, jy)
+    # Kaufman: the Gauss-Newton matrix is that of J projected off the centred window, per channel
+    qx, qy = ((w * j).sum(axis=(1, 2)) for j in (jx, jy))
+    ww = (w * w).sum(axis=(1, 2))
+    want[:, 1] -= (qx * qx / ww).sum(axis=1)
+    want[:, 2] -= (qx * qy / ww).sum(axis=1)
+    want[:, 3] -= (qy * qy / ww).sum(axis=1)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
