@@ -392,7 +392,7 @@ class FrontEndSession:
         if mask is None or camera >= len(cams):
             return mask  # the tracker names a mask for a camera it lacks
         full = (self.config.image_width, self.config.image_height)
-        mask = check_mask(mask, full, f"frame mask {camera}", "the images")
+        mask = check_mask(mask, full, f"frame mask {camera}", "the images' size")
         return to_tracking_resolution(mask, (cams[camera].width, cams[camera].height))
 
     def _trim(self, frame: FrameFeatures) -> FrameFeatures:

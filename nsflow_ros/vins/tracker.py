@@ -99,7 +99,7 @@ def load_static_masks(
             raise ConfigError(f"mask{index} {path} given, but {config.path} has one camera")
         mask = load_mask(path, convention)
         try:
-            out.append(check_mask(mask, size, f"mask{index} {path}", f"the images of {config.path}"))
+            out.append(check_mask(mask, size, f"mask{index} {path}", f"the image size of {config.path}"))
         except CoreError as err:
             raise ConfigError(str(err)) from err
     return out[0], out[1]
