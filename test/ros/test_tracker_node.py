@@ -815,3 +815,32 @@ def test_mask_topic_masks_moving_objects_and_counts_what_was_missing_late_or_ref
         assert not _on(box, 255, _uv(h.clouds[-1])).any() and node.mask_counters()["masks_missing"] == 2
     finally:
         h.close()
+
+
+def test_stereo_mask_topics_mask_each_camera(tmp_path, prefix, pan):
+    cam = syn.camera()
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, mask_topic=f"{prefix}/mask0",
+                mask1_topic=f"{prefix}/mask1")
+    pubs = [h.io.create_publisher(Image, f"{prefix}/mask{i}", qos_profile_sensor_data) for i in (0, 1)]
+    node = h.tracker
+    try:
+        assert h.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), 10.0)
+        left_only = np.zeros((cam.height, cam.width), np.uint8)
+        left_only[:, : cam.width // 2] = 255  # VINS convention: 255 = usable
+        right_usable = np.zeros_like(left_only)
+        right_usable[:, 80:] = 255  # the right camera sees the left points 9.5 px further left
+        for k in range(3):
+            t = T0 + pan.stamps[k]
+            before = node.masks_received
+            pubs[0].publish(image_msg(left_only, t))
+            pubs[1].publish(image_msg(right_usable, t))
+            assert h.spin_until(lambda b=before: node.masks_received == b + 2, 5.0)
+            h.send(0, image_msg(pan.frames[k], t), expect_cloud=False)
+            h.send(1, image_msg(pan.right[k], t))
+            left, right = _uv(h.clouds[-1], 0), _uv(h.clouds[-1], 1)
+            assert len(left) > 10 and len(right) > 5
+            assert np.all(np.rint(left[:, 0]) < cam.width // 2) and np.all(np.rint(right[:, 0]) >= 80)
+            assert len(right) < len(left)  # the right camera's mask dropped some matches
+        assert node.mask_counters()["masks_missing"] == 0
+    finally:
+        h.close()
