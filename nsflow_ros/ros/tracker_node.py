@@ -300,11 +300,12 @@ class TrackerNode(Node):
         parts = [f"static mask{i}" for i, m in enumerate(static) if m is not None]
         if self._mask_subs:
             topics = ", ".join(sub.topic_name for sub in self._mask_subs)
-            parts.append(f"masks per frame on {topics} (wait {float(self._params['mask_wait_ms']):g} ms)")
+            wait = float(self._params["mask_wait_ms"])
+            parts.append(f"per-frame masks on {topics} (waiting up to {wait:g} ms)")
         if not parts:
             return ""
-        return f"; {' and '.join(parts)} ({self._mask_convention}: 255 = " + (
-            "usable)" if MASK_CONVENTIONS[self._mask_convention] else "masked out)")
+        meaning = "usable" if MASK_CONVENTIONS[self._mask_convention] else "masked out"
+        return f"; {', '.join(parts)}, read as {self._mask_convention} (255 = {meaning})"
 
     def _bad_mask(self, cause: str, message: str) -> None:
         """Log a refused mask once per cause; count every one."""

@@ -844,3 +844,15 @@ def test_stereo_mask_topics_mask_each_camera(tmp_path, prefix, pan):
         assert node.mask_counters()["masks_missing"] == 0
     finally:
         h.close()
+
+
+def test_main_exits_1_with_one_line_on_a_mask_of_another_size(tmp_path, prefix):
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((20, 10), np.uint8))
+    config = write_config(tmp_path, prefix)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 100))
+    code = ("import sys; from nsflow_ros.ros.tracker_node import main; "
+            f"sys.exit(main(['x', '--ros-args', '-p', 'config_file:={config}', '-p', "
+            f"'mask0:={tmp_path / 'small.png'}']))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 1
+    assert out.stderr.count("\n") == 1 and "small.png is 10x20 but the image size of" in out.stderr
