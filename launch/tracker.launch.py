@@ -3,6 +3,8 @@
     ros2 launch nsflow_ros tracker.launch.py config_file:=/path/to/vins_config.yaml
     ros2 launch nsflow_ros tracker.launch.py config_file:=my.yaml params_file:=my_tracker_params.yaml \
         providers:=tensorrt,cuda,cpu image_transport:=compressed rviz:=true
+    ros2 launch nsflow_ros tracker.launch.py config_file:=my.yaml mask0:=body_cam0.png \
+        mask_topic:=/segmentation/mask mask_convention:=openvins
 
 A node parameter given as an argument overrides the params file; one left empty keeps the params file's
 value (or the node's default). ``ros2 launch nsflow_ros tracker.launch.py --show-args`` lists them.
@@ -21,7 +23,8 @@ from launch import LaunchDescription
 PACKAGE = "nsflow_ros"
 
 # Node parameters (rows of nsflow_ros.vins.settings.SETTINGS) that are launch arguments of the same name.
-NODE_PARAMETERS = ("config_file", "method", "model_path", "image_transport", "providers")
+NODE_PARAMETERS = ("config_file", "method", "model_path", "image_transport", "providers", "mask0", "mask1",
+                   "mask_convention", "mask_topic", "mask1_topic")
 
 ARGUMENTS = {
     "config_file": ("", "VINS-Fusion / VINS-Mono config file ('' = the params file's, else the shipped EuRoC "
@@ -33,6 +36,13 @@ ARGUMENTS = {
     "image_transport": ("", "raw or compressed ('' = params file / raw)"),
     "providers": ("", "onnxruntime execution providers of the encoder, best first, e.g. cuda,cpu "
                       "('' = params file / cpu)"),
+    "mask0": ("", "static mask image of camera 0: no features on its masked pixels ('' = params file / the "
+                  "VINS config's mask0 key / none)"),
+    "mask1": ("", "static mask image of camera 1 (stereo) ('' = params file / config's mask1 / none)"),
+    "mask_convention": ("", "vins (255 = usable) or openvins (255 = masked out) ('' = params file / vins)"),
+    "mask_topic": ("", "per-frame masks of camera 0, sensor_msgs/Image mono8 stamped like the images, e.g. "
+                       "moving objects from a segmentation node ('' = params file / none)"),
+    "mask1_topic": ("", "per-frame masks of camera 1 (stereo) ('' = params file / none)"),
     "namespace": ("", "namespace of the node (the feature topic is absolute: /feature_tracker/feature)"),
     "use_sim_time": ("false", "use /clock (true when replaying a bag with its clock)"),
     "rviz": ("false", "start RViz2 with the image_track image and the feature cloud"),

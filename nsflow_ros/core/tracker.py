@@ -9,10 +9,14 @@ same code for every method, so that differences between methods come from the fl
 2. flow-back check: track the result back from the previous position; keep points returning within 0.5 px;
 3. border check: the rounded position must lie at least 1 px inside the image;
 4. optional fundamental-matrix RANSAC on a virtual 460 px pinhole (VINS-Mono's ``rejectWithF``);
-5. track counts grow by 1; the mask (from the fisheye mask, if any) keeps the longest tracks first, each
-   blocking a disc of radius ``min_dist``; GFTT tops the set up to ``max_cnt`` with fresh ids;
+5. track counts grow by 1; the mask (camera 0's static mask and this frame's mask, if any) keeps the
+   longest tracks first, each blocking a disc of radius ``min_dist``; GFTT tops the set up to ``max_cnt``
+   with fresh ids;
 6. undistorted points from the camera model; velocities against the previous frame, 0 for new ids;
-7. stereo: left -> right, the border check and a right -> left back-check; right points reuse the left ids.
+7. stereo: left -> right, the border check and a right -> left back-check; right points reuse the left ids;
+   a right point on a zero of camera 1's mask (static or this frame's) is dropped.
+
+Masks (:mod:`nsflow_ros.core.masks`) are 0 / 255 images: no corner is detected and no track kept on a 0.
 
 With ``downsample`` d > 1 (:mod:`nsflow_ros.core.downsample`) all of this runs on the images decimated by d,
 with the cameras scaled inside and ``min_dist`` divided by d (the features keep their full-resolution
@@ -47,6 +51,7 @@ from nsflow_ros.core.downsample import (
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, to_gray
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import body_to_camera_rotation, integrate_gyro, predict_pixels
+from nsflow_ros.core.masks import check_mask, combine, usable_at
 from nsflow_ros.core.methods import METHODS, SolveKind, TrackingMethod, make_method
 
 __all__ = [
@@ -298,16 +303,8 @@ def _velocities(
     return vel
 
 
-def _check_mask(mask: np.ndarray, camera: CameraModel) -> np.ndarray:
-    if not isinstance(mask, np.ndarray) or mask.ndim != 2:
-        got = f"shape {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
-        raise CoreError(f"mask must be a 2-D uint8 array, got {got}")
-    if mask.shape != (camera.height, camera.width):
-        h, w = mask.shape
-        raise CoreError(f"mask is {w}x{h} but camera 0 ({camera.name}) is {camera.width}x{camera.height}")
-    if mask.dtype != np.uint8:
-        raise CoreError(f"mask must be uint8 (0 / 255), got dtype {mask.dtype}")
-    return np.where(mask > 127, 255, 0).astype(np.uint8)
+def _check_mask(mask: np.ndarray, camera: CameraModel, index: int, what: str) -> np.ndarray:
+    return check_mask(mask, (camera.width, camera.height), what, f"camera {index} ({camera.name})")
 
 
 def _no_features(camera_id: int) -> CameraFeatures:
@@ -367,9 +364,14 @@ class FeatureTracker:
         method: the tracking method, already built (:func:`~nsflow_ros.core.methods.make_method`); its
             name must be ``settings.method``. None = built here from ``settings`` (and ``encoder``).
         body_R_cam0: rotation camera 0 -> IMU body (VINS ``body_T_cam0[:3, :3]``); None = identity.
-        mask: camera 0's static (fisheye) mask, uint8 (H, W) at full resolution, 255 where features may
-            be: tracked points on 0 are dropped and no corner is detected there (VINS-Mono ``setMask``).
-            None = everywhere.
+        mask: camera 0's static mask (VINS-Mono's fisheye mask, a mask0 or both intersected), uint8
+            (H, W) at full resolution, 255 where features may be: tracked points on 0 are dropped and no
+            corner is detected there (VINS-Mono ``setMask``). None = everywhere.
+        mask1: camera 1's static mask at full resolution (stereo only): right points on its zeros are
+            dropped. None = everywhere.
+
+    Masks (static and per frame) are given at full resolution and decimated here with ``downsample``
+    (:func:`~nsflow_ros.core.downsample.downsample_mask`, the one place a mask follows the images).
 
     Attributes:
         full_cameras: the cameras as given (full resolution), in which the output is.
@@ -388,6 +390,7 @@ class FeatureTracker:
         encoder: Encoder | None = None,
         body_R_cam0: np.ndarray | None = None,
         mask: np.ndarray | None = None,
+        mask1: np.ndarray | None = None,
         method: TrackingMethod | None = None,
     ) -> None:
         self.settings = settings or TrackerSettings()
@@ -427,8 +430,10 @@ class FeatureTracker:
         if self.body_R_cam0 is not None and self.body_R_cam0.shape != (3, 3):
             raise CoreError(f"body_R_cam0 must have shape (3, 3), got {self.body_R_cam0.shape}")
         self._clahe = method.spec.clahe.create() if s.equalize else None
-        self.mask = None if mask is None else downsample_mask(_check_mask(mask, self.full_cameras[0]),
-                                                              self._down)
+        self.mask = None if mask is None else self._tracking_mask(mask, 0, "mask")
+        if mask1 is not None and not s.stereo:
+            raise CoreError("mask1 given but the tracker is mono (settings.stereo is False)")
+        self.mask1 = None if mask1 is None else self._tracking_mask(mask1, 1, "mask1")
         self._next_id = 0
         self._gated = 0  # points the max_sigma gate dropped in the current frame
         self.reset()
@@ -539,12 +544,13 @@ class FeatureTracker:
         return predict_pixels(self.cameras[0], self._left.undistorted, cam_rot)
 
     def _set_mask(
-        self, pts: np.ndarray, counts: np.ndarray, size: tuple[int, int]
+        self, pts: np.ndarray, counts: np.ndarray, size: tuple[int, int], usable: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Keep the longest tracks first, each blocking a disc of radius min_dist, from the static mask
-        (tracks on its zeros are dropped); returns (keep, mask)."""
+        """Keep the longest tracks first, each blocking a disc of radius min_dist, from the ``usable``
+        mask (tracks on its zeros are dropped; None = the static mask); returns (keep, mask)."""
         w, h = size
-        mask = np.full((h, w), 255, np.uint8) if self.mask is None else self.mask.copy()
+        usable = self.mask if usable is None else usable
+        mask = np.full((h, w), 255, np.uint8) if usable is None else usable.copy()
         order = np.argsort(-counts, kind="stable")
         radius = round(self._min_dist)
         keep: list[int] = []
@@ -554,6 +560,24 @@ class FeatureTracker:
                 keep.append(int(i))
                 cv2.circle(mask, (x, y), radius, 0, -1)
         return np.asarray(keep, np.int64), mask
+
+    def _tracking_mask(self, mask: np.ndarray, camera: int, what: str) -> np.ndarray:
+        """A full-resolution mask of ``camera``, checked, at the tracking resolution."""
+        return downsample_mask(_check_mask(mask, self.full_cameras[camera], camera, what), self._down)
+
+    def _frame_masks(
+        self, frame_masks: Sequence[np.ndarray | None]
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Each camera's mask for this frame: its static mask and its frame mask intersected (None = none)."""
+        n = len(self.cameras) if self.settings.stereo else 1
+        if len(frame_masks) > n:
+            raise CoreError(f"{len(frame_masks)} frame masks for a tracker of {n} camera(s)")
+        given = [
+            None if m is None else self._tracking_mask(m, i, f"frame mask {i}")
+            for i, m in enumerate(frame_masks)
+        ]
+        given += [None] * (2 - len(given))
+        return combine(self.mask, given[0]), combine(self.mask1, given[1])
 
     def _check_images(self, image0: np.ndarray, image1: np.ndarray | None) -> tuple[int, int]:
         for name, img in (("image0", image0), ("image1", image1)):
@@ -602,14 +626,19 @@ class FeatureTracker:
         return tracks, prev.undistorted[status]
 
     def _reject_mask_detect(
-        self, gray0: np.ndarray, tracks: _Tracks, prev_un: np.ndarray, size: tuple[int, int]
+        self,
+        gray0: np.ndarray,
+        tracks: _Tracks,
+        prev_un: np.ndarray,
+        size: tuple[int, int],
+        usable: np.ndarray | None,
     ) -> _Tracks:
         """Steps 4-5: the optional F-matrix RANSAC, the mask (longest tracks first), GFTT top-up."""
         s = self.settings
         if s.reject_with_f and tracks.ids.size >= 8:
             tracks = tracks[reject_with_fundamental(prev_un, self.cameras[0].lift(tracks.pixels),
                                                     s.F_threshold, size)]
-        keep, mask = self._set_mask(tracks.pixels, tracks.counts, size)
+        keep, mask = self._set_mask(tracks.pixels, tracks.counts, size, usable)
         tracks = tracks[keep]
         wanted = s.max_cnt - tracks.ids.size
         if wanted <= 0:
@@ -635,9 +664,17 @@ class FeatureTracker:
         return CameraFeatures(camera, tracks.ids, pts, un, vel, tracks.counts, tracks.previous, cov)
 
     def _stereo(
-        self, image1: np.ndarray, frame0: Any, left: _Tracks, size: tuple[int, int], dt: float, checks: bool
+        self,
+        image1: np.ndarray,
+        frame0: Any,
+        left: _Tracks,
+        size: tuple[int, int],
+        dt: float,
+        checks: bool,
+        usable: np.ndarray | None,
     ) -> CameraFeatures:
-        """Step 7: left -> right with its back-check, each id starting from its previous disparity."""
+        """Step 7: left -> right with its back-check, each id starting from its previous disparity; right
+        points on a zero of ``usable`` (camera 1's mask; None = none) are dropped."""
         _, frame1 = self._prepare(image1, "image1")
         right = _Tracks.empty()
         if left.ids.size:
@@ -647,6 +684,8 @@ class FeatureTracker:
             back = SolveKind.STEREO_BACK if checks else None
             rpts, st, cov = self._track(SolveKind.STEREO, back, frame0, frame1, left.pixels, size, None,
                                         prior)
+            if usable is not None:
+                st &= usable_at(usable, rpts)
             ids = left.ids[st]
             right = _Tracks(ids, left.counts[st], rpts[st], _lookup(ids, r.ids, r.pixels), cov[st])
         return self._lift(1, right, self._right, dt)
@@ -693,6 +732,7 @@ class FeatureTracker:
         *,
         detect: bool = True,
         checks: bool = True,
+        frame_masks: Sequence[np.ndarray | None] = (),
     ) -> FrameFeatures:
         """Track one frame (VINS-Fusion ``trackImage``; the steps of the module docstring).
 
@@ -704,15 +744,19 @@ class FeatureTracker:
             detect: top the features up with new corners (VINS-Mono skips this on throttled frames).
             checks: run the reverse checks that ``settings.flow_back`` asks for; False skips them on this
                 frame only (a live node catching up on a frame that waited).
+            frame_masks: this frame's masks (moving objects), camera 0 first, each uint8 (H, W) 255 where
+                features may be or None; they apply with the static masks. Camera 0's applies where new
+                corners are detected (``detect``), camera 1's to the right points.
 
         Raises:
-            CoreError: on a stamp that does not increase, a wrong image size or type, or a missing
+            CoreError: on a stamp that does not increase, a wrong image or mask size or type, or a missing
                 stereo image; the tracker's state is then unchanged.
         """
         t_start, c_start = time.perf_counter(), time.process_time()
         self._check_stamp(stamp)
         full_size = self._check_images(image0, image1)
         size = (self.cameras[0].width, self.cameras[0].height)  # where the tracking happens
+        usable0, usable1 = self._frame_masks(frame_masks)
         timings: dict[str, float] = {}
         cpu: dict[str, float] = {}
         predicted = self._predict(gyro, stamp)  # before any state changes: may raise on bad samples
@@ -723,13 +767,13 @@ class FeatureTracker:
             tracks, prev_un = self._track_previous(frame0, size, predicted, checks)
         with _timed(timings, cpu, "detect"):
             if detect:
-                tracks = self._reject_mask_detect(gray0, tracks, prev_un, size)
+                tracks = self._reject_mask_detect(gray0, tracks, prev_un, size, usable0)
         dt = stamp - self._stamp if self._stamp is not None else 0.0
         left = self._lift(0, tracks, self._left, dt)
         right = None
         if self.settings.stereo:
             with _timed(timings, cpu, "stereo"):
-                right = self._stereo(image1, frame0, tracks, size, dt, checks)  # type: ignore[arg-type]
+                right = self._stereo(image1, frame0, tracks, size, dt, checks, usable1)  # type: ignore[arg-type]
         self._commit(stamp, frame0, left, right)
         timings["total"] = (time.perf_counter() - t_start) * 1e3
         cpu["total"] = (time.process_time() - c_start) * 1e3

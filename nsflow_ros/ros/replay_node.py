@@ -316,6 +316,20 @@ def _parser() -> argparse.ArgumentParser:
         "velocities over the written interval (as the node's publish_rate parameter; default: every frame)",
     )
     p.add_argument(
+        "--mask0", type=Path, default=None, metavar="IMAGE",
+        help="static mask image of camera 0 for --offline / --features-bag (as the node's mask0 parameter: "
+        "no feature on its masked pixels; default: the config's mask0 key, else none)",
+    )
+    p.add_argument(
+        "--mask1", type=Path, default=None, metavar="IMAGE",
+        help="static mask image of camera 1 for --features-bag with a stereo config (as the node's mask1)",
+    )
+    p.add_argument(
+        "--mask-convention", choices=("vins", "openvins"), default="vins",
+        help="how --mask0 / --mask1 and the config's mask keys mark pixels: vins = 255 where features may "
+        "be, openvins = 255 where none may be (default vins; as the node's mask_convention)",
+    )
+    p.add_argument(
         "--providers", default="cpu",
         help="onnxruntime execution providers of the encoder for --offline / --features-bag, best first, "
         "e.g. cuda,cpu (default cpu; as the node's providers parameter)",
@@ -351,6 +365,13 @@ def _check_tracked_topics(opts: argparse.Namespace) -> None:
         )
 
 
+def _static_masks(opts: argparse.Namespace, cfg: Any) -> tuple[Any, Any]:
+    """The static masks of --mask0 / --mask1 (else the config's keys) in --mask-convention."""
+    from nsflow_ros.vins.tracker import load_static_masks
+
+    return load_static_masks(cfg, opts.mask0, opts.mask1, opts.mask_convention)
+
+
 def _make_dir(path: Path) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -376,6 +397,9 @@ def main(args: list[str] | None = None) -> int:
         parser.error("--publish-rate applies to --features-bag")
     if opts.downsample != 1 and opts.offline is None and opts.features_bag is None:
         parser.error("--downsample applies to --offline / --features-bag (the node has its parameter)")
+    tracked = opts.offline is not None or opts.features_bag is not None
+    if (opts.mask0 or opts.mask1) and not tracked:
+        parser.error("--mask0 / --mask1 apply to --offline / --features-bag")
     if opts.jpeg_quality > 100:
         parser.error(f"--jpeg-quality: expected 1..100, got {opts.jpeg_quality}")
     prog = program_name("nsflow-replay")
@@ -421,18 +445,23 @@ def main(args: list[str] | None = None) -> int:
                 overrides={"providers": opts.providers, "model_path": opts.model or None,
                            "downsample": opts.downsample},
                 settings=None if opts.publish_rate is None else {"publish_rate": opts.publish_rate},
+                masks=_static_masks(opts, cfg),
                 progress=not opts.no_progress,
             )
             print(bag.text())
             return 0
         if opts.offline is not None:
+            from nsflow_ros.resources import DEFAULT_CONFIG, share_file
+            from nsflow_ros.vins.config import load_vins_config
             from nsflow_ros.vins.offline import run_offline
 
+            masks = _static_masks(opts, load_vins_config(opts.config or share_file(DEFAULT_CONFIG)))
             _make_dir(opts.offline)
             summary = run_offline(
                 ropts, opts.offline, config=opts.config, method=opts.method,
                 overrides={"providers": opts.providers, "model_path": opts.model or None,
                            "downsample": opts.downsample},
+                masks=masks,
                 progress=not opts.no_progress,
             )
             print(summary.text())

@@ -38,13 +38,15 @@ from std_msgs.msg import Bool
 
 from nsflow_ros.allocator import keep_large_buffers
 from nsflow_ros.core.encoder import encoder_provider
+from nsflow_ros.core.masks import MASK_CONVENTIONS, binarize
 from nsflow_ros.core.tracker import FrameFeatures
-from nsflow_ros.data.images import ImageDecodeError, compressed_for_tracker, image_for_tracker
+from nsflow_ros.data.images import ImageDecodeError, compressed_for_tracker, decode_image, image_for_tracker
 from nsflow_ros.data.messages import image_fields
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.ros.counters import CAUSES, Kind, NodeCounters, cause, image_cause
 from nsflow_ros.ros.errors import ParameterError
+from nsflow_ros.ros.frame_masks import FrameMasks
 from nsflow_ros.ros.frame_queue import LatestFrames
 from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
 from nsflow_ros.ros.tracker_params import NODE_NAME, PARAMETERS, coerce, spec, usage
@@ -58,6 +60,7 @@ from nsflow_ros.vins.messages import FeatureCloud, encode
 from nsflow_ros.vins.pairing import StereoPairer
 from nsflow_ros.vins.session import FrameOutcome, FrontEndSession, Skip
 from nsflow_ros.vins.settings import SESSION_SETTINGS, Mode
+from nsflow_ros.vins.tracker import load_static_masks
 
 __all__ = [
     "FEATURE_QOS", "IMAGE_TRANSPORTS", "NODE_NAME", "PARAMETERS", "TrackerNode", "main", "rclpy_image",
@@ -71,6 +74,10 @@ IMU_QOS = QoSProfile(
     depth=400, reliability=QoSReliabilityPolicy.BEST_EFFORT, history=QoSHistoryPolicy.KEEP_LAST
 )
 DIAGNOSTIC_NAME = f"{NODE_NAME}: front-end"
+MASK_ENCODINGS = ("mono8", "8UC1")
+"""Encodings of the per-frame mask topics (8-bit, one channel)."""
+MASK_COUNTS = ("masks_received", "masks_missing", "masks_late", "masks_unused", "masks_refused")
+"""The per-frame mask counts (:meth:`TrackerNode.mask_counters`) as the summary and /diagnostics name them."""
 
 IMAGE_TRANSPORTS: dict[str, tuple[type, Any, str]] = {
     "raw": (Image, image_for_tracker, ""),
@@ -128,6 +135,7 @@ class _Frame:
     image1: np.ndarray | None
     t_recv: float  # perf_counter when its (first) image arrived
     t_queued: float = 0.0  # perf_counter when it joined the queue (decoded and paired)
+    masks: tuple[np.ndarray | None, ...] = ()  # this frame's masks per camera, once the worker took them
 
 
 def _percentile(values: list[float], q: float) -> float | None:
@@ -171,11 +179,19 @@ class TrackerNode(Node):
             self.get_logger().warning("use_imu_prediction is on but the config names no imu_topic: disabled")
             use_imu = False
         settings = {k: p[k] for k in SESSION_SETTINGS if k != "use_imu_prediction"}
+        convention = str(p["mask_convention"])
+        if convention not in MASK_CONVENTIONS:
+            raise ParameterError(
+                f"parameter mask_convention: got {convention!r}, expected {' or '.join(MASK_CONVENTIONS)}"
+            )
+        self._mask_convention = convention
+        static = load_static_masks(cfg, str(p["mask0"]) or None, str(p["mask1"]) or None, convention)
         self.session = FrontEndSession(
             cfg,
             {**settings, "use_imu_prediction": use_imu},
             layout=str(p["output_layout"]) or None,
             fisheye_mask=str(p["fisheye_mask"]) or None,
+            masks=static,
         )
         self.layout = self.session.layout
 
@@ -225,6 +241,10 @@ class TrackerNode(Node):
         ]
         if use_imu:
             self._subs.append(self.create_subscription(Imu, cfg.imu_topic, self._on_imu, IMU_QOS))
+        self._masks, self._mask_subs = self._subscribe_masks(cfg, float(p["stereo_sync_tolerance"]))
+        self.masks_received = 0
+        self.masks_refused = 0
+        self._mask_last: dict[str, int] = {}  # the mask counts at the last status report
         self._timer: Any = None
         self._set_status_timer(float(p["status_period"]))
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -245,6 +265,7 @@ class TrackerNode(Node):
             f"{transport} images on {images}"
             + (f", IMU on {self._subs[-1].topic_name}" if use_imu else "")
             + f"; features on {self._feature_pub.topic_name}"
+            + self._mask_note(static)
         )
         if s.covariance:  # what the covariance channels are scaled by, and whether it was fitted
             scale = self.tracker.method.covariance_scale
@@ -262,6 +283,99 @@ class TrackerNode(Node):
     def config(self) -> Any:
         """The effective VINS config (file values with the parameter overrides)."""
         return self.session.config
+
+    # -- masks -----------------------------------------------------------------------------------------
+
+    def _subscribe_masks(self, cfg: Any, tolerance: float) -> tuple[list[FrameMasks | None], list[Any]]:
+        """The per-frame mask buffers per camera (None = no mask topic) and their subscriptions."""
+        topics = [str(self._params["mask_topic"]), str(self._params["mask1_topic"])]
+        cams = 2 if self.session.tracker.settings.stereo else 1
+        if topics[1] and cams < 2:
+            raise ParameterError(f"parameter mask1_topic: {topics[1]!r} given, but {cfg.path} is mono")
+        if topics[1] and not topics[0]:
+            raise ParameterError("parameter mask1_topic needs mask_topic (camera 0's masks) too")
+        buffers: list[FrameMasks | None] = []
+        subs = []
+        for cam, topic in enumerate(topics[:cams]):
+            if not topic:
+                buffers.append(None)
+                continue
+            buffers.append(FrameMasks(tolerance))
+            subs.append(self.create_subscription(
+                Image, topic, lambda m, c=cam: self._on_mask(c, m), qos_profile_sensor_data,
+                qos_overriding_options=QoSOverridingOptions.with_default_policies(),
+            ))
+        return buffers, subs
+
+    def _mask_note(self, static: tuple[np.ndarray | None, np.ndarray | None]) -> str:
+        """The masks in use, for the start-up line ("" = none)."""
+        parts = [f"static mask{i}" for i, m in enumerate(static) if m is not None]
+        if self._mask_subs:
+            topics = ", ".join(sub.topic_name for sub in self._mask_subs)
+            wait = float(self._params["mask_wait_ms"])
+            parts.append(f"per-frame masks on {topics} (waiting up to {wait:g} ms)")
+        if not parts:
+            return ""
+        meaning = "usable" if MASK_CONVENTIONS[self._mask_convention] else "masked out"
+        return f"; {', '.join(parts)}, read as {self._mask_convention} (255 = {meaning})"
+
+    def _bad_mask(self, cause: str, message: str) -> None:
+        """Log a refused mask once per cause; count every one."""
+        self.masks_refused += 1
+        with self.stats._lock:  # masks are not images or frames: only their precise cause is kept
+            self.stats.detail[cause] += 1
+        if cause not in self._logged_causes:
+            self._logged_causes.add(cause)
+            self.get_logger().error(
+                f"ignoring mask: {message}; frames go on with the static masks (further masks like it are "
+                "only counted)"
+            )
+
+    def _on_mask(self, cam: int, msg: Image) -> None:
+        """A per-frame mask: checked (encoding, size), read in mask_convention and kept for its frame."""
+        self.masks_received += 1
+        topic = self._mask_subs[cam].topic_name if cam < len(self._mask_subs) else f"camera {cam}"
+        if msg.encoding not in MASK_ENCODINGS:
+            self._bad_mask(f"mask_encoding:{msg.encoding}",
+                           f"{topic}: encoding {msg.encoding!r}, expected {' or '.join(MASK_ENCODINGS)}")
+            return
+        try:
+            raw, _ = decode_image(msg, topic)
+        except ImageDecodeError as err:
+            self._bad_mask(f"mask_{err.cause}", str(err))
+            return
+        cfg = self.config
+        h, w = raw.shape
+        if (w, h) != (cfg.image_width, cfg.image_height):
+            self._bad_mask(
+                "mask_size",
+                f"{topic}: mask is {w}x{h} but the images are {cfg.image_width}x{cfg.image_height}",
+            )
+            return
+        buffer = self._masks[cam]
+        if buffer is not None:
+            buffer.add(stamp_to_ns(msg.header.stamp), binarize(raw, self._mask_convention))
+
+    def _take_masks(self, frame: _Frame) -> tuple[np.ndarray | None, ...]:
+        """The frame's masks per camera, each waited for until mask_wait_ms after its image arrived."""
+        if all(b is None for b in self._masks):  # (an empty buffer is falsy: test for None)
+            return ()
+        deadline = frame.t_recv + float(self._params["mask_wait_ms"]) * 1e-3
+        stamp = stamp_to_ns(frame.header.stamp)
+        return tuple(
+            None if b is None else b.take(stamp, deadline - time.perf_counter()) for b in self._masks
+        )
+
+    def mask_counters(self) -> dict[str, int]:
+        """Per-frame masks received, missing (frames tracked without theirs), late, unused and refused."""
+        buffers = [b for b in self._masks if b is not None]
+        return {
+            "masks_received": self.masks_received,
+            "masks_missing": sum(b.missing for b in buffers),
+            "masks_late": sum(b.late for b in buffers),
+            "masks_unused": sum(b.unused for b in buffers),
+            "masks_refused": self.masks_refused,
+        }
 
     # -- parameters ------------------------------------------------------------------------------------
 
@@ -298,6 +412,9 @@ class TrackerNode(Node):
                 self._pairer.tolerance = float(tolerance)
                 # not measured yet: checked once it is
                 self._tolerance_checked = self._pairer.cameras == 1 or self._frame_period() is not None
+                for buffer in self._masks:
+                    if buffer is not None:
+                        buffer.tolerance = float(tolerance)
         except NSFlowError as err:
             return SetParametersResult(successful=False, reason=str(err))
         if period is not None:
@@ -411,6 +528,7 @@ class TrackerNode(Node):
             # a frame that waited in the queue for the one before is late: skip its checks to catch up
             limit = float(self._params["late_frame_ms"])
             checks = not (limit > 0 and (time.perf_counter() - frame.t_queued) * 1e3 > limit)
+            frame.masks = self._take_masks(frame)  # outside the lock: a parameter change need not wait
             try:
                 with self._lock:
                     self._frame(frame, checks)
@@ -421,7 +539,9 @@ class TrackerNode(Node):
         stamp = stamp_to_s(item.header.stamp)
         last, self._last_stamp = self._last_stamp, stamp
         backwards = last is not None and stamp < last
-        out: FrameOutcome = self.session.process(stamp, item.image0, item.image1, checks=checks)
+        out: FrameOutcome = self.session.process(
+            stamp, item.image0, item.image1, checks=checks, frame_masks=item.masks
+        )
         if out.skipped is Skip.DUPLICATE_STAMP:
             self._bad("repeated_stamp", "repeated_stamp", out.note)
             return
@@ -516,6 +636,7 @@ class TrackerNode(Node):
             "features_gated": self.session.counters.gated,
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p90": _percentile(lat, 90),
+            **self.mask_counters(),
         }
 
     def summary(self) -> str:
@@ -534,13 +655,26 @@ class TrackerNode(Node):
             f"{c['frames_processed']} (late, without the reverse checks: {c['frames_unchecked']}), published "
             f"{c['frames_published']}, dropped {c['frames_dropped']}; by cause: {causes}; frames missing "
             f"before the node (stamp gaps) {c['frames_missing_upstream']}{lat}"
+            f"{self._mask_summary(c)}"
         )
+
+    def _mask_summary(self, c: dict[str, Any]) -> str:
+        """The per-frame mask counts for the summary line ("" without mask topics)."""
+        if not self._mask_subs:
+            return ""
+        return (f"; masks received {c['masks_received']}, missing (frames tracked without theirs) "
+                f"{c['masks_missing']}, late {c['masks_late']}, unused {c['masks_unused']}, refused "
+                f"{c['masks_refused']}")
 
     def _report_status(self) -> None:
         """Log one status line and publish it on /diagnostics (see :func:`_status_level`)."""
         c = self.counters()
         window = self._status.take(self.stats)
         level, message = _status_level(window, self._image_topics)
+        masks = self._mask_window(c)
+        if masks:  # per-frame masks missing, late or refused in this period
+            level = max(level, DiagnosticStatus.WARN)
+            message = masks if message == "tracking" else f"{message}; {masks}"
         values = {
             **{_label(k): c[k] for k in _TOTALS},
             **{f"{_label(k)} (period)": window[k] for k in _TOTALS},
@@ -553,6 +687,7 @@ class TrackerNode(Node):
             "method": c["method"],
             "encoder provider": encoder_provider(self.session.tracker.encoder),
             "CPU ms per frame": c["cpu_ms_per_frame"],
+            **({_label(k): c[k] for k in MASK_COUNTS} if self._mask_subs else {}),
         }
         array_msg = DiagnosticArray()
         array_msg.header.stamp = self.get_clock().now().to_msg()
@@ -587,12 +722,29 @@ class TrackerNode(Node):
         else:  # ERROR on /diagnostics (nothing tracked) is a WARN line: the node itself is fine
             self.get_logger().warning(line)
 
+    def _mask_window(self, c: dict[str, Any]) -> str:
+        """The period's mask problems in words ("" = none); starts the next period."""
+        now = {k: c[k] for k in MASK_COUNTS}
+        d = {k: now[k] - self._mask_last.get(k, 0) for k in MASK_COUNTS}
+        self._mask_last = now
+        problems = []
+        if d["masks_missing"]:
+            problems.append(f"{d['masks_missing']} frames tracked without their mask")
+        if d["masks_late"]:
+            problems.append(f"{d['masks_late']} masks came after their frame was tracked (see mask_wait_ms)")
+        if d["masks_refused"]:
+            problems.append(f"{d['masks_refused']} masks refused")
+        return "; ".join(problems)
+
     # -- shutdown --------------------------------------------------------------------------------------
 
     def stop_worker(self, timeout: float = 5.0) -> None:
         """Stop the frame worker (frames still waiting are counted as left at the stop)."""
         with self._stop_lock:
             if not self._stopping:  # frames and images still waiting were not processed
+                for buffer in self._masks:
+                    if buffer is not None:
+                        buffer.close()  # a worker waiting for a mask returns at once
                 left = self._queue.close()
                 if left:
                     self.stats.count("left_at_stop", left)

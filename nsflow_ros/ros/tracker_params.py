@@ -115,7 +115,8 @@ def usage(prog: str = "nsflow-tracker", width: int = 100) -> str:
         "Topics (names from the VINS config; remap them with -r):",
         "  in   image0_topic, image1_topic for stereo (sensor_msgs/Image; sensor-data QoS, overridable with",
         "       -p qos_overrides.<topic>.subscription.reliability:=reliable etc.); imu_topic",
-        "       (sensor_msgs/Imu) with use_imu_prediction",
+        "       (sensor_msgs/Imu) with use_imu_prediction; mask_topic, mask1_topic (sensor_msgs/Image mono8,",
+        "       per-frame masks stamped like the images)",
         "  out  feature_topic (sensor_msgs/PointCloud), restart_topic (std_msgs/Bool, 'mono' layout),",
         "       image_track_topic (sensor_msgs/Image, with show_track), /diagnostics",
         "       (diagnostic_msgs/DiagnosticArray, every status_period seconds)",
@@ -131,5 +132,7 @@ def usage(prog: str = "nsflow-tracker", width: int = 100) -> str:
         "Examples:",
         f"  {prog} --ros-args -p config_file:=/path/to/vins_config.yaml -p method:=klt",
         f"  {prog} --ros-args --params-file my_tracker_params.yaml -r /cam0/image_raw:=/camera/left",
+        f"  {prog} --ros-args -p config_file:=/path/to/vins_config.yaml -p mask0:=body.png "
+        "-p mask_topic:=/segmentation/mask",
     ]
     return "\n".join(lines) + "\n"

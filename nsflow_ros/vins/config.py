@@ -4,6 +4,8 @@
   files ``cam0_calib`` / ``cam1_calib`` relative to the config's folder, ``body_T_cam0`` / ``body_T_cam1``.
 * VINS-Mono: one camera on ``image_topic`` with its camodocal keys inline, extrinsics as
   ``extrinsicRotation`` / ``extrinsicTranslation``, always an IMU; ``freq``, ``equalize`` and ``fisheye``.
+* Either: OpenVINS's static mask keys ``mask0`` / ``mask1`` (mask images relative to the config's folder)
+  and ``use_mask`` (0 ignores them; absent = use them when given).
 
 Optional keys take the value VINS gives a missing key (0 / false), except the tracker settings with
 documented defaults (max_cnt 150, min_dist 30, F_threshold 1.0, freq 0 -> 100). Unlike VINS, a missing
@@ -75,6 +77,7 @@ class VinsConfig:
         freq: publishing rate in Hz; a 0 in the file reads as :data:`DEFAULT_FREQ`.
         equalize: apply CLAHE before tracking (VINS-Mono).
         fisheye: apply the fisheye mask (VINS-Mono).
+        mask0, mask1: the absolute path of each camera's static mask image (OpenVINS keys); "" = none.
         output_path: where VINS writes its trajectory, as written in the file (not expanded).
     """
 
@@ -97,6 +100,8 @@ class VinsConfig:
     freq: int = DEFAULT_FREQ
     equalize: bool = False
     fisheye: bool = False
+    mask0: str = ""
+    mask1: str = ""
     output_path: str = ""
 
     @property
@@ -233,6 +238,26 @@ def _calibration(keys: _Keys, index: int) -> CameraModel:
         raise keys.error(key, f"names an unusable camera file: {err}") from err
 
 
+def _mask_files(keys: _Keys, num_of_cam: int) -> dict[str, str]:
+    """OpenVINS's mask0 / mask1 keys, as absolute paths of existing files ("" = none)."""
+    out = {"mask0": "", "mask1": ""}
+    if "use_mask" in keys.data and not keys.flag("use_mask"):
+        return out
+    for index in range(2):
+        key = f"mask{index}"
+        name = keys.string(key, "")
+        if not name:
+            continue
+        if index >= num_of_cam:
+            raise keys.error(key, f"names a mask of camera {index}, but the config has {num_of_cam} camera")
+        path = keys.path.parent / Path(name).expanduser()  # an absolute name stays as it is
+        if not path.is_file():
+            what = "is not a file" if path.exists() else "does not exist"
+            raise keys.error(key, f"names mask image {path}, which {what}")
+        out[key] = str(path)
+    return out
+
+
 def _estimate_extrinsic(keys: _Keys) -> int:
     mode = keys.integer("estimate_extrinsic", 0)
     if mode not in (0, 1, 2):
@@ -317,6 +342,7 @@ def load_vins_config(path: str | os.PathLike[str]) -> VinsConfig:
         equalize=keys.flag("equalize"),
         fisheye=keys.flag("fisheye"),
         output_path=keys.string("output_path", ""),
+        **_mask_files(keys, specific["num_of_cam"]),
         **specific,
     )
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from nsflow_ros import threads as process_threads
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
@@ -99,6 +101,7 @@ def write_feature_bag(
     fmt: str | None = None,
     overrides: dict[str, Any] | None = None,
     settings: dict[str, Any] | None = None,
+    masks: tuple[np.ndarray | None, ...] | None = None,
     progress: bool = True,
     opencv_threads: int | None = None,
 ) -> FeatureBagSummary:
@@ -112,6 +115,8 @@ def write_feature_bag(
         fmt: ``ros1`` or ``ros2``; None = from the suffix of ``out``.
         overrides: further TrackerSettings fields, fixed for the run (e.g. ``downsample``).
         settings: front-end settings of the session (the node's parameters, e.g. ``publish_rate``).
+        masks: static masks per camera (:func:`~nsflow_ros.vins.tracker.load_static_masks`); None = the
+            config's mask0 / mask1 keys, if any.
         opencv_threads: OpenCV's threads while tracking; None = the node's ``opencv_threads`` default.
 
     Raises:
@@ -124,7 +129,7 @@ def write_feature_bag(
     kind = bag_format(path, fmt)
     if path.exists():
         raise DataError(f"bag {path} exists already; not overwriting")
-    session = FrontEndSession(config, {"method": method, **(settings or {})}, layout="fusion",
+    session = FrontEndSession(config, {"method": method, **(settings or {})}, layout="fusion", masks=masks,
                               tracker_overrides=overrides)
     cams = list(config.image_topics)
     pairer: StereoPairer[ImageRecord] = StereoPairer(len(cams))

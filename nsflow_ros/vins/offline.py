@@ -76,6 +76,7 @@ def run_offline(
     config: str | Path | None = None,
     method: str = "nsflow",
     overrides: dict[str, Any] | None = None,
+    masks: tuple[np.ndarray | None, ...] | None = None,
     sheet_frames: int = 6,
     progress: bool = True,
     opencv_threads: int | None = None,
@@ -88,6 +89,7 @@ def run_offline(
         config: VINS config file (default: the shipped EuRoC mono config).
         method: a key of :data:`nsflow_ros.core.methods.METHODS`.
         overrides: further tracker settings.
+        masks: static masks per camera (camera 0's is used); None = the config's mask0 key, if any.
         sheet_frames: debug images in the contact sheet, spread over the sequence.
         opencv_threads: OpenCV's threads during the run; None = the node's ``opencv_threads`` default.
 
@@ -104,7 +106,7 @@ def run_offline(
     cfg = load_vins_config(config or share_file(DEFAULT_CONFIG))
     # the same frame policy as the node (duplicate stamps, VINS-Mono's first frame and freq), camera 0 only
     fixed = {"stereo": False, **(overrides or {})}
-    session = FrontEndSession(cfg, {"method": method}, tracker_overrides=fixed)
+    session = FrontEndSession(cfg, {"method": method}, masks=masks, tracker_overrides=fixed)
     stats = TrackStats(_sample_of(Path(opts.path)))
     rows: list[str] = []
     sheet: list[tuple[int, np.ndarray]] = []

@@ -12,7 +12,9 @@ Per frame (:meth:`FrontEndSession.process`) a session
   velocities over the interval since the previous published frame, so that the estimator's velocities
   match the frames it gets;
 * after ``max_cnt`` is lowered, publishes only the longest ``max_cnt`` tracks (never an id it cut);
-* predicts the flow from the gyro samples of :meth:`FrontEndSession.add_gyro` when that is on.
+* predicts the flow from the gyro samples of :meth:`FrontEndSession.add_gyro` when that is on;
+* applies the static masks of every tracker it builds and each frame's own masks (moving objects), taken
+  from the images' full resolution to the tracker's.
 
 Settings changed at run time land in :meth:`FrontEndSession.update`.
 """
@@ -23,7 +25,7 @@ import dataclasses
 import os
 import threading
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -32,6 +34,7 @@ import numpy as np
 
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.imu import GyroBuffer
+from nsflow_ros.core.masks import check_mask
 from nsflow_ros.core.tracker import FeatureTracker, FrameFeatures
 from nsflow_ros.vins.config import VinsConfig, apply_overrides
 from nsflow_ros.vins.errors import ConfigError
@@ -47,7 +50,7 @@ from nsflow_ros.vins.settings import (
     session_tracker_fields,
     setting,
 )
-from nsflow_ros.vins.tracker import tracker_from_config
+from nsflow_ros.vins.tracker import load_static_masks, tracker_from_config
 
 __all__ = ["RESTART_GAP_S", "FrameOutcome", "FrontEndSession", "SessionCounters", "Skip"]
 
@@ -127,6 +130,9 @@ class FrontEndSession:
             keep the default.
         layout: feature message layout, ``fusion`` or ``mono``; None = the config's dialect.
         fisheye_mask: mask image for a config with ``fisheye: 1``; None = where VINS-Mono keeps it.
+        masks: static masks per camera, uint8 0 / 255 at the images' full size
+            (:func:`~nsflow_ros.vins.tracker.load_static_masks`), kept for every tracker the session
+            builds; None = the config's mask0 / mask1 keys (255 = usable), if any.
         tracker_overrides: further :class:`~nsflow_ros.core.tracker.TrackerSettings` fields, fixed for the
             session (e.g. ``{"stereo": False}`` to track camera 0 of a stereo config).
 
@@ -142,6 +148,7 @@ class FrontEndSession:
         *,
         layout: str | None = None,
         fisheye_mask: str | os.PathLike[str] | None = None,
+        masks: Sequence[np.ndarray | None] | None = None,
         tracker_overrides: Mapping[str, Any] | None = None,
     ) -> None:
         self.layout = layout or config.dialect
@@ -149,6 +156,7 @@ class FrontEndSession:
             raise ConfigError(f"output layout must be one of {LAYOUTS}, got {self.layout!r}")
         self._base_config = config
         self._fisheye_mask = fisheye_mask
+        self._masks = load_static_masks(config) if masks is None else tuple(masks)
         self._fixed = dict(tracker_overrides or {})
         self._check_names(settings or {})
         self._settings: dict[str, Any] = dict(settings or {})
@@ -185,7 +193,7 @@ class FrontEndSession:
     def _build(self) -> FeatureTracker:
         tracker_fields = {k: v for k, v in self._fields.items() if k in TRACKER_SETTINGS}
         tracker = tracker_from_config(
-            self.config, {**tracker_fields, **self._fixed}, fisheye_mask=self._fisheye_mask
+            self.config, {**tracker_fields, **self._fixed}, fisheye_mask=self._fisheye_mask, masks=self._masks
         )
         tracker.warm_up()
         return tracker
@@ -345,16 +353,24 @@ class FrontEndSession:
         return self._rate_due(stamp, rate)
 
     def process(
-        self, stamp: float, image0: np.ndarray, image1: np.ndarray | None = None, *, checks: bool = True
+        self,
+        stamp: float,
+        image0: np.ndarray,
+        image1: np.ndarray | None = None,
+        *,
+        checks: bool = True,
+        frame_masks: Sequence[np.ndarray | None] = (),
     ) -> FrameOutcome:
         """Apply the frame policy to one frame (``stamp`` in seconds, uint8 images) and track it.
 
         ``checks`` False tracks it without the reverse checks (:meth:`FeatureTracker.process`).
+        ``frame_masks`` are this frame's masks per camera (camera 0 first; None = none), uint8 0 / 255 of
+        the images' size; a mask the tracker refuses refuses the frame as a bad image does.
 
         Returns:
             what to publish and what happened; counted in :attr:`counters`.
         """
-        out = self._process(stamp, image0, image1, checks)
+        out = self._process(stamp, image0, image1, checks, frame_masks)
         c = self.counters
         c.tracked += out.tracked
         c.published += out.features is not None
@@ -364,7 +380,12 @@ class FrontEndSession:
         return out
 
     def _process(
-        self, stamp: float, image0: np.ndarray, image1: np.ndarray | None, checks: bool
+        self,
+        stamp: float,
+        image0: np.ndarray,
+        image1: np.ndarray | None,
+        checks: bool,
+        frame_masks: Sequence[np.ndarray | None],
     ) -> FrameOutcome:
         last = self._last_stamp
         if last is not None and stamp == last:
@@ -395,7 +416,10 @@ class FrontEndSession:
         # VINS-Mono detects new corners only on published frames; VINS-Fusion's front-end on every frame
         detect = publish or self.layout != "mono"
         try:
-            frame = self.tracker.process(stamp, image0, image1, gyro, detect=detect, checks=checks)
+            masks = [self._frame_mask(m, i) for i, m in enumerate(frame_masks)]
+            frame = self.tracker.process(
+                stamp, image0, image1, gyro, detect=detect, checks=checks, frame_masks=masks
+            )
         except CoreError as err:
             return FrameOutcome(None, False, skipped=Skip.TRACKER, note=str(err))
         self._last_stamp = stamp
@@ -428,6 +452,13 @@ class FrontEndSession:
             cams.append(dataclasses.replace(cam, velocities=vel))
         self._last_published = (frame.stamp, tuple((c.ids, c.undistorted) for c in frame.cameras))
         return dataclasses.replace(frame, cameras=tuple(cams))
+
+    def _frame_mask(self, mask: np.ndarray | None, camera: int) -> np.ndarray | None:
+        """A frame mask checked against the images' size (CoreError); the tracker decimates it."""
+        if mask is None or camera >= len(self.tracker.cameras):
+            return mask  # the tracker names a mask for a camera it lacks
+        full = (self.config.image_width, self.config.image_height)
+        return check_mask(mask, full, f"frame mask {camera}", "the images' size")
 
     def _trim(self, frame: FrameFeatures) -> FrameFeatures:
         """At most ``max_cnt`` features, the longest tracks first, after ``max_cnt`` was lowered.

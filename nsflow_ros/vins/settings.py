@@ -293,6 +293,46 @@ SETTINGS: tuple[Setting, ...] = (
         "points on its zeros are dropped and no corners are detected there. '' = fisheye_mask.jpg in the "
         "config's folder or its parent, where VINS-Mono keeps it. Unused when the config's fisheye is 0."),
     Setting(
+        "mask0", "", Mode.READ_ONLY,
+        "Static mask image of camera 0 (8-bit, the camera's image size, any camera model; read as "
+        "mask_convention says): no corner is detected and no track is kept on its masked pixels, e.g. the "
+        "robot's own body. With fisheye: 1 both masks apply. '' = the VINS config's mask0 key (OpenVINS's, "
+        "relative to the config's folder), else none.",
+        example="mask_cam0.png"),
+    Setting(
+        "mask1", "", Mode.READ_ONLY,
+        "Static mask image of camera 1 (stereo), as mask0: right-camera matches on its masked pixels are "
+        "dropped. '' = the VINS config's mask1 key, else none.",
+        example="mask_cam1.png"),
+    Setting(
+        "mask_convention", "vins", Mode.READ_ONLY,
+        "How mask0, mask1 and the mask topics are read: 'vins' = 255 where features may be, 0 where none "
+        "may be (VINS-Mono's fisheye_mask); 'openvins' = 255 where none may be (OpenVINS's mask0 / mask1, a "
+        "segmentation's object pixels). A pixel > 127 counts as 255. The fisheye_mask is always 'vins'.",
+        example="openvins"),
+    Setting(
+        "mask_topic", "", Mode.READ_ONLY,
+        "Topic of per-frame masks of camera 0 (sensor_msgs/Image mono8, the camera's size, stamped like its "
+        "images, e.g. moving objects from a segmentation node; read as mask_convention says): a frame takes "
+        "the mask within stereo_sync_tolerance of its stamp and publishes no feature on its masked pixels, "
+        "besides the static masks. A frame whose mask has not come by the time it is tracked (see "
+        "mask_wait_ms) is tracked with the static masks only; masks missing, late (after their frame was "
+        "tracked) or refused (wrong size or encoding) are counted on /diagnostics. '' = none.",
+        example="/segmentation/mask"),
+    Setting(
+        "mask1_topic", "", Mode.READ_ONLY,
+        "Topic of per-frame masks of camera 1 (stereo), as mask_topic; '' = camera 1 has none (with "
+        "mask_topic alone only the left features are masked: a right point is kept or dropped with its "
+        "left one, and by the static mask1).",
+        example="/segmentation/mask_right"),
+    Setting(
+        "mask_wait_ms", 0.0, Mode.LIVE,
+        "How long a frame may wait for its per-frame mask before it is tracked without it (from the "
+        "arrival of its image; the node goes on receiving meanwhile). 0 = no wait: only a mask that came "
+        "before its frame's turn is used. Raise it to the segmentation's latency behind the camera when "
+        "/diagnostics counts masks as late.",
+        unit="ms", minimum=0),
+    Setting(
         "queue_size", 1, Mode.READ_ONLY,
         "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, a new frame "
         "supersedes the oldest waiting one (counted as superseded on /diagnostics): with 1 the tracker "

@@ -380,6 +380,84 @@ def test_fisheye_mask_keeps_tracks_and_new_corners_inside(pan):
     assert len(pi) >= 0.5 * len(masked[-2].cameras[0])
 
 
+def _band_mask(cam, x0, x1):
+    """Usable everywhere but the columns x0 .. x1 - 1."""
+    mask = np.full((cam.height, cam.width), 255, np.uint8)
+    mask[:, x0:x1] = 0
+    return mask
+
+
+def _on_zero(mask, pixels):
+    px = np.rint(pixels).astype(int)
+    return mask[px[:, 1], px[:, 0]] == 0
+
+
+def test_an_all_usable_mask_changes_nothing(pan, pan_result):
+    cam = syn.camera()
+    full = np.full((cam.height, cam.width), 255, np.uint8)
+    out = _run(FeatureTracker([cam], _classical(), mask=full), pan, 4)
+    framed = FeatureTracker([cam], _classical())
+    masked = [framed.process(float(pan.stamps[k]), pan.frames[k], frame_masks=[full]) for k in range(4)]
+    for a, b, c in zip(pan_result[:4], out, masked, strict=True):
+        for other in (b, c):
+            np.testing.assert_array_equal(a.cameras[0].ids, other.cameras[0].ids)
+            np.testing.assert_array_equal(a.cameras[0].pixels, other.cameras[0].pixels)
+
+
+def test_a_track_moving_into_the_static_mask_is_dropped(pan):
+    # the content moves 2.7 px left per frame: tracks right of the band walk into it
+    cam = syn.camera()
+    mask = _band_mask(cam, 120, 160)
+    frames = _run(FeatureTracker([cam], _classical()), pan, 8)
+    masked = _run(FeatureTracker([cam], _classical(), mask=mask), pan, 8)
+    assert any(_on_zero(mask, f.cameras[0].pixels).any() for f in frames), "no features in the band"
+    entered = 0
+    for k, frame in enumerate(masked):
+        c = frame.cameras[0]
+        assert len(c) > 20 and not _on_zero(mask, c.pixels).any(), f"frame {k}: a feature on the mask"
+        if k:
+            prev = masked[k - 1].cameras[0]
+            moved_in = _on_zero(mask, pan.truth(k - 1, k, prev.pixels))
+            entered += int(moved_in.sum())
+            assert not np.isin(prev.ids[moved_in], c.ids).any(), f"frame {k}: a track inside the mask kept"
+    assert entered > 0, "no track walked into the band: the test shows nothing"
+
+
+def test_frame_masks_move_with_the_objects_and_mask_the_right_camera():
+    seq = syn.translating(6, stereo_disparity=-9.5)
+    cam = syn.camera()
+    mask1 = _band_mask(cam, 200, 240)  # the right camera's own static mask
+    tracker = FeatureTracker([cam, cam], _classical(stereo=True), mask1=mask1)
+    plain = _run(FeatureTracker([cam, cam], _classical(stereo=True)), seq)
+    for k in range(len(seq.frames)):
+        box = np.full((cam.height, cam.width), 255, np.uint8)
+        box[60:160, 40 + 20 * k : 140 + 20 * k] = 0  # a moving object in the left image
+        box1 = np.roll(box, -10, axis=1)  # the same object seen by the right camera
+        out = tracker.process(float(seq.stamps[k]), seq.frames[k], seq.right[k], frame_masks=[box, box1])
+        left, right = out.cameras
+        assert len(left) > 20 and len(right) > 10
+        assert not _on_zero(box, left.pixels).any()
+        assert not _on_zero(box1, right.pixels).any() and not _on_zero(mask1, right.pixels).any()
+        assert set(right.ids.tolist()) <= set(left.ids.tolist())
+    assert any(_on_zero(mask1, f.cameras[1].pixels).any() for f in plain), "mask1's band holds right points"
+
+
+def test_a_frame_mask_of_the_wrong_size_is_refused_and_the_state_kept(pan):
+    cam = syn.camera()
+    tracker = FeatureTracker([cam], _classical())
+    tracker.process(float(pan.stamps[0]), pan.frames[0])
+    before = tracker.next_id
+    with pytest.raises(CoreError, match=r"frame mask 0 is 10x20 but camera 0 \(.*\) is 320x240"):
+        tracker.process(float(pan.stamps[1]), pan.frames[1], frame_masks=[np.zeros((20, 10), np.uint8)])
+    with pytest.raises(CoreError, match=r"2 frame masks for a tracker of 1 camera"):
+        tracker.process(float(pan.stamps[1]), pan.frames[1], frame_masks=[None, None])
+    assert tracker.next_id == before and tracker.last_stamp == pan.stamps[0]
+    with pytest.raises(CoreError, match="mask1 given but the tracker is mono"):
+        FeatureTracker([cam], _classical(), mask1=np.zeros((cam.height, cam.width), np.uint8))
+    with pytest.raises(CoreError, match=r"mask1 is 10x20 but camera 1"):
+        FeatureTracker([cam, cam], _classical(stereo=True), mask1=np.zeros((20, 10), np.uint8))
+
+
 def test_mask_must_match_camera_0():
     cam = syn.camera()
     with pytest.raises(CoreError, match=r"mask is 10x20 but camera 0"):

@@ -991,3 +991,147 @@ def test_stereo_sync_tolerance_of_half_the_frame_period_is_refused_or_warned(tmp
         assert res.successful and h.tracker._pairer.tolerance == pytest.approx(0.005)
     finally:
         h.close()
+
+
+def _uv(msg: PointCloud, cam: int = 0) -> np.ndarray:
+    pts, ch = _cloud_arrays(msg)
+    rows = [row for v in decode_fusion(pts, ch).values() for c, row in v if c == cam]
+    return np.array([r[3:5] for r in rows]).reshape(-1, 2)
+
+
+def _on(mask: np.ndarray, value: int, uv: np.ndarray) -> np.ndarray:
+    px = np.rint(uv).astype(int)
+    return mask[px[:, 1], px[:, 0]] == value
+
+
+def test_static_mask_parameters_mask_each_camera(tmp_path, prefix, pan):
+    cam = syn.camera()
+    right_half = np.zeros((cam.height, cam.width), np.uint8)
+    right_half[:, cam.width // 2 :] = 255  # OpenVINS convention: 255 = masked out
+    cv2.imwrite(str(tmp_path / "m0.png"), right_half)
+    cv2.imwrite(str(tmp_path / "m1.png"), 255 - right_half)
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, mask0=str(tmp_path / "m0.png"),
+                mask1=str(tmp_path / "m1.png"), mask_convention="openvins")
+    try:
+        for k in range(3):
+            t = T0 + pan.stamps[k]
+            h.send(0, image_msg(pan.frames[k], t), expect_cloud=False)
+            h.send(1, image_msg(pan.right[k], t))
+        for msg in h.clouds:
+            left, right = _uv(msg, 0), _uv(msg, 1)
+            assert len(left) > 10 and np.all(np.rint(left[:, 0]) < cam.width // 2)
+            assert np.all(np.rint(right[:, 0]) >= cam.width // 2)
+    finally:
+        h.close()
+
+
+def test_bad_mask_parameters_stop_the_node_at_start_up_with_one_line(tmp_path, prefix):
+    from nsflow_ros.ros.errors import ParameterError
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    config = Parameter("config_file", value=str(write_config(tmp_path, prefix)))
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((20, 10), np.uint8))
+    try:
+        for params, error, said in (
+            ({"mask0": str(tmp_path / "none.png")}, ConfigError, r"mask image not found: .*none\.png"),
+            ({"mask0": str(tmp_path / "small.png")}, ConfigError, r"small\.png is 10x20 but the image size"),
+            ({"mask_convention": "inverted"}, ParameterError, r"mask_convention: got 'inverted', expected v"),
+            ({"mask1_topic": "/m1"}, ParameterError, r"mask1_topic: '/m1' given, but .* is mono"),
+        ):
+            with pytest.raises(error, match=said):
+                TrackerNode(context=ctx, parameter_overrides=[
+                    config, *(Parameter(k, value=v) for k, v in params.items())])
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+def test_mask_topic_masks_moving_objects_and_counts_what_was_missing_late_or_refused(tmp_path, prefix, pan):
+    cam = syn.camera()
+    h = Harness(write_config(tmp_path, prefix), prefix, mask_topic=f"{prefix}/mask",
+                mask_convention="openvins", status_period=0.0)
+    pub = h.io.create_publisher(Image, f"{prefix}/mask", qos_profile_sensor_data)
+    node = h.tracker
+    try:
+        assert h.spin_until(lambda: pub.get_subscription_count() > 0, 10.0)
+
+        def send_mask(mask, t, **changes):
+            before = node.masks_received
+            pub.publish(image_msg(mask, t, **changes))
+            assert h.spin_until(lambda: node.masks_received > before, 5.0), "the mask did not come"
+
+        boxes = []
+        for k in range(4):  # masks before their frames: each frame keeps off its own object
+            box = np.zeros((cam.height, cam.width), np.uint8)
+            box[40:200, 20 + 40 * k : 140 + 40 * k] = 255  # a segmented object crossing the view
+            boxes.append(box)
+            send_mask(box, T0 + pan.stamps[k] + 0.001)  # within stereo_sync_tolerance of the frame
+            h.send(0, image_msg(pan.frames[k], T0 + pan.stamps[k]))
+            uv = _uv(h.clouds[-1])
+            assert len(uv) > 10 and not _on(box, 255, uv).any(), f"frame {k}: a feature on the object"
+        assert node.mask_counters()["masks_missing"] == 0
+        # a frame without its mask is tracked with the static masks only; its mask then comes too late
+        h.send(0, image_msg(pan.frames[4], T0 + pan.stamps[4]))
+        send_mask(boxes[0], T0 + pan.stamps[4])
+        # a mask of another size or encoding: ignored, the frames go on
+        send_mask(np.zeros((10, 10), np.uint8), T0 + pan.stamps[5])
+        send_mask(np.dstack([boxes[0]] * 3), T0 + pan.stamps[5])
+        h.send(0, image_msg(pan.frames[5], T0 + pan.stamps[5]))
+        c = node.counters()
+        assert (c["masks_received"], c["masks_missing"], c["masks_late"], c["masks_refused"]) == (7, 2, 1, 2)
+        assert node.stats.detail["mask_size"] == 1 and node.stats.detail["mask_encoding:bgr8"] == 1
+        assert c["frames_published"] == 6 and c["frames_refused"] == 0
+        assert "masks received 7, missing (frames tracked without theirs) 2, late 1" in node.summary()
+        assert "2 frames tracked without their mask" in node._mask_window(c)
+        # with mask_wait_ms the frame waits for a mask that comes after it, without blocking the node
+        assert all(r.successful for r in _set_remote(h, mask_wait_ms=5000.0))
+        box = boxes[3]
+        h.pubs[0].publish(image_msg(pan.frames[6], T0 + pan.stamps[6]))
+        h.spin_until(lambda: False, 0.1)
+        assert len(h.clouds) == 6, "the frame was tracked without waiting for its mask"
+        pub.publish(image_msg(box, T0 + pan.stamps[6]))
+        assert h.spin_until(lambda: len(h.clouds) == 7, 5.0)
+        assert not _on(box, 255, _uv(h.clouds[-1])).any() and node.mask_counters()["masks_missing"] == 2
+    finally:
+        h.close()
+
+
+def test_stereo_mask_topics_mask_each_camera(tmp_path, prefix, pan):
+    cam = syn.camera()
+    h = Harness(write_config(tmp_path, prefix, stereo=True), prefix, mask_topic=f"{prefix}/mask0",
+                mask1_topic=f"{prefix}/mask1")
+    pubs = [h.io.create_publisher(Image, f"{prefix}/mask{i}", qos_profile_sensor_data) for i in (0, 1)]
+    node = h.tracker
+    try:
+        assert h.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), 10.0)
+        left_only = np.zeros((cam.height, cam.width), np.uint8)
+        left_only[:, : cam.width // 2] = 255  # VINS convention: 255 = usable
+        right_usable = np.zeros_like(left_only)
+        right_usable[:, 80:] = 255  # the right camera sees the left points 9.5 px further left
+        for k in range(3):
+            t = T0 + pan.stamps[k]
+            before = node.masks_received
+            pubs[0].publish(image_msg(left_only, t))
+            pubs[1].publish(image_msg(right_usable, t))
+            assert h.spin_until(lambda b=before: node.masks_received == b + 2, 5.0)
+            h.send(0, image_msg(pan.frames[k], t), expect_cloud=False)
+            h.send(1, image_msg(pan.right[k], t))
+            left, right = _uv(h.clouds[-1], 0), _uv(h.clouds[-1], 1)
+            assert len(left) > 10 and len(right) > 5
+            assert np.all(np.rint(left[:, 0]) < cam.width // 2) and np.all(np.rint(right[:, 0]) >= 80)
+            assert len(right) < len(left)  # the right camera's mask dropped some matches
+        assert node.mask_counters()["masks_missing"] == 0
+    finally:
+        h.close()
+
+
+def test_main_exits_1_with_one_line_on_a_mask_of_another_size(tmp_path, prefix):
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((20, 10), np.uint8))
+    config = write_config(tmp_path, prefix)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 100))
+    code = ("import sys; from nsflow_ros.ros.tracker_node import main; "
+            f"sys.exit(main(['x', '--ros-args', '-p', 'config_file:={config}', '-p', "
+            f"'mask0:={tmp_path / 'small.png'}']))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 1
+    assert out.stderr.count("\n") == 1 and "small.png is 10x20 but the image size of" in out.stderr

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import re
 
 import numpy as np
 import pytest
@@ -244,3 +245,36 @@ def test_cli_publish_rate_writes_fewer_messages_with_velocities_over_their_inter
     with pytest.raises(SystemExit):  # only with --features-bag
         replay_main([str(seq.asl_dir), "--publish-rate", "10"])
     assert "--publish-rate applies to --features-bag" in capsys.readouterr().err
+
+
+def test_cli_masks_keep_each_camera_off_its_masked_pixels(seq, tmp_path, capsys):
+    import cv2
+
+    left_half = np.zeros((480, 752), np.uint8)
+    left_half[:, :376] = 255
+    cv2.imwrite(str(tmp_path / "m0.png"), left_half)
+    cv2.imwrite(str(tmp_path / "m1.png"), 255 - left_half)  # the right camera: its right half only
+    out = tmp_path / "f"
+    args = [str(seq.ros1_path), "--features-bag", str(out), "--config", str(share_file(STEREO_CONFIG)),
+            "--method", "klt", "--no-progress", "--mask0", str(tmp_path / "m0.png"),
+            "--mask1", str(tmp_path / "m1.png")]
+    assert replay_main(args) == 0
+    feats, _ = _read(out)
+    rights = 0
+    for _, _, frame, _ in feats:
+        for entries in frame.values():
+            for cam, row in entries:
+                assert (row[3] < 376) if cam == 0 else (row[3] >= 375.5)
+                rights += cam == 1
+    assert len(feats) == len(seq) and rights > 0
+    # bad input: one line, exit 1, no bag
+    capsys.readouterr()
+    for mask, said in ((tmp_path / "none.png", r"mask image not found: .*none\.png"),
+                       (tmp_path / "small.png", r"mask0 .*small\.png is 10x20 but the image size of")):
+        cv2.imwrite(str(tmp_path / "small.png"), np.zeros((20, 10), np.uint8))
+        bad = [str(seq.asl_dir), "--features-bag", str(tmp_path / "g.bag"), "--method", "klt",
+               "--no-progress", "--mask0", str(mask)]
+        assert replay_main(bad) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and re.search(said, err), err
+        assert not (tmp_path / "g.bag").exists()

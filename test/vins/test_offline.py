@@ -47,3 +47,22 @@ def test_truncated_bag_keeps_what_was_processed(seq, tmp_path):
         run_offline(ReplayOptions(bag), tmp_path / "out", method="classical", progress=False)
     rows = (tmp_path / "out" / "features.csv").read_text().splitlines()
     assert len(rows) > 1
+
+
+def test_cli_offline_run_takes_a_static_mask(seq, tmp_path, capsys):
+    import cv2
+    import numpy as np
+
+    from nsflow_ros.ros.replay_node import main as replay_main
+
+    top = np.zeros((480, 752), np.uint8)
+    top[240:] = 255  # OpenVINS convention: the bottom half is masked out
+    cv2.imwrite(str(tmp_path / "top.png"), top)
+    args = [str(seq.asl_dir), "--offline", str(tmp_path / "out"), "--method", "klt", "--no-progress",
+            "--duration", "0.3", "--mask0", str(tmp_path / "top.png"), "--mask-convention", "openvins"]
+    assert replay_main(args) == 0
+    rows = np.loadtxt(tmp_path / "out" / "features.csv", delimiter=",", skiprows=1)
+    assert len(rows) > 50 and np.all(np.rint(rows[:, 4]) < 240)
+    with pytest.raises(SystemExit):  # publishing over ROS: masks are the tracker's
+        replay_main([str(seq.asl_dir), "--mask0", str(tmp_path / "top.png")])
+    assert "--mask0 / --mask1 apply to --offline / --features-bag" in capsys.readouterr().err

@@ -248,3 +248,34 @@ def test_publish_covariance_follows_the_layout_unless_set_and_max_sigma_is_live(
     assert out.features.gated > 0 and s.counters.gated == out.features.gated
     with pytest.raises(ConfigError, match="max_sigma"):
         s.update(max_sigma=-2.0)
+
+
+def test_frame_masks_keep_features_off_moving_objects_frame_by_frame(tmp_path, pan):
+    s = _session(tmp_path)
+    cam = syn.camera()
+    for k in range(5):
+        box = np.full((cam.height, cam.width), 255, np.uint8)
+        box[40:200, 30 + 30 * k : 130 + 30 * k] = 0  # an object crossing the view
+        out = s.process(T0 + pan.stamps[k], pan.frames[k], frame_masks=[box])
+        px = np.rint(out.features.cameras[0].pixels).astype(int)
+        assert len(px) > 20 and np.all(box[px[:, 1], px[:, 0]] == 255)
+    bad = s.process(T0 + pan.stamps[5], pan.frames[5], frame_masks=[np.zeros((10, 10), np.uint8)])
+    assert bad.skipped == "tracker" and "frame mask 0 is 10x10 but the images' size is 320x240" in bad.note
+    assert s.process(T0 + pan.stamps[6], pan.frames[6]).tracked  # the next frame goes on
+
+
+def test_static_masks_come_from_the_config_keys_and_survive_a_rebuild(tmp_path, pan):
+    import cv2
+
+    cam = syn.camera()
+    half = np.zeros((cam.height, cam.width), np.uint8)
+    half[:, : cam.width // 2] = 255
+    cv2.imwrite(str(tmp_path / "half.png"), half)
+    path = _config(tmp_path)
+    path.write_text(path.read_text() + 'mask0: "half.png"\n')
+    s = FrontEndSession(load_vins_config(path), {"method": "classical"})
+    for k in range(3):
+        if k == 2:
+            s.update(method="klt")  # a new tracker keeps the masks
+        px = s.process(T0 + pan.stamps[k], pan.frames[k]).features.cameras[0].pixels
+        assert len(px) > 10 and np.all(np.rint(px[:, 0]) < cam.width // 2)
