@@ -143,3 +143,38 @@ def test_init_starts_from_a_checkpoint_and_refuses_another_shape(tmp_path, teach
     assert "holds an encoder of spec" in capsys.readouterr().err
     assert main(["--steps", "1", "--init", str(tmp_path / "none.pt"), "--out", str(tmp_path / "y")]) == 1
     assert "none.pt" in capsys.readouterr().err
+
+
+def test_distill_weight_adds_the_teachers_loss_to_the_lk_layers(teacher_path):
+    from nsflow_ros.train.trainer import batch_loss
+
+    pair = make_pair(load_image("astronaut"), np.random.default_rng(3), PairConfig(128, 96, max_points=30))
+    teacher = Teacher(teacher_path, 2, 1)
+    torch.manual_seed(0)
+    model = Encoder(EncoderSpec(d=2, width=2))
+    lk, used = batch_loss(model, [pair], TrainConfig())
+    alone, _ = batch_loss(model, [pair], TrainConfig(), teacher)  # distillation alone (weight 0)
+    both, used_both = batch_loss(model, [pair], TrainConfig(distill_weight=2.5), teacher)
+    assert used > 5 and used_both == used and float(lk) != float(alone)
+    assert float(both) == pytest.approx(float(lk) + 2.5 * float(alone), rel=1e-6)
+
+
+def test_light_min_draws_only_strong_lighting_changes():
+    from nsflow_ros.train.sources import PairStream
+
+    with pytest.raises(TrainError, match=r"light_min must be in \[0, 1\], got 1.5"):
+        PairConfig(64, 48, light_min=1.5)
+    strengths: list[float] = []
+
+    class Recorder:
+        def sample(self, rng, cfg, strength):
+            strengths.append(strength)
+            return make_pair(load_image("camera"), rng, cfg)
+
+        def describe(self) -> str:
+            return "recorder"
+
+    data = PairStream(Recorder(), PairConfig(96, 64, max_points=10, light_min=0.8), seed=1)
+    for i in range(20):
+        data[i]
+    assert min(strengths) >= 0.8 and max(strengths) <= 1.0
