@@ -146,6 +146,11 @@ class NodeCounters:
             if detail is not None:
                 self.detail[detail] += n
 
+    def note(self, detail: str, n: int = 1) -> None:
+        """Count ``n`` under a precise cause only, for inputs that are not images or frames (masks)."""
+        with self._lock:
+            self.detail[detail] += n
+
     def add(self, name: str, n: int = 1) -> None:
         """Add ``n`` to a plain counter (``frames_processed`` ...) under the lock."""
         with self._lock:

@@ -322,8 +322,7 @@ class TrackerNode(Node):
     def _bad_mask(self, cause: str, message: str) -> None:
         """Log a refused mask once per cause; count every one."""
         self.masks_refused += 1
-        with self.stats._lock:  # masks are not images or frames: only their precise cause is kept
-            self.stats.detail[cause] += 1
+        self.stats.note(cause)  # masks are not images or frames: only their precise cause is kept
         if cause not in self._logged_causes:
             self._logged_causes.add(cause)
             self.get_logger().error(
