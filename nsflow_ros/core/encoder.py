@@ -10,7 +10,10 @@ a strip stays in cache and idle sessions leave the cores to the solver. On an ac
 (:class:`ExecutionProviders`) one session encodes the whole frame, launch overhead dominating there. A
 model may declare in its metadata key ``smoothing`` ("fine,coarse" sigmas,
 :class:`~nsflow_ros.core.pyramid.Smoothing`) how its maps are smoothed: the encoder applies ``fine`` to
-its output, the LM methods ``coarse`` to the pyramid's coarser levels.
+its output, the LM methods ``coarse`` to the pyramid's coarser levels. Its key ``gain_levels`` (an
+integer, 0 when absent) asks the LM methods to compare windows up to a gain as well as an offset on that
+many of the finest pyramid levels (:attr:`~nsflow_ros.core.solver.LMConfig.gain_levels`): a one-channel
+map cannot carry the invariance to contrast that several channels can.
 """
 
 from __future__ import annotations
@@ -47,16 +50,19 @@ __all__ = [
     "to_gray",
 ]
 
-DEFAULT_MODEL = "models/nsflow_encoder.onnx"
+DEFAULT_MODEL = "models/nsflow_encoder_fast.onnx"
 
 SHIPPED_MODELS: Mapping[str, str] = MappingProxyType({
     "default": DEFAULT_MODEL,
-    "fast": "models/nsflow_encoder_fast.onnx",
+    "fast": DEFAULT_MODEL,
+    "d4": "models/nsflow_encoder.onnx",
 })
 """The encoders shipped in models/, by the names :func:`load_encoder` (and the node's ``model_path``) takes
-for them: ``default``, the paper's four-channel descriptors; ``fast``, one channel from a far narrower
-network, for a robot whose cores are shared with the estimator: less CPU per frame, at some accuracy under
-changing light (models/README.md)."""
+for them: ``default`` (also ``fast``, its earlier name), one channel from a narrow network whose LM solve
+also fits a gain on the finest level (metadata ``gain_levels``), the model that keeps up beside an
+estimator on a small computer; ``d4``, the paper's four-channel descriptors, about 1.6 times the CPU per
+frame, for a GPU provider or many cores, and the model ``nsflow_lk`` loads (its descriptors are in
+[0, 1]). models/README.md has both cards."""
 
 # Pixels per strip of a tiled run: large enough to amortise the halo, small enough to stay in cache.
 TILE_PIXELS = 60_000
@@ -194,6 +200,7 @@ class Encoder(Protocol):
     name: str
     channels: int
     smoothing: Smoothing  # the fine part is already applied to the returned map
+    gain_levels: int  # finest levels on which the LM methods also fit a gain (0 = none)
 
     def __call__(self, image: np.ndarray) -> np.ndarray: ...
 
@@ -225,6 +232,7 @@ class IntensityEncoder:
     channels = 1
     input_channels = 1
     smoothing = Smoothing()  # intensity is tracked as it is
+    gain_levels = 0  # the deployed zero-mean residual, as the classical mode has always been measured
     provider = "none"  # NumPy, no onnxruntime session
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
@@ -263,8 +271,8 @@ class OnnxEncoder:
             ``provider`` is the one in use.
 
     Raises:
-        EncoderError: a missing or unloadable file, a wrong signature, malformed ``smoothing`` metadata,
-            or none of the providers installed.
+        EncoderError: a missing or unloadable file, a wrong signature, malformed ``smoothing`` or
+            ``gain_levels`` metadata, or none of the providers installed.
     """
 
     def __init__(
@@ -292,6 +300,7 @@ class OnnxEncoder:
         self.smoothing = self._declared_smoothing() if smoothing is None else smoothing
         # The last layer's activation (nsflow-train's metadata 'spec'); None when undeclared.
         self.head: str | None = self._declared_head()
+        self.gain_levels: int = self._declared_gain_levels()
         fine = self.smoothing.fine
         self._kernel = gaussian_kernel(fine) if fine > 0 else None
         self.halo: int | None = None if tile_rows == 0 else self._local_halo()
@@ -372,6 +381,16 @@ class OnnxEncoder:
         except (ValueError, CoreError) as err:
             msg = f"{self.path}: metadata 'smoothing' must be 'fine,coarse' (two sigmas >= 0), got {text!r}"
             raise EncoderError(msg) from err
+
+    def _declared_gain_levels(self) -> int:
+        text = self.metadata.get("gain_levels", "0")
+        try:
+            levels = int(text)
+        except ValueError:
+            levels = -1
+        if levels < 0:
+            raise EncoderError(f"{self.path}: metadata 'gain_levels' must be an integer >= 0, got {text!r}")
+        return levels
 
     def _declared_head(self) -> str | None:
         try:

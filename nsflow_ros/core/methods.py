@@ -52,6 +52,7 @@ __all__ = [
     "SolvePolicy",
     "Solver",
     "TrackingMethod",
+    "declared_residual",
     "klt_track",
     "make_method",
     "method_encoder",
@@ -345,6 +346,16 @@ def pyramid_smoothing(encoder: Encoder) -> Smoothing | None:
     return Smoothing(coarse=coarse) if coarse > 0 else None
 
 
+def declared_residual(lm: LMConfig, encoder: Encoder) -> LMConfig:
+    """``lm`` with the bias-and-gain residual on the finest levels ``encoder`` declares
+    (``Encoder.gain_levels``), where ``lm`` compares windows up to an offset (``zero_mean``); the paper's
+    settings (plain SSD) stay as they are."""
+    levels = encoder.gain_levels
+    if levels <= 0 or not lm.zero_mean:
+        return lm
+    return replace(lm, gain=True, gain_levels=levels)
+
+
 class LMMethod(TrackingMethod):
     """An encoder's descriptor pyramid through the LM solver (``nsflow``, ``classical``).
 
@@ -361,7 +372,7 @@ class LMMethod(TrackingMethod):
             raise CoreError(f"method {spec.name!r}: an LM method needs lm and policy in its spec")
         self.spec = spec
         self.encoder = encoder
-        self.lm: LMConfig = spec.lm
+        self.lm: LMConfig = declared_residual(spec.lm, encoder)
         self.policy: SolvePolicy = spec.policy
         self.pyramid_smoothing = pyramid_smoothing(encoder)
 
@@ -556,6 +567,8 @@ class MethodSpec:
         clahe: the equalisation applied when the tracker equalises.
         covariance_scale: the fitted scale of the covariances of a method without a model
             (:mod:`~nsflow_ros.core.covariance`); None = none fitted (a learned method's is its model's).
+        default_model: the shipped model (a name in :data:`~nsflow_ros.core.encoder.SHIPPED_MODELS`) a
+            learned method loads when none is given: OpenCV's LK needs descriptors in [0, 1].
 
     Raises:
         CoreError: neither or both of (lm, policy) and klt.
@@ -571,6 +584,7 @@ class MethodSpec:
     klt: KLTConfig | None = None
     clahe: Clahe = CLAHE
     covariance_scale: float | None = None
+    default_model: str = "default"
 
     def __post_init__(self) -> None:
         is_lm = self.lm is not None and self.policy is not None
@@ -617,7 +631,7 @@ METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     ),
     "nsflow_lk": MethodSpec(
         "nsflow_lk", "NSFlow + OpenCV LK", "learned encoder as uint8 + OpenCV's pyramidal LK (VINS's calls)",
-        EncoderSource.LEARNED, smoothed=False, klt=KLTConfig(),
+        EncoderSource.LEARNED, smoothed=False, klt=KLTConfig(), default_model="d4",
     ),
     "classical": MethodSpec(
         "classical", "LM (intensity)", "image intensity + the same LM solver", EncoderSource.INTENSITY,
@@ -697,4 +711,5 @@ def method_encoder(
     if spec.encoder is EncoderSource.INTENSITY:
         return IntensityEncoder()
     smoothing = None if spec.smoothed else Smoothing()  # None: as the model declares
-    return load_encoder(model_path, threads=threads, smoothing=smoothing, providers=providers)
+    model = spec.default_model if model_path is None else model_path
+    return load_encoder(model, threads=threads, smoothing=smoothing, providers=providers)

@@ -73,6 +73,8 @@ class LMConfig:
             window is scaled by its least-squares gain onto the template (clipped to [1/4, 4]) before the
             comparison, so the cost stays in the template's units and a flat candidate gains nothing (bias
             and gain Lucas-Kanade; the step's Jacobian is projected off the gain's direction).
+        gain_levels: with ``gain``, how many of the finest levels use it (None = all): the gain's
+            residual narrows the basin of a solve from far off, so coarse levels can do without it.
 
     Class attributes (Algorithm 1's): ``lambda_init``, the initial damping, and ``nu``, lambda's factor.
 
@@ -97,6 +99,7 @@ class LMConfig:
     tail_passes: int = 3
     zero_mean: bool = False
     gain: bool = False
+    gain_levels: int | None = None
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -129,6 +132,12 @@ class LMConfig:
             raise CoreError(f"LMConfig.gain must be a bool, got {self.gain!r}")
         if self.gain and not self.zero_mean:
             raise CoreError("LMConfig.gain needs zero_mean=True (the gain is fitted to centred windows)")
+        if self.gain_levels is not None and self.gain_levels < 1:
+            raise CoreError(f"LMConfig.gain_levels must be >= 1 or None, got {self.gain_levels}")
+
+    def gain_at(self, level: int) -> bool:
+        """Whether the solver uses the bias-and-gain residual on pyramid level ``level``."""
+        return self.gain and (self.gain_levels is None or level < self.gain_levels)
 
     def as_dict(self) -> dict[str, int | float | str | None]:
         """The settings as plain values (the Jacobian by its name), e.g. for a JSON report."""
@@ -140,7 +149,8 @@ class LMConfig:
 
     def at_level(self, level: int) -> LMConfig:
         """The settings of one level's solve on its own: its window as ``window``, no coarse window."""
-        return replace(self, window=self.window_at(level), coarse_window=None, coarse_from=1)
+        return replace(self, window=self.window_at(level), coarse_window=None, coarse_from=1,
+                       gain=self.gain_at(level), gain_levels=None)
 
 
 @dataclass(frozen=True)
@@ -454,82 +464,78 @@ _GAIN_LO, _GAIN_HI = 0.25, 4.0
 _PER_CHANNEL = "imjk,imjk->mk"
 
 
-def _centred(a: np.ndarray) -> np.ndarray:
-    """(window, M, window, K) values minus their window mean per point and channel."""
-    return a - (_window_sums(a) / (a.shape[0] * a.shape[2]))[None, :, None, :]
-
-
-def _gain_templates(
-    template: list[np.ndarray], template_patch: list[np.ndarray] | None
-) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
-    """The centred templates and, for ESM, the template's normalised Scharr x / y derivatives side by
-    side on the channel axis, (window, M, window, 2K) per chunk (so :func:`_take` filters them)."""
-    centred = [_centred(t) for t in template]
-    if template_patch is None:
-        return centred, None
-    jac = []
-    for tp in template_patch:
-        jx, jy = _scharr_xy(tp)
-        jac.append(np.concatenate([jx, jy], axis=3) * np.float32(1 / 32))
-    return centred, jac
-
-
 def _gain_equations(
     level: tuple[np.ndarray, ...],
     centers: np.ndarray,
     template: list[np.ndarray],
     window: int,
     below: np.ndarray | None = None,
-    template_jac: list[np.ndarray] | None = None,
+    template_patch: list[np.ndarray] | None = None,
     template_sums: None = None,
 ) -> np.ndarray:
-    """:func:`_normal_equations` (same arguments; ``template_sums`` unused) for the bias and gain
-    residual r = g (w - mean w) - (t - mean t) per channel, g the least-squares gain of the candidate
-    window w onto the centred template t (clipped).
+    """:func:`_normal_equations` (same arguments; ``template_sums`` unused) for the bias
+    and gain residual r = g (w - mean w) - (t - mean t) per channel, g the least-squares gain of the
+    candidate window w onto the template t (clipped).
 
     The cost is then min over g of the zero-mean cost, so its gradient is g J_w^T r at the fitted g
     (envelope theorem); where g is not clipped the Gauss-Newton matrix takes J's part along the centred
     window off (Kaufman's variable projection), since the gain re-fits as the window moves. ESM's J is the
-    mean of g J_w and the template's J.
+    mean of g J_w and the template's J, the Scharr of g w + the template patch, halved. Every term is taken
+    from raw window sums (sum (a - mean a) b = sum ab - sum a sum b / n): no centred copy is formed, which
+    is most of the work per iteration.
     """
     m = centers.shape[0]
+    n = float(window * window)
     patches = _sample_level(level, centers, window + 2)
     sums = np.zeros((m, 6))
     parts = []
     with np.errstate(divide="ignore", invalid="ignore"):
         for p, t in zip(patches, template, strict=True):
-            w = _centred(p[1:-1, :, 1:-1])
-            sww = np.einsum(_PER_CHANNEL, w, w)
-            g = np.einsum(_PER_CHANNEL, w, t) / sww
-            free = (g > _GAIN_LO) & (g < _GAIN_HI)
-            g = np.clip(np.nan_to_num(g, nan=1.0), _GAIN_LO, _GAIN_HI).astype(np.float32)
-            r = w * g[None, :, None, :] - t
-            sums[:, 0] += 0.5 * np.einsum(_SUM, r, r)
-            proj = np.where(free & (sww > 0), 1.0 / sww, 0.0)
-            parts.append((p, w, g, r, proj))
+            inner = p[1:-1, :, 1:-1]
+            s1, st = _window_sums(inner).astype(np.float64), _window_sums(t).astype(np.float64)
+            spt = np.einsum(_PER_CHANNEL, inner, t) - s1 * st / n  # sum (w - mean w)(t - mean t)
+            sww = np.einsum(_PER_CHANNEL, inner, inner) - s1 * s1 / n
+            g = spt / sww
+            free = (g > _GAIN_LO) & (g < _GAIN_HI) & (sww > 0)
+            g = np.clip(np.nan_to_num(g, nan=1.0), _GAIN_LO, _GAIN_HI)
+            # The residual is formed once: f = g w - t is small where the windows match, so centring it
+            # by its sum (sum f = g sum w - sum t) loses nothing, where expanding the square would.
+            f = inner * g.astype(np.float32)[None, :, None, :] - t
+            sf = g * s1 - st
+            sums[:, 0] += 0.5 * (np.einsum(_PER_CHANNEL, f, f) - sf * sf / n).sum(axis=1)
+            parts.append((p, f, g, s1, sf, np.where(free, 1.0 / sww, 0.0)))
     rows = None if below is None else np.flatnonzero(sums[:, 0] < below)
     if rows is not None and rows.size == 0:
         return sums
     part = rows is not None and rows.size < m
     terms = np.zeros((rows.size if part else m, 5))
-    for c, (p, w, g, r, proj) in enumerate(parts):
+    for c, (p, f, g, s1, sf, proj) in enumerate(parts):
         if part:
-            p, w, r = (np.take(a, rows, axis=1) for a in (p, w, r))
-            g, proj = g[rows], proj[rows]
-        k = g.shape[1]
-        jx, jy = _scharr_xy(p)
-        scale = (g * np.float32(1 / 32))[None, :, None, :]
-        jx, jy = jx * scale, jy * scale
-        if template_jac is not None:
-            tj = np.take(template_jac[c], rows, axis=1) if part else template_jac[c]
-            jx, jy = 0.5 * (jx + tj[..., :k]), 0.5 * (jy + tj[..., k:])
-        jx, jy = _centred(jx), _centred(jy)
-        qx, qy = np.einsum(_PER_CHANNEL, w, jx), np.einsum(_PER_CHANNEL, w, jy)
-        terms[:, 0] += np.einsum(_SUM, jx, jx) - np.einsum("mk,mk->m", qx * proj, qx)
-        terms[:, 1] += np.einsum(_SUM, jx, jy) - np.einsum("mk,mk->m", qx * proj, qy)
-        terms[:, 2] += np.einsum(_SUM, jy, jy) - np.einsum("mk,mk->m", qy * proj, qy)
-        terms[:, 3] += np.einsum(_SUM, jx, r)
-        terms[:, 4] += np.einsum(_SUM, jy, r)
+            p, f = np.take(p, rows, axis=1), np.take(f, rows, axis=1)
+            g, s1, sf, proj = g[rows], s1[rows], sf[rows], proj[rows]
+        if template_patch is not None:  # ESM: J = Scharr(g p + template patch) / 64
+            tp = np.take(template_patch[c], rows, axis=1) if part else template_patch[c]
+            q = p * g.astype(np.float32)[None, :, None, :] + tp
+            scale = np.full_like(g, 1 / 64)
+        else:  # forward: J = g Scharr(p) / 32
+            q, scale = p, g / 32
+        jx, jy = _scharr_xy(q)
+        inner = p[1:-1, :, 1:-1]
+        sx, sy = (_window_sums(j).astype(np.float64) for j in (jx, jy))
+        # Raw sums of the unnormalised derivatives; centring and the scale are applied per channel below.
+        qx = np.einsum(_PER_CHANNEL, jx, inner) - s1 * sx / n  # sum J (w - mean w)
+        qy = np.einsum(_PER_CHANNEL, jy, inner) - s1 * sy / n
+        hxx = np.einsum(_PER_CHANNEL, jx, jx) - sx * sx / n - proj * qx * qx
+        hxy = np.einsum(_PER_CHANNEL, jx, jy) - sx * sy / n - proj * qx * qy
+        hyy = np.einsum(_PER_CHANNEL, jy, jy) - sy * sy / n - proj * qy * qy
+        gx = np.einsum(_PER_CHANNEL, jx, f) - sx * sf / n  # sum J r, r = f - mean f
+        gy = np.einsum(_PER_CHANNEL, jy, f) - sy * sf / n
+        s2 = scale * scale
+        terms[:, 0] += (s2 * hxx).sum(axis=1)
+        terms[:, 1] += (s2 * hxy).sum(axis=1)
+        terms[:, 2] += (s2 * hyy).sum(axis=1)
+        terms[:, 3] += (scale * gx).sum(axis=1)
+        terms[:, 4] += (scale * gy).sum(axis=1)
     if part:
         sums[rows, 1:] = terms
     else:
@@ -557,16 +563,15 @@ def _solve_level(
     win = cfg.window_at(level_index)
     # The Jacobian kind is settled here, once per level: ESM carries the template's patches.
     template, tpatch = _templates(level1, pts, win, cfg.jacobian)
-    tsums = _template_sums(template, tpatch) if cfg.zero_mean and not cfg.gain else None
+    gain = cfg.gain_at(level_index)
+    tsums = _template_sums(template, tpatch) if cfg.zero_mean and not gain else None
     contrast = np.zeros(n)
     if level_index == 0:  # only level 0's is reported
         # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count.
         for c, t in enumerate(template):
             sums = -tsums[c][0] if tsums is not None else _window_sums(t)
             contrast += np.einsum(_SUM, t, t) - np.einsum("mk,mk->m", sums, sums) / (win * win)
-    if cfg.gain:  # the residual model is settled once per level: the gain's equations take its templates
-        template, tpatch = _gain_templates(template, tpatch)
-    equations = _gain_equations if cfg.gain else _normal_equations
+    equations = _gain_equations if gain else _normal_equations
     state = np.empty((n, 8))
     state[:, _U] = u
     state[:, _TERMS] = equations(level2, pts + u, template, win, None, tpatch, tsums)

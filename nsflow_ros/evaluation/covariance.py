@@ -750,8 +750,9 @@ def main(args: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-write", action="store_true", help="print the scales, write nothing")
     opts = parser.parse_args(args)
     try:
-        model = model_file(opts.model)
-        methods, _ = usable_methods(str(model), threads=opts.threads)
+        # no --model: each learned method its registry's default model, as the tracker loads it
+        model = model_file(opts.model) if opts.model is not None else None
+        methods, _ = usable_methods(None if model is None else str(model), threads=opts.threads)
         methods = [m for m in methods if not m.equalize]  # one scale per registry method
         out = Path(opts.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -763,14 +764,26 @@ def main(args: Sequence[str] | None = None) -> int:
         print(f"covariance fit: {err}", file=sys.stderr)
         return 1
     by_method = {VARIANTS[label].method: s for label, s in scales.items()}
-    learned = {k: v for k, v in by_method.items() if VARIANTS[_label(k)].spec.learned}
     for name, s in by_method.items():
         print(f"{name}: scale {s:.4g}")
-    if not opts.no_write and learned:
-        side = sidecar_path(model)
-        doc = {"scales": learned, "model_sha256": hashlib.sha256(model.read_bytes()).hexdigest(),
+    # each learned method's scale goes beside the model it was fitted with
+    files: dict[Path, dict[str, float]] = {}
+    for m in methods:
+        name = VARIANTS[m.name].method
+        if VARIANTS[m.name].spec.learned and name in by_method:
+            files.setdefault(Path(m.encoder.path), {})[name] = by_method[name]
+    for path, learned in ([] if opts.no_write else files.items()):
+        side = sidecar_path(path)
+        sha = hashlib.sha256(path.read_bytes()).hexdigest()
+        kept = {}
+        if side.is_file():  # another method's scale fitted on this same file stays
+            old = json.loads(side.read_text())
+            if isinstance(old, dict) and old.get("model_sha256") == sha:
+                kept = old.get("scales", {})
+        doc = {"scales": {**kept, **learned}, "model_sha256": sha,
                "fitted_on": "training photos' homography pairs and sample sequence seed 1, every level",
-               "command": f"python -m nsflow_ros.evaluation.covariance fit --model {model.name}"}
+               "command": "python -m nsflow_ros.evaluation.covariance fit"
+               + (f" --model {path.name}" if model is not None else "")}
         side.write_text(json.dumps(doc, indent=2) + "\n")
         print(f"wrote {side}")
     return 0

@@ -103,7 +103,10 @@ def machine_info(model: Path | None = None) -> dict[str, Any]:
         "opencv": cv2.__version__,
         "onnxruntime": onnxruntime.__version__,
         "git_commit": _git_commit(),
-        "model": str(model) if model is not None else "shipped (models/nsflow_encoder.onnx)",
+        "model": str(model) if model is not None else (
+            "each method's shipped default (nsflow: models/nsflow_encoder_fast.onnx, "
+            "nsflow_lk: models/nsflow_encoder.onnx)"
+        ),
     }
 
 

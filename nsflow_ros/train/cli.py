@@ -135,6 +135,11 @@ def build_parser() -> argparse.ArgumentParser:
         "exported model declares it (the shipped model: 1.0,1.0). Default: none",
     )
     p.add_argument(
+        "--gain-levels", type=int, default=0, metavar="N",
+        help="the exported model declares that the tracker compares windows up to a gain too on its N "
+        "finest pyramid levels (metadata gain_levels; the shipped fast model: 1). Default 0: offset only",
+    )
+    p.add_argument(
         "--zero-mean", action="store_true",
         help="the training solver compares windows up to a constant per channel (LMConfig.zero_mean, as "
         "the tracker solves); default off",
@@ -375,6 +380,10 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
     meta = {"training_command": command}
     if opts.smoothing is not None:
         meta["smoothing"] = ",".join(f"{v:g}" for v in opts.smoothing)
+    if opts.gain_levels < 0:
+        raise TrainError(f"--gain-levels must be >= 0, got {opts.gain_levels}")
+    if opts.gain_levels:
+        meta["gain_levels"] = str(opts.gain_levels)
     onnx_path = export_onnx(result.model, out / "nsflow_encoder.onnx", meta)
     encoder = load_encoder(onnx_path)  # as deployed: with the smoothing it declares
     # The export must reproduce the torch encoder.

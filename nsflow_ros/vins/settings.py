@@ -190,10 +190,10 @@ SETTINGS: tuple[Setting, ...] = (
     Setting(
         "model_path", "", Mode.REBUILD,
         "ONNX encoder of the learned methods ('nsflow', 'nsflow_lk'): a file, or a model shipped in the "
-        "package's models/ folder by name: '' or 'default' (the paper's four-channel descriptors) or 'fast' "
-        "(one channel from a far narrower network: less CPU per frame beside an estimator, somewhat less "
-        "accurate under changing light; 'nsflow' only). Its maps are smoothed as its metadata 'smoothing' "
-        "declares.",
+        "package's models/ folder by name: '' or 'default' (also 'fast': one descriptor channel, compared "
+        "up to a gain on the finest level; keeps up beside an estimator on two cores; 'nsflow_lk' takes "
+        "'d4' instead) or 'd4' (the paper's four-channel descriptors: about 1.6x the CPU per frame, for a "
+        "GPU provider or many cores). Its maps are smoothed as its metadata 'smoothing' declares.",
         tracker=True, session=True, none_value=""),
     Setting(
         "max_cnt", KEEP, Mode.LIVE, "Most features kept per image (VINS max_cnt, >= 1).", unit="features",

@@ -132,20 +132,22 @@ def test_default_model_missing_is_a_clear_error(monkeypatch):
         raise resources.ResourceError(f"cannot find shared file {rel} (tried /x)")
 
     monkeypatch.setattr(resources, "share_file", missing)
-    with pytest.raises(EncoderError, match=r"shipped encoder models/nsflow_encoder\.onnx is missing"):
+    with pytest.raises(EncoderError, match=r"shipped encoder models/nsflow_encoder_fast\.onnx is missing"):
         load_encoder()
 
 
 def test_shipped_models_load_by_name_and_a_file_passes_through(tmp_path):
-    assert set(SHIPPED_MODELS) == {"default", "fast"} and SHIPPED_MODELS["default"] == DEFAULT_MODEL
-    assert model_file() == model_file("default") == resources.share_file(DEFAULT_MODEL)
-    assert model_file("fast") == resources.share_file("models/nsflow_encoder_fast.onnx")
+    assert set(SHIPPED_MODELS) == {"default", "fast", "d4"} and SHIPPED_MODELS["default"] == DEFAULT_MODEL
+    assert model_file() == model_file("default") == model_file("fast") == resources.share_file(DEFAULT_MODEL)
+    assert model_file("d4") == resources.share_file("models/nsflow_encoder.onnx")
     path = conv_encoder(tmp_path / "m.onnx")
     assert model_file(path) == path and model_file(str(path)) == path
-    fast = load_encoder("fast", threads=1)
-    # one channel, smoothed as the default model is
-    assert fast.channels == 1 and fast.smoothing == Smoothing(fine=1.0, coarse=1.0)
-    assert load_encoder(Path("default"), threads=1).channels == 4
+    default = load_encoder(threads=1)
+    # one channel, smoothed as the four-channel model is, with the gain fitted on the finest level
+    assert default.channels == 1 and default.smoothing == Smoothing(fine=1.0, coarse=1.0)
+    assert default.gain_levels == 1
+    d4 = load_encoder(Path("d4"), threads=1)
+    assert d4.channels == 4 and d4.gain_levels == 0
 
 
 def test_a_shipped_model_missing_from_the_install_is_named(monkeypatch):
@@ -153,8 +155,8 @@ def test_a_shipped_model_missing_from_the_install_is_named(monkeypatch):
         raise resources.ResourceError(f"cannot find shared file {rel} (tried /x)")
 
     monkeypatch.setattr(resources, "share_file", missing)
-    with pytest.raises(EncoderError, match=r"shipped encoder models/nsflow_encoder_fast\.onnx is missing"):
-        load_encoder("fast")
+    with pytest.raises(EncoderError, match=r"shipped encoder models/nsflow_encoder\.onnx is missing"):
+        load_encoder("d4")
 
 
 def test_threads_must_be_positive(tmp_path):
@@ -175,8 +177,8 @@ def _conv(name, src, dst, c_in, c_out, k, rng, dilation=1):
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_shipped_model_tiled_equals_whole_frame(threads):
-    tiled = load_encoder(threads=threads, tile_rows=16)
-    whole = load_encoder(threads=threads, tile_rows=0)
+    tiled = load_encoder("d4", threads=threads, tile_rows=16)
+    whole = load_encoder("d4", threads=threads, tile_rows=0)
     assert tiled.tiled and tiled.halo == 2  # two 3x3 convolutions
     assert not whole.tiled
     img = _image(150, 200, color=True, seed=3)
@@ -184,7 +186,7 @@ def test_shipped_model_tiled_equals_whole_frame(threads):
     assert a.shape == (150, 200, 4) and a.flags.c_contiguous
     np.testing.assert_array_equal(a, b)
     # the default strip height on a frame that needs several strips, and frames of other sizes
-    auto = load_encoder(threads=threads)
+    auto = load_encoder("d4", threads=threads)
     for h, w in ((400, 320), (480, 752), (7, 9)):
         np.testing.assert_array_equal(auto(_image(h, w)), whole(_image(h, w)))
 
@@ -195,10 +197,11 @@ def _blur(desc, sigma):
     return out if out.ndim == 3 else out[..., None]
 
 
-def test_shipped_model_declares_its_smoothing_and_the_encoder_applies_the_fine_part():
-    enc = load_encoder(threads=1)
-    assert enc.smoothing == Smoothing(fine=1.0, coarse=1.0) and enc.metadata["smoothing"] == "1.0,1.0"
-    raw = load_encoder(threads=1, tile_rows=0, smoothing=Smoothing())
+@pytest.mark.parametrize("name", ["default", "d4"])
+def test_shipped_model_declares_its_smoothing_and_the_encoder_applies_the_fine_part(name):
+    enc = load_encoder(name, threads=1)
+    assert enc.smoothing == Smoothing(fine=1.0, coarse=1.0)
+    raw = load_encoder(name, threads=1, tile_rows=0, smoothing=Smoothing())
     assert raw.smoothing == Smoothing()
     img = _image(120, 160, seed=4)
     np.testing.assert_allclose(enc(img), _blur(raw(img), 1.0), atol=1e-6)
@@ -230,6 +233,20 @@ def test_malformed_smoothing_metadata_is_named(tmp_path, value):
         load_encoder(path)
     with pytest.raises(EncoderError, match="Smoothing or None"):
         load_encoder(conv_encoder(tmp_path / "n.onnx"), smoothing=(1.0, 0.5))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("value", "levels"), [("0", 0), ("2", 2), ("-1", None), ("one", None)])
+def test_gain_levels_metadata_is_read_or_named(tmp_path, value, levels):
+    from nsflow_ros.train.declare import set_metadata
+
+    path = conv_encoder(tmp_path / "m.onnx", c_in=1, d=3)
+    assert load_encoder(path).gain_levels == 0  # undeclared: the offset-only residual
+    set_metadata(path, {"gain_levels": value})
+    if levels is None:
+        with pytest.raises(EncoderError, match=r"m\.onnx: metadata 'gain_levels' must be an integer >= 0"):
+            load_encoder(path)
+    else:
+        assert load_encoder(path).gain_levels == levels
 
 
 def test_halo_is_measured_from_the_model(tmp_path):

@@ -28,6 +28,7 @@ from nsflow_ros.core.methods import (
     MethodSpec,
     SolveKind,
     SolvePolicy,
+    declared_residual,
     klt_track,
     make_method,
     quantise_descriptors,
@@ -118,13 +119,28 @@ def test_make_method_is_the_registry_entry_it_names():
         method = make_method(name)
         assert method.spec == spec and method.name == name
         if spec.is_lm:
-            assert method.lm == spec.lm == DEPLOYED_LM and method.policy == spec.policy == SolvePolicy()
+            # the model's declaration (the default model: a gain on the finest level) is bound once here
+            gain = replace(DEPLOYED_LM, gain=True, gain_levels=1) if spec.learned else DEPLOYED_LM
+            assert method.lm == gain and spec.lm == DEPLOYED_LM
+            assert method.policy == spec.policy == SolvePolicy()
         else:
             assert method.window == (spec.klt.window,) * 2 and method.criteria == spec.klt.criteria
         assert spec.clahe == CLAHE
     # a changed entry is used as given
     one = make_method(METHODS["classical"].with_levels(1))
     assert one.lm == replace(DEPLOYED_LM, levels=1)
+
+
+def test_the_declared_gain_applies_to_the_zero_mean_residual_only():
+    enc = load_encoder(threads=1)
+    assert enc.gain_levels == 1
+    assert declared_residual(DEPLOYED_LM, enc) == replace(DEPLOYED_LM, gain=True, gain_levels=1)
+    assert declared_residual(PAPER_LM, enc) == PAPER_LM  # the paper's SSD has no offset to add a gain to
+    assert declared_residual(DEPLOYED_LM, load_encoder("d4", threads=1)) == DEPLOYED_LM
+    assert make_method("nsflow", solver="paper").lm == PAPER_LM
+    # nsflow_lk takes the four-channel model by default: OpenCV's LK needs descriptors in [0, 1]
+    assert METHODS["nsflow_lk"].default_model == "d4" and METHODS["nsflow"].default_model == "default"
+    assert make_method("nsflow_lk").encoder.channels == 4
 
 
 def test_paper_preset_differs_from_the_deployed_one_in_the_documented_fields():

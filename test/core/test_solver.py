@@ -538,8 +538,32 @@ def test_gain_ignores_a_gain_and_an_offset_between_the_frames(textures):
         assert np.median(offset_only.cost) > 2 * np.median(relit.cost)
     with pytest.raises(CoreError, match="gain needs zero_mean"):
         LMConfig(gain=True)
+    with pytest.raises(CoreError, match="gain_levels must be >= 1 or None"):
+        LMConfig(zero_mean=True, gain=True, gain_levels=0)
     with pytest.raises(CoreError, match="gain must be a bool"):
         LMConfig(zero_mean=True, gain=1)
+
+
+def test_gain_levels_limit_the_gain_to_the_finest_levels(textures, monkeypatch):
+    cfg = LMConfig(zero_mean=True, gain=True, gain_levels=1, levels=3)
+    assert [cfg.gain_at(lev) for lev in range(3)] == [True, False, False]
+    assert [LMConfig(zero_mean=True, gain=True).gain_at(lev) for lev in range(3)] == [True] * 3
+    assert not LMConfig(zero_mean=True, gain_levels=1).gain_at(0)  # no gain asked for
+    # a level's settings on their own (training's per-level solves) carry the level's residual
+    assert cfg.at_level(0).gain and not cfg.at_level(1).gain and cfg.at_level(0).gain_levels is None
+    seen = []
+    real = solver_mod._gain_equations
+
+    def spy(level, *args):
+        seen.append(level[0].shape)
+        return real(level, *args)
+
+    monkeypatch.setattr(solver_mod, "_gain_equations", spy)
+    gray = next(iter(textures.values()))
+    desc = IntensityEncoder()(gray)
+    pyr = build_pyramid(desc, 3)
+    track(pyr, pyr, detect_corners(gray, 20, min_distance=10), config=cfg)
+    assert seen and set(seen) == {pyr.levels[0][0].shape}  # only level 0 used the gain's equations
 
 
 @pytest.mark.parametrize("jacobian", list(Jacobian))
@@ -549,7 +573,7 @@ def test_gain_normal_equations(jacobian):
     level = build_pyramid(desc, 1).levels[0]
     centers = rng.uniform(8, 30, (6, 2))
     shifted = centers + np.array([0.6, -0.4])
-    template, tpatch = solver_mod._gain_templates(*solver_mod._templates(level, centers, 7, jacobian))
+    template, tpatch = solver_mod._templates(level, centers, 7, jacobian)
     got = solver_mod._gain_equations(level, shifted, template, 7, None, tpatch)
     below = np.where(np.arange(6) % 2 == 0, got[:, 0] + 1.0, got[:, 0] - 1e-9)
     part = solver_mod._gain_equations(level, shifted, template, 7, below, tpatch)

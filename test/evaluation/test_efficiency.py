@@ -55,11 +55,11 @@ def test_group_stride_and_gemm_are_counted(tmp_path):
 
 
 def test_shipped_and_paper_architectures_match_their_stated_sizes(tmp_path):
-    shipped = ef.onnx_complexity(load_encoder().path)
+    shipped = ef.onnx_complexity(load_encoder("d4").path)
     assert shipped.parameters == 166 and shipped.flops == 23_040_000  # models/README.md: 166, 0.023 G
     teacher = ef.onnx_complexity(share_file("models/nsflow_encoder_w8.onnx"))
     assert teacher.parameters == 876 and teacher.flops == 129_024_000  # the paper's shape, width 8
-    fast = ef.onnx_complexity(load_encoder("fast").path)
+    fast = ef.onnx_complexity(load_encoder().path)  # the default
     assert fast.parameters == 27 and fast.flops == 3_379_200  # models/README.md: width 1, d 1
     paper = ef.onnx_complexity(paper_encoder_onnx(tmp_path / "paper.onnx", c_in=3, d=3))
     assert paper.parameters == 1003  # bench.paper_encoder_onnx's docstring; the paper reports 1.01e3
@@ -84,8 +84,8 @@ def test_quick_run(tmp_path):
     ctx = EvalContext(methods=methods, quick=True, out_dir=tmp_path / "report", progress=False, threads=1)
     sec = ef.run(ctx)
     assert sec.key == "efficiency" and sec.figures[0].is_file()
-    assert sec.data["complexity"]["320x240"]["parameters"] == 166
-    assert sec.data["complexity"]["752x480"]["flops"] == 2 * 150 * 752 * 480  # multiply-adds per pixel
+    assert sec.data["complexity"]["320x240"]["parameters"] == 27  # the default model's
+    assert sec.data["complexity"]["752x480"]["flops"] == 2 * 22 * 752 * 480  # multiply-adds per pixel
     names = [m.name for m in methods]
     assert list(sec.data["tracker_ms"]) == names  # every compared method, whole tracker
     for name in names:
@@ -96,4 +96,4 @@ def test_quick_run(tmp_path):
     assert trk[NSFLOW_LK]["encode"]["median_ms"] > trk[KLT]["encode"]["median_ms"]  # it encodes, as NSFlow
     enc = sec.data["encoder_ms"]
     assert enc[NSFLOW]["320x240"]["median_ms"] > enc["intensity"]["320x240"]["median_ms"]
-    assert "| 166 |" in sec.markdown and "efficiency_times.png" in sec.markdown
+    assert "| 27 |" in sec.markdown and "efficiency_times.png" in sec.markdown

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -11,6 +12,7 @@ import pytest
 from image_pairs import texture, warp_pair
 
 from nsflow_ros.core import methods as core
+from nsflow_ros.core.encoder import load_encoder
 from nsflow_ros.evaluation import methods as ev
 from nsflow_ros.evaluation import sequences
 from nsflow_ros.evaluation.errors import EvaluationError, MethodLeftOutError
@@ -57,10 +59,14 @@ def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
         assert sequences.TRACKER_METHODS[m.name] == {"method": m.core.name, "equalize": m.equalize}
     lm = {m.name: m for m in methods if isinstance(m, ev.LMPairMethod)}
     assert set(lm) == {ev.NSFLOW, ev.CLASSICAL}
-    assert lm[ev.NSFLOW].config == deployed and lm[ev.CLASSICAL].config == deployed
+    # NSFlow with its model's declared gain on the finest level, as the tracker binds it
+    assert lm[ev.NSFLOW].config == replace(deployed, gain=True, gain_levels=1)
+    assert lm[ev.CLASSICAL].config == deployed
     assert ev.BASELINES == (ev.CLASSICAL, ev.KLT, ev.KLT_CLAHE)
-    # NSFlow + OpenCV LK tracks the same model's descriptors, without the smoothing the LM solver gets
-    assert methods[0].encoder.path == methods[1].encoder.path
+    # each learned method its registry's default model: NSFlow + OpenCV LK the four-channel one (OpenCV's
+    # LK needs descriptors in [0, 1]), without the smoothing the LM solver gets
+    assert methods[0].encoder.path == load_encoder().path
+    assert methods[1].encoder.path == load_encoder("d4").path
     assert methods[0].encoder.smoothing.fine > 0 and methods[1].encoder.smoothing.fine == 0
 
 

@@ -144,10 +144,11 @@ def test_cli_reports_known_errors(tmp_path, capsys):
 def test_cli_trains_coarse_to_fine(tmp_path):
     out, models = tmp_path / "run", tmp_path / "models"
     args = "--steps 2 --d 2 --levels 3 --coarse-loss 0.5 --init-error uniform:20 --translation 12"
-    args += " --basin-loss 1 --jacobian esm --zero-mean"
+    args += " --basin-loss 1 --jacobian esm --zero-mean --gain-levels 1"
     args += " --val-every 2 --eval-per-image 1 --val-per-image 1 --no-progress --threads 1 --install"
     assert main([*args.split(), "--out", str(out), "--models-dir", str(models)]) == 0
-    assert load_encoder(out / "nsflow_encoder.onnx").channels == 2
+    enc = load_encoder(out / "nsflow_encoder.onnx")
+    assert enc.channels == 2 and enc.gain_levels == 1  # the export declares the tracker's gain
     config = json.loads((out / "run.json").read_text())["config"]
     assert "'levels': 3" in config["lm"] and config["coarse_weight"] == "0.5"
     assert "Jacobian.ESM" in config["lm"] and "'zero_mean': True" in config["lm"]
