@@ -302,7 +302,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--model", default=None,
         help="encoder of the learned methods for --offline / --features-bag: an ONNX file, or a shipped "
-        "model by name, default or fast (as the node's model_path parameter; default: default)",
+        "model by name, default (also fast) or d4 (as the node's model_path parameter; default: the "
+        "method's: d4 for nsflow_lk, else default)",
     )
     p.add_argument(
         "--downsample", type=int, default=1, metavar="N",
@@ -314,6 +315,11 @@ def _parser() -> argparse.ArgumentParser:
         "--publish-rate", type=non_negative_float, default=None, metavar="HZ",
         help="for --features-bag: track every frame but write at most HZ feature messages a second, with "
         "velocities over the written interval (as the node's publish_rate parameter; default: every frame)",
+    )
+    p.add_argument(
+        "--max-sigma", type=non_negative_float, default=None, metavar="PX",
+        help="for --features-bag: leave out features whose predicted standard deviation exceeds PX (as the "
+        "node's max_sigma parameter; default 0 = off)",
     )
     p.add_argument(
         "--mask0", type=Path, default=None, metavar="IMAGE",
@@ -395,6 +401,8 @@ def main(args: list[str] | None = None) -> int:
         parser.error("--compress applies to publishing, not to --write-bag / --offline / --features-bag")
     if opts.publish_rate is not None and opts.features_bag is None:
         parser.error("--publish-rate applies to --features-bag")
+    if opts.max_sigma is not None and opts.features_bag is None:
+        parser.error("--max-sigma applies to --features-bag")
     if opts.downsample != 1 and opts.offline is None and opts.features_bag is None:
         parser.error("--downsample applies to --offline / --features-bag (the node has its parameter)")
     tracked = opts.offline is not None or opts.features_bag is not None
@@ -436,6 +444,7 @@ def main(args: list[str] | None = None) -> int:
             from nsflow_ros.vins.feature_bag import feature_bag_topics, write_feature_bag
 
             cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
+            asked = {"publish_rate": opts.publish_rate, "max_sigma": opts.max_sigma}
             bag = write_feature_bag(
                 replay_records(replace(ropts, topics=feature_bag_topics(cfg))),
                 opts.features_bag,
@@ -444,7 +453,7 @@ def main(args: list[str] | None = None) -> int:
                 fmt=opts.features_bag_format,
                 overrides={"providers": opts.providers, "model_path": opts.model or None,
                            "downsample": opts.downsample},
-                settings=None if opts.publish_rate is None else {"publish_rate": opts.publish_rate},
+                settings={k: v for k, v in asked.items() if v is not None} or None,
                 masks=_static_masks(opts, cfg),
                 progress=not opts.no_progress,
             )

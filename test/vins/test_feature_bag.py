@@ -247,6 +247,21 @@ def test_cli_publish_rate_writes_fewer_messages_with_velocities_over_their_inter
     assert "--publish-rate applies to --features-bag" in capsys.readouterr().err
 
 
+def test_cli_max_sigma_leaves_out_the_features_predicted_wide(seq, tmp_path, capsys):
+    args = [str(seq.asl_dir), "--method", "classical", "--no-progress"]
+    tracks = []
+    for name, extra in (("all", []), ("gated", ["--max-sigma", "0.02"])):
+        assert replay_main([*args, "--features-bag", str(tmp_path / f"{name}.bag"), *extra]) == 0
+        feats, _ = _read(tmp_path / f"{name}.bag")
+        tracks.append(len({fid for f in feats for fid in f[2]}))
+    capsys.readouterr()
+    # a gated feature's track ends and a new corner takes its place: more, shorter tracks
+    assert tracks[1] > tracks[0]
+    with pytest.raises(SystemExit):  # only with --features-bag
+        replay_main([str(seq.asl_dir), "--max-sigma", "1"])
+    assert "--max-sigma applies to --features-bag" in capsys.readouterr().err
+
+
 def test_cli_masks_keep_each_camera_off_its_masked_pixels(seq, tmp_path, capsys):
     import cv2
 
