@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.covariance import CovarianceScale, lm_covariance, read_scale, window_covariance
+from nsflow_ros.core.covariance import CovarianceScale, klt_covariance, lm_covariance, read_scale
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
@@ -53,6 +53,7 @@ __all__ = [
     "Solver",
     "TrackingMethod",
     "klt_track",
+    "klt_track_error",
     "make_method",
     "method_encoder",
     "pyramid_smoothing",
@@ -216,6 +217,21 @@ def klt_track(
     window: tuple[int, int] = KLT_WINDOW,
     criteria: tuple[int, int, float] = KLT_CRITERIA,
 ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`klt_track_error` without OpenCV's ``err``: (positions in image 2, status)."""
+    new, ok, _ = klt_track_error(image1, image2, pts, start, max_level, window=window, criteria=criteria)
+    return new, ok
+
+
+def klt_track_error(
+    image1: np.ndarray,
+    image2: np.ndarray,
+    pts: np.ndarray,
+    start: np.ndarray | None = None,
+    max_level: int = KLT_MAX_LEVEL,
+    *,
+    window: tuple[int, int] = KLT_WINDOW,
+    criteria: tuple[int, int, float] = KLT_CRITERIA,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One ``cv2.calcOpticalFlowPyrLK`` call (VINS-Fusion's arguments by default): the project's only one.
 
     Args:
@@ -224,25 +240,28 @@ def klt_track(
         max_level, window, criteria: OpenCV's ``maxLevel``, ``winSize`` and ``criteria``.
 
     Returns:
-        (positions in image 2, OpenCV's status); lost points keep their start position.
+        (positions in image 2, OpenCV's status, OpenCV's ``err``: the mean absolute window difference at
+        the solution, 0 where lost); lost points keep their start position.
 
     Shape:
-        pts, start: (N, 2). Returns (N, 2) float64 and (N,) bool.
+        pts, start: (N, 2). Returns (N, 2) float64, (N,) bool and (N,) float64.
     """
     n = pts.shape[0]
     if n == 0:
-        return np.zeros((0, 2)), np.zeros(0, bool)
+        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0)
     p1 = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 1, 2)
     flags, p2 = 0, None
     if start is not None:
         p2 = np.ascontiguousarray(start, dtype=np.float32).reshape(-1, 1, 2).copy()
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    new, status, _ = cv2.calcOpticalFlowPyrLK(
+    new, status, err = cv2.calcOpticalFlowPyrLK(
         image1, image2, p1, p2, winSize=window, maxLevel=max_level, criteria=criteria, flags=flags
     )
     out = new.reshape(-1, 2).astype(np.float64)
-    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1)
-    return np.where(ok[:, None], out, pts), ok
+    with np.errstate(invalid="ignore"):  # OpenCV leaves a lost point's err unset (may be a NaN pattern)
+        err = err.reshape(-1).astype(np.float64)
+    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1) & np.isfinite(err)
+    return np.where(ok[:, None], out, pts), ok, np.where(ok, err, 0.0)
 
 
 def quantise_descriptors(desc: np.ndarray) -> np.ndarray:
@@ -429,7 +448,7 @@ class LMMethod(TrackingMethod):
         new, status, res = self.solve_result(kind, frame1, frame2, pts, start, prior)
         # The solver's own final J^T J and cost: a few operations per point, no pass over the window.
         elements = self.lm.window * self.lm.window * frame2.channels
-        return new, status, lm_covariance(res.hessian, res.cost, elements, self.covariance_scale.scale)
+        return new, status, self.covariance_scale.apply(lm_covariance(res.hessian, res.cost, elements))
 
     def solve_result(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
@@ -482,31 +501,45 @@ class KLTMethod(TrackingMethod):
         self, frame1: Any, frame2: Any, pts: np.ndarray, start: np.ndarray | None = None,
         levels: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        max_level = KLT_MAX_LEVEL if levels is None else levels - 1
-        return klt_track(frame1, frame2, pts, start, max_level, window=self.window, criteria=self.criteria)
+        new, status, _ = self._track_error(frame1, frame2, pts, start, levels)
+        return new, status
 
-    def solve(
-        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
-        start: np.ndarray | None = None, prior: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def _track_error(
+        self, frame1: Any, frame2: Any, pts: np.ndarray, start: np.ndarray | None = None,
+        levels: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        max_level = KLT_MAX_LEVEL if levels is None else levels - 1
+        return klt_track_error(frame1, frame2, pts, start, max_level, window=self.window,
+                               criteria=self.criteria)
+
+    def _solve_error(
+        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray, start: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # VINS-Fusion: the predicted forward call and the flow-back start at the given positions with
         # maxLevel 1; the plain forward call, both stereo calls use maxLevel 3 from the point itself.
         if kind in (SolveKind.FORWARD, SolveKind.FLOW_BACK) and start is not None:
             usable = np.isfinite(start).all(axis=1)
             guided = np.where(usable[:, None], start, pts)
-            return self.track_pair(frame1, frame2, pts, guided, KLT_GUIDED_MAX_LEVEL + 1)
-        return self.track_pair(frame1, frame2, pts)
+            return self._track_error(frame1, frame2, pts, guided, KLT_GUIDED_MAX_LEVEL + 1)
+        return self._track_error(frame1, frame2, pts)
+
+    def solve(
+        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
+        start: np.ndarray | None = None, prior: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        new, status, _ = self._solve_error(kind, frame1, frame2, pts, start)
+        return new, status
 
     def solve_with_covariance(
         self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        new, status = self.solve(kind, frame1, frame2, pts, start, prior)
-        # OpenCV keeps neither J^T J nor the residual: both from the windows at the solution.
+        new, status, err = self._solve_error(kind, frame1, frame2, pts, start)
+        # OpenCV keeps J^T J to itself: the template's gradients read once, the residual from its err.
         cov = np.full((len(pts), 3), np.nan)
         if status.any():
-            cov[status] = window_covariance(frame1, frame2, pts[status], new[status], self.window[0],
-                                            self.covariance_scale.scale)
+            cov[status] = self.covariance_scale.apply(
+                klt_covariance(frame1, pts[status], err[status], self.window[0]))
         return new, status, cov
 
 
@@ -554,8 +587,9 @@ class MethodSpec:
         lm, policy: LM solver settings and solve policy (LM methods only).
         klt: OpenCV LK's window and criteria (OpenCV methods only).
         clahe: the equalisation applied when the tracker equalises.
-        covariance_scale: the fitted scale of the covariances of a method without a model
-            (:mod:`~nsflow_ros.core.covariance`); None = none fitted (a learned method's is its model's).
+        covariance_scale: the fitted calibration (scale and floor) of the covariances of a method without
+            a model (:mod:`~nsflow_ros.core.covariance`); None = none fitted (a learned method's is its
+            model's).
 
     Raises:
         CoreError: neither or both of (lm, policy) and klt.
@@ -570,7 +604,7 @@ class MethodSpec:
     policy: SolvePolicy | None = None
     klt: KLTConfig | None = None
     clahe: Clahe = CLAHE
-    covariance_scale: float | None = None
+    covariance_scale: CovarianceScale | None = None
 
     def __post_init__(self) -> None:
         is_lm = self.lm is not None and self.policy is not None
@@ -606,8 +640,11 @@ class MethodSpec:
         return replace(self, lm=replace(self.lm, levels=levels)) if self.lm is not None else self
 
 
-COVARIANCE_SCALES: Mapping[str, float] = MappingProxyType({"classical": 4.257, "klt": 14.29})
-"""The fitted covariance scales of the methods without a model, as ``python -m
+COVARIANCE_SCALES: Mapping[str, CovarianceScale] = MappingProxyType({
+    "classical": CovarianceScale(3.22, "registry", 7.289e-4),
+    "klt": CovarianceScale(19.78, "registry", 1.484e-3),
+})
+"""The fitted covariance calibrations (scale, floor in px^2) of the methods without a model, as ``python -m
 nsflow_ros.evaluation.covariance fit`` prints them (the learned methods' are stored with their model)."""
 
 METHODS: Mapping[str, MethodSpec] = MappingProxyType({
