@@ -339,16 +339,21 @@ def klt_covariance(image: np.ndarray, pts: np.ndarray, err: np.ndarray, window: 
     half = side // 2
     cx = np.clip(np.rint(a[:, 0]).astype(np.intp), half, width - 1 - half) - half
     cy = np.clip(np.rint(a[:, 1]).astype(np.intp), half, height - 1 - half) - half
-    # one gather of every point's window (a view per top-left corner: no per-point call)
-    patch = sliding_window_view(img, (side, side), axis=(0, 1))[cy, cx].astype(np.float32)
+    # one gather of every point's window (a view per top-left corner: no per-point call), flattened
+    patch = sliding_window_view(img, (side, side), axis=(0, 1))[cy, cx]
     if patch.ndim == 3:
         patch = patch[:, None]  # (N, C, side, side)
     channels = patch.shape[1]
-    # central differences: OpenCV's Scharr without its cross smoothing, which the fitted scale absorbs
-    jx = patch[:, :, 1:-1, 2:] - patch[:, :, 1:-1, :-2]
-    jy = patch[:, :, 2:, 1:-1] - patch[:, :, :-2, 1:-1]
-    hess = np.stack([np.einsum("ncij,ncij->n", jx, jx), np.einsum("ncij,ncij->n", jx, jy),
-                     np.einsum("ncij,ncij->n", jy, jy)], axis=1).astype(np.float64) / 4.0
+    flat = patch.reshape(n * channels, side * side).astype(np.float32)
+    # Central differences (OpenCV's Scharr without its cross smoothing, which the fitted scale absorbs) at
+    # every flattened position of rows 1..side-2; the weights keep columns 1..side-2 (the window).
+    lo, hi = side + 1, side * side - side - 1
+    jx = flat[:, lo + 1:hi + 1] - flat[:, lo - 1:hi - 1]
+    jy = flat[:, lo + side:hi + side] - flat[:, lo - side:hi - side]
+    col = np.arange(lo, hi) % side
+    inside = ((col >= 1) & (col <= side - 2)).astype(np.float32)
+    hess = np.stack([(jx * jx) @ inside, (jx * jy) @ inside, (jy * jy) @ inside], axis=1)
+    hess = hess.reshape(n, channels, 3).sum(axis=1, dtype=np.float64) / 4.0
     elements = window * window * channels
     variance = scale * (0.5 * math.pi) * e * e * elements / (elements - 2)
     return _from_normal_equations(hess, variance)

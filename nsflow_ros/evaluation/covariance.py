@@ -433,7 +433,7 @@ def _golden(f: Any, lo: float, hi: float, iterations: int = 48) -> float:
     return (a + b) / 2.0
 
 
-def fit_calibration(error: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+def fit_calibration(error: np.ndarray, cov: np.ndarray, floor: bool = True) -> tuple[float, float]:
     """The scale s and floor f (px^2) of Sigma = s * cov + f * I that maximise the likelihood of the
     inliers' errors.
 
@@ -441,6 +441,9 @@ def fit_calibration(error: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
     of two ellipses it falls, weighs the small-sigma and the large-sigma features by how much data each
     has, and with f = 0 it is :func:`fit_scale` exactly (an older scale-only fit is its special case).
     Searched on log s for each f (golden section, nested), f from 0 to the errors' own mean variance.
+
+    Args:
+        floor: False fits the scale alone (f = 0).
 
     Returns:
         (s, f); f = 0 where a floor does not raise the likelihood.
@@ -453,6 +456,8 @@ def fit_calibration(error: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
     if len(e) == 0:
         raise EvaluationError("no inlier to fit the covariance calibration on")
     s0 = fit_scale(e, c)
+    if not floor:
+        return s0, 0.0
     top = float(np.mean(e**2))  # a floor beyond the errors' own variance cannot help
 
     def best_scale(floor: float) -> float:
@@ -790,12 +795,17 @@ def _jsonable(x: Any) -> Any:
 
 def fit(ctx: EvalContext, setup: CovarianceSetup) -> dict[str, tuple[float, float]]:
     """Each method's maximum-likelihood (scale, floor) (:func:`fit_calibration`) on ``setup``'s data, all
-    groups pooled."""
+    groups pooled.
+
+    The OpenCV LK methods get a floor, the LM methods a scale alone: their covariance was calibrated
+    without one, and a floor, which evens out the weights of the best features, made the relative
+    rotation weighted by them worse at every perturbation level (docs/evaluation.md).
+    """
     data = collect(ctx, setup, scaled=False)
     out = {}
-    for m, groups in data.items():
-        pooled = _pool(groups, "")
-        out[m] = fit_calibration(pooled["error"], pooled["cov"])
+    for m in ctx.methods:
+        pooled = _pool(data[m.name], "")
+        out[m.name] = fit_calibration(pooled["error"], pooled["cov"], floor=not m.core.spec.is_lm)
     return out
 
 
