@@ -41,11 +41,13 @@ __all__ = [
     "METADATA_KEY",
     "SIDECAR_SUFFIX",
     "CovarianceScale",
+    "err_covariance",
     "klt_covariance",
     "lm_covariance",
     "max_sigma",
     "read_scale",
     "sidecar_path",
+    "template_hessian",
     "window_covariance",
 ]
 
@@ -287,38 +289,33 @@ def max_sigma(cov: np.ndarray) -> np.ndarray:
     return np.where(np.isinf(tr), np.inf, out)  # a singular J^T J: no bound at all
 
 
-def klt_covariance(image: np.ndarray, pts: np.ndarray, err: np.ndarray, window: int,
-                   scale: float = 1.0) -> np.ndarray:
-    """Sigma = scale * sigma_hat^2 (J^T J)^-1 of an OpenCV LK solve from what the solve already has: J^T J
-    is the Scharr structure tensor of its template (image 1, the matrix OpenCV's own inverse-compositional
-    step inverts) over the window at the rounded point, sigma_hat^2 comes from OpenCV's per-point ``err``.
+def template_hessian(image: np.ndarray, pts: np.ndarray, window: int) -> np.ndarray:
+    """J^T J of an OpenCV LK solve's template: the structure tensor of ``image`` over the window at each
+    rounded point (the matrix OpenCV's own inverse-compositional step inverts).
 
-    ``err`` is the mean absolute window difference at the solution; for Gaussian residuals the RMS is
-    sqrt(pi / 2) times it, so sigma_hat^2 = pi / 2 err^2 nC / (nC - 2) (the same degrees of freedom as
-    :func:`window_covariance`; the fitted scale absorbs the rest). The window is read at whole pixels, at
-    most half a pixel from the point, once: no resampling of either image.
+    The windows are read at whole pixels, at most half a pixel from the point, once: no resampling.
+    Central differences: OpenCV's Scharr without its cross smoothing, which the fitted scale absorbs.
 
     Args:
         image: the solve's first image (uint8 or float, 1-4 channels, at least window + 2 pixels a side).
         pts: the points it tracked (in ``image``); windows reaching past the border are moved inside.
-        err: OpenCV's ``err`` per point (``calcOpticalFlowPyrLK`` without ``OPTFLOW_LK_GET_MIN_EIGENVALS``).
         window: the solve's window side (odd).
-        scale: the method's fitted scale.
 
     Shape:
-        image: (H, W) or (H, W, C). pts: (N, 2). err: (N,). Returns (N, 3) [sigma_uu, sigma_uv, sigma_vv],
-        px^2.
+        image: (H, W) or (H, W, C). pts: (N, 2). Returns (N, 3) [h11, h12, h22], summed over channels.
 
     Raises:
-        CoreError: shapes that do not match, a window that is not odd and >= 3, an image smaller than the
-            window, or an ``err`` that is not finite and >= 0 (naming the first one).
+        CoreError: a window that is not odd and >= 3, points that are not (N, 2) and finite, an image that
+            is not (H, W[, 1-4]) or is smaller than the window.
     """
     if window < 3 or window % 2 == 0:
         raise CoreError(f"window must be odd and >= 3, got {window}")
     a = np.asarray(pts, dtype=np.float64)
-    e = np.asarray(err, dtype=np.float64).reshape(-1)
-    if a.ndim != 2 or a.shape[1] != 2 or e.shape != (a.shape[0],):
-        raise CoreError(f"pts must be (N, 2) and err (N,), got {a.shape} and {np.shape(err)}")
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise CoreError(f"pts must be (N, 2), got {a.shape}")
+    if not np.isfinite(a).all():
+        i = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
+        raise CoreError(f"pts must be finite, got {a[i].tolist()} at point {i}")
     img = np.asarray(image)
     if img.ndim not in (2, 3) or (img.ndim == 3 and not 1 <= img.shape[2] <= 4):
         raise CoreError(f"image must be (H, W) or (H, W, 1-4), got {img.shape}")
@@ -329,13 +326,6 @@ def klt_covariance(image: np.ndarray, pts: np.ndarray, err: np.ndarray, window: 
     n = a.shape[0]
     if n == 0:
         return np.zeros((0, 3))
-    bad = ~(np.isfinite(e) & (e >= 0))
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise CoreError(f"err must be finite and >= 0, got {float(e[i])!r} at point {i}")
-    if not np.isfinite(a).all():
-        i = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
-        raise CoreError(f"pts must be finite, got {a[i].tolist()} at point {i}")
     half = side // 2
     cx = np.clip(np.rint(a[:, 0]).astype(np.intp), half, width - 1 - half) - half
     cy = np.clip(np.rint(a[:, 1]).astype(np.intp), half, height - 1 - half) - half
@@ -345,15 +335,66 @@ def klt_covariance(image: np.ndarray, pts: np.ndarray, err: np.ndarray, window: 
         patch = patch[:, None]  # (N, C, side, side)
     channels = patch.shape[1]
     flat = patch.reshape(n * channels, side * side).astype(np.float32)
-    # Central differences (OpenCV's Scharr without its cross smoothing, which the fitted scale absorbs) at
-    # every flattened position of rows 1..side-2; the weights keep columns 1..side-2 (the window).
+    # the derivatives at every flattened position of rows 1..side-2; the weights keep columns 1..side-2
     lo, hi = side + 1, side * side - side - 1
     jx = flat[:, lo + 1:hi + 1] - flat[:, lo - 1:hi - 1]
     jy = flat[:, lo + side:hi + side] - flat[:, lo - side:hi - side]
     col = np.arange(lo, hi) % side
     inside = ((col >= 1) & (col <= side - 2)).astype(np.float32)
     hess = np.stack([(jx * jx) @ inside, (jx * jy) @ inside, (jy * jy) @ inside], axis=1)
-    hess = hess.reshape(n, channels, 3).sum(axis=1, dtype=np.float64) / 4.0
-    elements = window * window * channels
-    variance = scale * (0.5 * math.pi) * e * e * elements / (elements - 2)
-    return _from_normal_equations(hess, variance)
+    return hess.reshape(n, channels, 3).sum(axis=1, dtype=np.float64) / 4.0
+
+
+def err_covariance(hessian: np.ndarray, err: np.ndarray, elements: int, scale: float = 1.0) -> np.ndarray:
+    """Sigma = scale * sigma_hat^2 (J^T J)^-1 with sigma_hat^2 from OpenCV's per-point ``err``.
+
+    ``err`` is the mean absolute window difference at the solution; for Gaussian residuals the RMS is
+    sqrt(pi / 2) times it, so sigma_hat^2 = pi / 2 err^2 nC / (nC - 2) (the degrees of freedom of
+    :func:`lm_covariance`; the fitted scale absorbs the rest).
+
+    Args:
+        hessian: J^T J per point (:func:`template_hessian`), [h11, h12, h22].
+        err: OpenCV's ``err`` per point (``calcOpticalFlowPyrLK`` without
+            ``OPTFLOW_LK_GET_MIN_EIGENVALS``).
+        elements: window pixels times channels (n C).
+        scale: the method's fitted scale.
+
+    Shape:
+        hessian: (N, 3). err: (N,). Returns (N, 3) [sigma_uu, sigma_uv, sigma_vv], px^2.
+
+    Raises:
+        CoreError: shapes that do not match, elements <= 2, or an ``err`` that is not finite and >= 0
+            (naming the first one).
+    """
+    hess = np.asarray(hessian, dtype=np.float64)
+    e = np.asarray(err, dtype=np.float64).reshape(-1)
+    if hess.ndim != 2 or hess.shape[1] != 3 or e.shape != (hess.shape[0],):
+        raise CoreError(f"hessian must be (N, 3) and err (N,), got {hess.shape} and {np.shape(err)}")
+    if elements <= 2:
+        raise CoreError(f"elements (window pixels x channels) must be > 2, got {elements}")
+    bad = ~(np.isfinite(e) & (e >= 0))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise CoreError(f"err must be finite and >= 0, got {float(e[i])!r} at point {i}")
+    return _from_normal_equations(hess, scale * (0.5 * math.pi) * e * e * elements / (elements - 2))
+
+
+def klt_covariance(image: np.ndarray, pts: np.ndarray, err: np.ndarray, window: int,
+                   scale: float = 1.0) -> np.ndarray:
+    """Sigma = scale * sigma_hat^2 (J^T J)^-1 of an OpenCV LK solve from what the solve already has:
+    :func:`template_hessian` of its first image and :func:`err_covariance` of OpenCV's ``err``.
+
+    Shape:
+        image: (H, W) or (H, W, C). pts: (N, 2). err: (N,). Returns (N, 3) [sigma_uu, sigma_uv, sigma_vv],
+        px^2.
+
+    Raises:
+        CoreError: as :func:`template_hessian` and :func:`err_covariance`.
+    """
+    e = np.asarray(err)
+    a = np.asarray(pts)
+    if e.reshape(-1).shape[0] != (a.shape[0] if a.ndim == 2 else -1):
+        raise CoreError(f"pts must be (N, 2) and err (N,), got {a.shape} and {e.shape}")
+    channels = 1 if np.ndim(image) == 2 else np.shape(image)[2]
+    hess = template_hessian(image, pts, window)
+    return err_covariance(hess, err, window * window * channels, scale)

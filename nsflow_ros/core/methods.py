@@ -22,7 +22,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.covariance import CovarianceScale, klt_covariance, lm_covariance, read_scale
+from nsflow_ros.core.covariance import (
+    CovarianceScale,
+    err_covariance,
+    lm_covariance,
+    read_scale,
+    template_hessian,
+)
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
@@ -493,6 +499,7 @@ class KLTMethod(TrackingMethod):
         self.spec = spec
         self.window = (spec.klt.window, spec.klt.window)
         self.criteria = spec.klt.criteria
+        self._hessian_memo: tuple[Any, np.ndarray, np.ndarray] | None = None
 
     def prepare(self, image: np.ndarray, gray: np.ndarray) -> Any:
         return gray  # VINS hands OpenCV the images; OpenCV builds its pyramids per call
@@ -538,9 +545,22 @@ class KLTMethod(TrackingMethod):
         # OpenCV keeps J^T J to itself: the template's gradients read once, the residual from its err.
         cov = np.full((len(pts), 3), np.nan)
         if status.any():
+            hess = self._template_hessian(frame1, pts)
+            channels = 1 if np.ndim(frame1) == 2 else np.shape(frame1)[2]
             cov[status] = self.covariance_scale.apply(
-                klt_covariance(frame1, pts[status], err[status], self.window[0]))
+                err_covariance(hess[status], err[status], self.window[0] ** 2 * channels))
         return new, status, cov
+
+    def _template_hessian(self, frame1: Any, pts: np.ndarray) -> np.ndarray:
+        """:func:`~nsflow_ros.core.covariance.template_hessian`, kept for the next call: a stereo solve's
+        template (this frame's left image at its features) is the next frame's temporal one, the same
+        array at the same points, so the tracker reads each left window once."""
+        memo = self._hessian_memo
+        if memo is not None and memo[0] is frame1 and np.array_equal(memo[1], pts):
+            return memo[2]
+        hess = template_hessian(frame1, pts, self.window[0])
+        self._hessian_memo = (frame1, np.array(pts, copy=True), hess)
+        return hess
 
 
 class DescriptorKLTMethod(KLTMethod):

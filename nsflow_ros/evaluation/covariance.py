@@ -1,6 +1,6 @@
 """The per-feature covariance: is it calibrated, does it rank bad features, does weighting by it help?
 
-Data with exact ground truth, held out from the scale's fit: the homography pairs of the held-out photos
+Data with exact ground truth, held out from the calibration's fit: the homography pairs of the held-out photos
 (:mod:`~nsflow_ros.evaluation.pairs`, both subsets, every strength level) and consecutive frame pairs of
 the sample sequence (seed 0) under every illumination perturbation level. GFTT points of frame 1 are
 tracked into frame 2 by each method's forward solve from zero flow (the tracker's solve without a prior)
@@ -15,9 +15,9 @@ back by the flow-back check's solve. Against the truth:
 * use: the relative rotation of each sample-sequence frame pair (5-point RANSAC, then a Sampson
   refinement over its inliers) with isotropic weights against weights from Sigma.
 
-``python -m nsflow_ros.evaluation.covariance fit [--model M]`` fits each method's scale on training data
-(the training photos' pairs and a sample sequence of another seed) and writes the model's scales beside
-it (:func:`~nsflow_ros.core.covariance.sidecar_path`).
+``python -m nsflow_ros.evaluation.covariance fit [--model M]`` fits each method's scale and variance floor on
+training data (the training photos' pairs and a sample sequence of another seed) and writes the model's
+beside it (:func:`~nsflow_ros.core.covariance.sidecar_path`).
 """
 
 from __future__ import annotations
@@ -335,8 +335,8 @@ def collect(
 ) -> dict[str, dict[str, Samples]]:
     """Track every pair with every method of ``ctx``: ``{method: {group: Samples}}``.
 
-    ``scaled`` False divides each covariance by the method's current scale (the raw Gauss-Newton one, for
-    the fit).
+    ``scaled`` False undoes each covariance's current calibration (the raw Gauss-Newton one, for the
+    fit).
 
     Raises:
         EvaluationError: a method or the sample sequence fails.

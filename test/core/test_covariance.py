@@ -286,3 +286,24 @@ def test_sidecar_with_a_floor_and_an_older_one_without(tmp_path):
 def test_bad_stored_floors_are_named(entry, match):
     with pytest.raises(CoreError, match=match):
         read_scale("nsflow", {METADATA_KEY: json.dumps({"nsflow": entry})})
+
+
+def test_klt_template_hessian_is_read_once_for_a_stereo_then_temporal_solve_and_never_stale():
+    rng = np.random.default_rng(9)
+    left = cv2.GaussianBlur(rng.integers(0, 255, (120, 160)).astype(np.uint8), (0, 0), 1.5)
+    right = np.roll(left, -3, axis=1)
+    nxt = np.clip(np.roll(left, 1, axis=0) + rng.normal(0, 3, left.shape), 0, 255).astype(np.uint8)
+    pts = np.array([[60.0, 60.0], [100.5, 50.2], [40.3, 80.0]])
+    method, fresh = make_method("klt"), make_method("klt")
+    method.solve_with_covariance(SolveKind.STEREO, left, right, pts)
+    # the next frame's temporal solve from the same left image and points: the windows are not read again
+    hess = method._hessian_memo[2]
+    _, status, cov = method.solve_with_covariance(SolveKind.FORWARD, left, nxt, pts)
+    assert method._hessian_memo[2] is hess and status.all()
+    np.testing.assert_array_equal(cov, fresh.solve_with_covariance(SolveKind.FORWARD, left, nxt, pts)[2])
+    # another image or other points: read again
+    _, _, other = method.solve_with_covariance(SolveKind.FORWARD, nxt, left, pts)
+    np.testing.assert_array_equal(other, fresh.solve_with_covariance(SolveKind.FORWARD, nxt, left, pts)[2])
+    moved = pts + 5.0
+    _, _, cov2 = method.solve_with_covariance(SolveKind.FORWARD, nxt, left, moved)
+    np.testing.assert_array_equal(cov2, fresh.solve_with_covariance(SolveKind.FORWARD, nxt, left, moved)[2])
