@@ -266,8 +266,8 @@ def klt_track_error(
     out = new.reshape(-1, 2).astype(np.float64)
     with np.errstate(invalid="ignore"):  # OpenCV leaves a lost point's err unset (may be a NaN pattern)
         err = err.reshape(-1).astype(np.float64)
-    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1) & np.isfinite(err)
-    return np.where(ok[:, None], out, pts), ok, np.where(ok, err, 0.0)
+    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1)  # the err leaves the track alone
+    return np.where(ok[:, None], out, pts), ok, np.where(ok & np.isfinite(err), err, 0.0)
 
 
 def quantise_descriptors(desc: np.ndarray) -> np.ndarray:

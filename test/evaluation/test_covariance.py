@@ -34,7 +34,7 @@ def test_a_true_covariance_is_calibrated_and_its_scale_is_one():
 
 
 def test_fit_calibration_recovers_a_scale_and_a_floor():
-    err, cov = _gaussian(20000, seed=1)
+    err, cov = _gaussian(8000, seed=1)
     # Errors whose covariance is cov / 4 x 4 + 0.01 I: the raw covariance (cov / 4) is too small and its
     # range too wide (sigmas up to 0.5 px: the 2 px inlier cut leaves the Gaussian whole).
     rng = np.random.default_rng(2)
