@@ -1,18 +1,23 @@
 """A calibrated 2x2 covariance per tracked feature, from the final Lucas-Kanade solve.
 
 For a window cost S(u) = 1/2 sum ||r||^2 over n pixels and C channels, the Gauss-Newton covariance of the
-solution is Sigma = s * sigma_hat^2 (J^T J)^-1 with sigma_hat^2 = 2 S / (n C - 2), the residual variance
+solution is Sigma_raw = sigma_hat^2 (J^T J)^-1 with sigma_hat^2 = 2 S / (n C - 2), the residual variance
 left after fitting the two unknowns (PNEC, CVPR 2022). Such covariances run optimistic (neighbouring
-residuals are correlated, the model is not exactly a translation), so ``s``, one scale per method and
-model, is fitted on training data (``python -m nsflow_ros.evaluation.covariance fit``) and stored with
-the model: its ONNX metadata key :data:`METADATA_KEY`, else a JSON file beside it (``<model stem>``
-:data:`SIDECAR_SUFFIX`), both ``{"<method>": scale, ...}``; the methods without a model keep theirs in
-their registry entry (:attr:`~nsflow_ros.core.methods.MethodSpec.covariance_scale`).
+residuals are correlated, the model is not exactly a translation) and their range is wider than the
+error's (a window of strong texture still has interpolation and quantisation error), so the published one
+is Sigma = s * Sigma_raw + f * I: a scale ``s`` and a variance floor ``f`` (px^2), one pair per method and
+model, fitted on training data (``python -m nsflow_ros.evaluation.covariance fit``, maximum likelihood)
+and stored with the model: its ONNX metadata key :data:`METADATA_KEY`, else a JSON file beside it
+(``<model stem>`` :data:`SIDECAR_SUFFIX`), both ``{"<method>": {"scale": s, "floor": f}, ...}`` (a bare
+number, as older files hold, is a scale with floor 0); the methods without a model keep theirs in their
+registry entry (:attr:`~nsflow_ros.core.methods.MethodSpec.covariance_scale`).
 
 The LM methods take J^T J and S from the solver's own last step
-(:attr:`~nsflow_ros.core.solver.TrackResult.hessian`); OpenCV's LK keeps neither, so
-:func:`window_covariance` forms them from the image windows at the solution.
-Covariances are [sigma_uu, sigma_uv, sigma_vv] in pixels^2 of the full-resolution image.
+(:attr:`~nsflow_ros.core.solver.TrackResult.hessian`); OpenCV's LK keeps J^T J to itself, so
+:func:`klt_covariance` reads it from the template's window once and takes sigma_hat^2 from OpenCV's own
+per-point ``err`` (:func:`window_covariance`, which resamples both windows at the solution, is the
+reference it is tested against). Covariances are [sigma_uu, sigma_uv, sigma_vv] in pixels^2 of the
+full-resolution image.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from nsflow_ros.core.errors import CoreError
 
@@ -35,15 +41,19 @@ __all__ = [
     "METADATA_KEY",
     "SIDECAR_SUFFIX",
     "CovarianceScale",
+    "err_covariance",
+    "klt_covariance",
     "lm_covariance",
     "max_sigma",
     "read_scale",
     "sidecar_path",
+    "template_hessian",
     "window_covariance",
 ]
 
 METADATA_KEY = "covariance_scale"
-"""ONNX metadata key of a model's fitted scales: JSON ``{"<method>": scale}``."""
+"""ONNX metadata key of a model's fitted calibrations: JSON ``{"<method>": {"scale": s, "floor": f}}`` (a
+bare number is a scale with floor 0)."""
 SIDECAR_SUFFIX = ".covariance.json"
 """Suffix of the JSON file beside a model that holds its fitted scales (when its metadata has none)."""
 DETECTION_VARIANCE = 1.0 / 12.0
@@ -53,21 +63,47 @@ rounding error is uniform over one pixel."""
 
 @dataclass(frozen=True)
 class CovarianceScale:
-    """The scale ``s`` a method's covariances are multiplied by, and where it came from.
+    """The calibration of a method's raw covariances, Sigma = scale * Sigma_raw + floor * I, and its source.
+
+    The floor is a variance every feature has whatever its window says (px^2 per axis: interpolation,
+    the uint8 quantisation, a model that is not exactly a translation), which a scale alone cannot give:
+    without it the raw covariance's dynamic range is wider than the error's.
 
     Attributes:
         scale: s (> 0); 1.0 when no fitted value was found.
         source: "metadata", a sidecar file's name, "registry", or "uncalibrated" (with the reason when a
             sidecar's scale was fitted on another model file: its ``model_sha256`` differs).
+        floor: f (px^2, >= 0); 0 for a scale fitted alone (an older sidecar) or none fitted.
     """
 
     scale: float = 1.0
     source: str = "uncalibrated"
+    floor: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.scale) and self.scale > 0):
+            raise CoreError(f"covariance scale must be a finite number > 0, got {self.scale!r}")
+        if not (math.isfinite(self.floor) and self.floor >= 0):
+            raise CoreError(f"covariance floor must be a finite number >= 0 (px^2), got {self.floor!r}")
 
     @property
     def calibrated(self) -> bool:
         """Whether the scale was fitted (else the raw Gauss-Newton covariance is used)."""
         return not self.source.startswith("uncalibrated")
+
+    def apply(self, raw: np.ndarray) -> np.ndarray:
+        """scale * raw + floor * I of (N, 3) [uu, uv, vv] covariances (a new array; inf stays inf)."""
+        out = np.asarray(raw, dtype=np.float64) * self.scale
+        out[:, 0] += self.floor
+        out[:, 2] += self.floor
+        return out
+
+    def raw(self, cov: np.ndarray) -> np.ndarray:
+        """The raw covariances that :meth:`apply` turns into ``cov`` (for a new fit)."""
+        out = np.array(cov, dtype=np.float64)
+        out[:, 0] -= self.floor
+        out[:, 2] -= self.floor
+        return out / self.scale
 
 
 def sidecar_path(model: str | Path) -> Path:
@@ -76,31 +112,42 @@ def sidecar_path(model: str | Path) -> Path:
     return p.with_name(p.stem + SIDECAR_SUFFIX)
 
 
-def _scale_of(table: Mapping[str, Any], method: str, where: str) -> float | None:
+def _entry(table: Mapping[str, Any], method: str, where: str) -> tuple[float, float] | None:
+    """A method's (scale, floor) from a table of entries: a number (a scale alone, floor 0, as older
+    files hold) or ``{"scale": s, "floor": f}``; None when the method has none."""
     value = table.get(method)
     if value is None:
         return None
-    bad = isinstance(value, bool) or not isinstance(value, int | float)
-    if bad or not math.isfinite(value) or value <= 0:
-        raise CoreError(f"{where}: covariance scale of {method!r} must be a finite number > 0, got {value!r}")
-    return float(value)
+    if isinstance(value, dict):
+        scale, floor = value.get("scale"), value.get("floor", 0.0)
+    else:
+        scale, floor = value, 0.0
+    for name, v, low_ok in (("scale", scale, False), ("floor", floor, True)):
+        bad = isinstance(v, bool) or not isinstance(v, int | float)
+        if bad or not math.isfinite(v) or v < 0 or (v == 0 and not low_ok):
+            need = "a finite number >= 0" if low_ok else "a finite number > 0"
+            raise CoreError(f"{where}: covariance {name} of {method!r} must be {need}, got {v!r}")
+    return float(scale), float(floor)
 
 
 def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: str | Path | None = None,
-               registry: float | None = None) -> CovarianceScale:
-    """The fitted scale of ``method``: from the model's metadata, else its sidecar file, else ``registry``.
+               registry: CovarianceScale | float | None = None) -> CovarianceScale:
+    """The fitted calibration of ``method``: from the model's metadata, else its sidecar file, else
+    ``registry``.
 
     Args:
-        method: the method's registry name (a model may carry a scale per method).
+        method: the method's registry name (a model may carry a calibration per method).
         metadata: the model's ONNX metadata (``Encoder.metadata``); None = none.
         model: the model file, whose sidecar is read; None = none.
-        registry: the method's own registry value (methods without a model); None = none.
+        registry: the method's own registry value (methods without a model; a number is a scale alone);
+            None = none.
 
     Returns:
-        the scale and its source; ``CovarianceScale()`` (1.0, uncalibrated) when none is found.
+        the scale, floor and source; ``CovarianceScale()`` (1.0, floor 0, uncalibrated) when none is found.
 
     Raises:
-        CoreError: malformed JSON or a scale that is not a number > 0 (naming the file or key).
+        CoreError: malformed JSON or a scale that is not a number > 0 or a floor that is not a number
+            >= 0 (naming the file or key).
     """
     if metadata and METADATA_KEY in metadata:
         where = f"model metadata {METADATA_KEY!r}"
@@ -110,9 +157,9 @@ def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: st
             raise CoreError(f"{where} is not JSON: {err}") from err
         if not isinstance(table, dict):
             raise CoreError(f"{where} must be a JSON object of scales by method, got {table!r}")
-        found = _scale_of(table, method, where)
+        found = _entry(table, method, where)
         if found is not None:
-            return CovarianceScale(found, "metadata")
+            return CovarianceScale(found[0], "metadata", found[1])
     if model is not None:
         side = sidecar_path(model)
         if side.is_file():
@@ -123,13 +170,15 @@ def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: st
             scales = table.get("scales") if isinstance(table, dict) else None
             if not isinstance(scales, dict):
                 raise CoreError(f"{side}: expected an object with 'scales' by method, got {table!r}")
-            found = _scale_of(scales, method, str(side))
+            found = _entry(scales, method, str(side))
             fitted = table.get("model_sha256")
             if found is not None and fitted is not None and fitted != _sha256(Path(model)):
-                # a model replaced under the same name: its scale must be fitted again
+                # a model replaced under the same name: its calibration must be fitted again
                 return CovarianceScale(1.0, f"uncalibrated ({side.name} was fitted on another model file)")
             if found is not None:
-                return CovarianceScale(found, side.name)
+                return CovarianceScale(found[0], side.name, found[1])
+    if isinstance(registry, CovarianceScale):
+        return registry
     if registry is not None:
         return CovarianceScale(float(registry), "registry")
     return CovarianceScale()
@@ -238,3 +287,114 @@ def max_sigma(cov: np.ndarray) -> np.ndarray:
         diff = c[:, 0] - c[:, 2]
         out = np.sqrt(np.maximum(0.5 * (tr + np.sqrt(diff * diff + 4.0 * c[:, 1] ** 2)), 0.0))
     return np.where(np.isinf(tr), np.inf, out)  # a singular J^T J: no bound at all
+
+
+def template_hessian(image: np.ndarray, pts: np.ndarray, window: int) -> np.ndarray:
+    """J^T J of an OpenCV LK solve's template: the structure tensor of ``image`` over the window at each
+    rounded point (the matrix OpenCV's own inverse-compositional step inverts).
+
+    The windows are read at whole pixels, at most half a pixel from the point, once: no resampling.
+    Central differences: OpenCV's Scharr without its cross smoothing, which the fitted scale absorbs.
+
+    Args:
+        image: the solve's first image (uint8 or float, 1-4 channels, at least window + 2 pixels a side).
+        pts: the points it tracked (in ``image``); windows reaching past the border are moved inside.
+        window: the solve's window side (odd).
+
+    Shape:
+        image: (H, W) or (H, W, C). pts: (N, 2). Returns (N, 3) [h11, h12, h22], summed over channels.
+
+    Raises:
+        CoreError: a window that is not odd and >= 3, points that are not (N, 2) and finite, an image that
+            is not (H, W[, 1-4]) or is smaller than the window.
+    """
+    if window < 3 or window % 2 == 0:
+        raise CoreError(f"window must be odd and >= 3, got {window}")
+    a = np.asarray(pts, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise CoreError(f"pts must be (N, 2), got {a.shape}")
+    if not np.isfinite(a).all():
+        i = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
+        raise CoreError(f"pts must be finite, got {a[i].tolist()} at point {i}")
+    img = np.asarray(image)
+    if img.ndim not in (2, 3) or (img.ndim == 3 and not 1 <= img.shape[2] <= 4):
+        raise CoreError(f"image must be (H, W) or (H, W, 1-4), got {img.shape}")
+    side = window + 2  # one more pixel each way for the derivative
+    height, width = img.shape[:2]
+    if height < side or width < side:
+        raise CoreError(f"image {width}x{height} is smaller than the {side}x{side} window of its derivative")
+    n = a.shape[0]
+    if n == 0:
+        return np.zeros((0, 3))
+    half = side // 2
+    cx = np.clip(np.rint(a[:, 0]).astype(np.intp), half, width - 1 - half) - half
+    cy = np.clip(np.rint(a[:, 1]).astype(np.intp), half, height - 1 - half) - half
+    # one gather of every point's window (a view per top-left corner: no per-point call), flattened
+    patch = sliding_window_view(img, (side, side), axis=(0, 1))[cy, cx]
+    if patch.ndim == 3:
+        patch = patch[:, None]  # (N, C, side, side)
+    channels = patch.shape[1]
+    flat = patch.reshape(n * channels, side * side).astype(np.float32)
+    # the derivatives at every flattened position of rows 1..side-2; the weights keep columns 1..side-2
+    lo, hi = side + 1, side * side - side - 1
+    jx = flat[:, lo + 1:hi + 1] - flat[:, lo - 1:hi - 1]
+    jy = flat[:, lo + side:hi + side] - flat[:, lo - side:hi - side]
+    col = np.arange(lo, hi) % side
+    inside = ((col >= 1) & (col <= side - 2)).astype(np.float32)
+    hess = np.stack([(jx * jx) @ inside, (jx * jy) @ inside, (jy * jy) @ inside], axis=1)
+    return hess.reshape(n, channels, 3).sum(axis=1, dtype=np.float64) / 4.0
+
+
+def err_covariance(hessian: np.ndarray, err: np.ndarray, elements: int, scale: float = 1.0) -> np.ndarray:
+    """Sigma = scale * sigma_hat^2 (J^T J)^-1 with sigma_hat^2 from OpenCV's per-point ``err``.
+
+    ``err`` is the mean absolute window difference at the solution; for Gaussian residuals the RMS is
+    sqrt(pi / 2) times it, so sigma_hat^2 = pi / 2 err^2 nC / (nC - 2) (the degrees of freedom of
+    :func:`lm_covariance`; the fitted scale absorbs the rest).
+
+    Args:
+        hessian: J^T J per point (:func:`template_hessian`), [h11, h12, h22].
+        err: OpenCV's ``err`` per point (``calcOpticalFlowPyrLK`` without
+            ``OPTFLOW_LK_GET_MIN_EIGENVALS``).
+        elements: window pixels times channels (n C).
+        scale: the method's fitted scale.
+
+    Shape:
+        hessian: (N, 3). err: (N,). Returns (N, 3) [sigma_uu, sigma_uv, sigma_vv], px^2.
+
+    Raises:
+        CoreError: shapes that do not match, elements <= 2, or an ``err`` that is not finite and >= 0
+            (naming the first one).
+    """
+    hess = np.asarray(hessian, dtype=np.float64)
+    e = np.asarray(err, dtype=np.float64).reshape(-1)
+    if hess.ndim != 2 or hess.shape[1] != 3 or e.shape != (hess.shape[0],):
+        raise CoreError(f"hessian must be (N, 3) and err (N,), got {hess.shape} and {np.shape(err)}")
+    if elements <= 2:
+        raise CoreError(f"elements (window pixels x channels) must be > 2, got {elements}")
+    bad = ~(np.isfinite(e) & (e >= 0))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise CoreError(f"err must be finite and >= 0, got {float(e[i])!r} at point {i}")
+    return _from_normal_equations(hess, scale * (0.5 * math.pi) * e * e * elements / (elements - 2))
+
+
+def klt_covariance(image: np.ndarray, pts: np.ndarray, err: np.ndarray, window: int,
+                   scale: float = 1.0) -> np.ndarray:
+    """Sigma = scale * sigma_hat^2 (J^T J)^-1 of an OpenCV LK solve from what the solve already has:
+    :func:`template_hessian` of its first image and :func:`err_covariance` of OpenCV's ``err``.
+
+    Shape:
+        image: (H, W) or (H, W, C). pts: (N, 2). err: (N,). Returns (N, 3) [sigma_uu, sigma_uv, sigma_vv],
+        px^2.
+
+    Raises:
+        CoreError: as :func:`template_hessian` and :func:`err_covariance`.
+    """
+    e = np.asarray(err)
+    a = np.asarray(pts)
+    if e.reshape(-1).shape[0] != (a.shape[0] if a.ndim == 2 else -1):
+        raise CoreError(f"pts must be (N, 2) and err (N,), got {a.shape} and {e.shape}")
+    channels = 1 if np.ndim(image) == 2 else np.shape(image)[2]
+    hess = template_hessian(image, pts, window)
+    return err_covariance(hess, err, window * window * channels, scale)

@@ -22,7 +22,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.covariance import CovarianceScale, lm_covariance, read_scale, window_covariance
+from nsflow_ros.core.covariance import (
+    CovarianceScale,
+    err_covariance,
+    lm_covariance,
+    read_scale,
+    template_hessian,
+)
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
@@ -54,6 +60,7 @@ __all__ = [
     "TrackingMethod",
     "declared_residual",
     "klt_track",
+    "klt_track_error",
     "make_method",
     "method_encoder",
     "pyramid_smoothing",
@@ -217,6 +224,21 @@ def klt_track(
     window: tuple[int, int] = KLT_WINDOW,
     criteria: tuple[int, int, float] = KLT_CRITERIA,
 ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`klt_track_error` without OpenCV's ``err``: (positions in image 2, status)."""
+    new, ok, _ = klt_track_error(image1, image2, pts, start, max_level, window=window, criteria=criteria)
+    return new, ok
+
+
+def klt_track_error(
+    image1: np.ndarray,
+    image2: np.ndarray,
+    pts: np.ndarray,
+    start: np.ndarray | None = None,
+    max_level: int = KLT_MAX_LEVEL,
+    *,
+    window: tuple[int, int] = KLT_WINDOW,
+    criteria: tuple[int, int, float] = KLT_CRITERIA,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One ``cv2.calcOpticalFlowPyrLK`` call (VINS-Fusion's arguments by default): the project's only one.
 
     Args:
@@ -225,25 +247,28 @@ def klt_track(
         max_level, window, criteria: OpenCV's ``maxLevel``, ``winSize`` and ``criteria``.
 
     Returns:
-        (positions in image 2, OpenCV's status); lost points keep their start position.
+        (positions in image 2, OpenCV's status, OpenCV's ``err``: the mean absolute window difference at
+        the solution, 0 where lost); lost points keep their start position.
 
     Shape:
-        pts, start: (N, 2). Returns (N, 2) float64 and (N,) bool.
+        pts, start: (N, 2). Returns (N, 2) float64, (N,) bool and (N,) float64.
     """
     n = pts.shape[0]
     if n == 0:
-        return np.zeros((0, 2)), np.zeros(0, bool)
+        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0)
     p1 = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 1, 2)
     flags, p2 = 0, None
     if start is not None:
         p2 = np.ascontiguousarray(start, dtype=np.float32).reshape(-1, 1, 2).copy()
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    new, status, _ = cv2.calcOpticalFlowPyrLK(
+    new, status, err = cv2.calcOpticalFlowPyrLK(
         image1, image2, p1, p2, winSize=window, maxLevel=max_level, criteria=criteria, flags=flags
     )
     out = new.reshape(-1, 2).astype(np.float64)
-    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1)
-    return np.where(ok[:, None], out, pts), ok
+    with np.errstate(invalid="ignore"):  # OpenCV leaves a lost point's err unset (may be a NaN pattern)
+        err = err.reshape(-1).astype(np.float64)
+    ok = status.reshape(-1).astype(bool) & np.isfinite(out).all(axis=1)  # the err leaves the track alone
+    return np.where(ok[:, None], out, pts), ok, np.where(ok & np.isfinite(err), err, 0.0)
 
 
 def quantise_descriptors(desc: np.ndarray) -> np.ndarray:
@@ -440,7 +465,7 @@ class LMMethod(TrackingMethod):
         new, status, res = self.solve_result(kind, frame1, frame2, pts, start, prior)
         # The solver's own final J^T J and cost: a few operations per point, no pass over the window.
         elements = self.lm.window * self.lm.window * frame2.channels
-        return new, status, lm_covariance(res.hessian, res.cost, elements, self.covariance_scale.scale)
+        return new, status, self.covariance_scale.apply(lm_covariance(res.hessian, res.cost, elements))
 
     def solve_result(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
@@ -485,6 +510,7 @@ class KLTMethod(TrackingMethod):
         self.spec = spec
         self.window = (spec.klt.window, spec.klt.window)
         self.criteria = spec.klt.criteria
+        self._hessian_memo: tuple[Any, np.ndarray, np.ndarray] | None = None
 
     def prepare(self, image: np.ndarray, gray: np.ndarray) -> Any:
         return gray  # VINS hands OpenCV the images; OpenCV builds its pyramids per call
@@ -493,32 +519,59 @@ class KLTMethod(TrackingMethod):
         self, frame1: Any, frame2: Any, pts: np.ndarray, start: np.ndarray | None = None,
         levels: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        max_level = KLT_MAX_LEVEL if levels is None else levels - 1
-        return klt_track(frame1, frame2, pts, start, max_level, window=self.window, criteria=self.criteria)
+        new, status, _ = self._track_error(frame1, frame2, pts, start, levels)
+        return new, status
 
-    def solve(
-        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
-        start: np.ndarray | None = None, prior: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def _track_error(
+        self, frame1: Any, frame2: Any, pts: np.ndarray, start: np.ndarray | None = None,
+        levels: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        max_level = KLT_MAX_LEVEL if levels is None else levels - 1
+        return klt_track_error(frame1, frame2, pts, start, max_level, window=self.window,
+                               criteria=self.criteria)
+
+    def _solve_error(
+        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray, start: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # VINS-Fusion: the predicted forward call and the flow-back start at the given positions with
         # maxLevel 1; the plain forward call, both stereo calls use maxLevel 3 from the point itself.
         if kind in (SolveKind.FORWARD, SolveKind.FLOW_BACK) and start is not None:
             usable = np.isfinite(start).all(axis=1)
             guided = np.where(usable[:, None], start, pts)
-            return self.track_pair(frame1, frame2, pts, guided, KLT_GUIDED_MAX_LEVEL + 1)
-        return self.track_pair(frame1, frame2, pts)
+            return self._track_error(frame1, frame2, pts, guided, KLT_GUIDED_MAX_LEVEL + 1)
+        return self._track_error(frame1, frame2, pts)
+
+    def solve(
+        self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
+        start: np.ndarray | None = None, prior: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        new, status, _ = self._solve_error(kind, frame1, frame2, pts, start)
+        return new, status
 
     def solve_with_covariance(
         self, kind: SolveKind, frame1: Any, frame2: Any, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        new, status = self.solve(kind, frame1, frame2, pts, start, prior)
-        # OpenCV keeps neither J^T J nor the residual: both from the windows at the solution.
+        new, status, err = self._solve_error(kind, frame1, frame2, pts, start)
+        # OpenCV keeps J^T J to itself: the template's gradients read once, the residual from its err.
         cov = np.full((len(pts), 3), np.nan)
         if status.any():
-            cov[status] = window_covariance(frame1, frame2, pts[status], new[status], self.window[0],
-                                            self.covariance_scale.scale)
+            hess = self._template_hessian(frame1, pts)
+            channels = 1 if np.ndim(frame1) == 2 else np.shape(frame1)[2]
+            cov[status] = self.covariance_scale.apply(
+                err_covariance(hess[status], err[status], self.window[0] ** 2 * channels))
         return new, status, cov
+
+    def _template_hessian(self, frame1: Any, pts: np.ndarray) -> np.ndarray:
+        """:func:`~nsflow_ros.core.covariance.template_hessian`, kept for the next call: a stereo solve's
+        template (this frame's left image at its features) is the next frame's temporal one, the same
+        array at the same points, so the tracker reads each left window once."""
+        memo = self._hessian_memo
+        if memo is not None and memo[0] is frame1 and np.array_equal(memo[1], pts):
+            return memo[2]
+        hess = template_hessian(frame1, pts, self.window[0])
+        self._hessian_memo = (frame1, np.array(pts, copy=True), hess)
+        return hess
 
 
 class DescriptorKLTMethod(KLTMethod):
@@ -565,8 +618,9 @@ class MethodSpec:
         lm, policy: LM solver settings and solve policy (LM methods only).
         klt: OpenCV LK's window and criteria (OpenCV methods only).
         clahe: the equalisation applied when the tracker equalises.
-        covariance_scale: the fitted scale of the covariances of a method without a model
-            (:mod:`~nsflow_ros.core.covariance`); None = none fitted (a learned method's is its model's).
+        covariance_scale: the fitted calibration (scale and floor) of the covariances of a method without
+            a model (:mod:`~nsflow_ros.core.covariance`); None = none fitted (a learned method's is its
+            model's).
         default_model: the shipped model (a name in :data:`~nsflow_ros.core.encoder.SHIPPED_MODELS`) a
             learned method loads when none is given: OpenCV's LK needs descriptors in [0, 1].
 
@@ -583,7 +637,7 @@ class MethodSpec:
     policy: SolvePolicy | None = None
     klt: KLTConfig | None = None
     clahe: Clahe = CLAHE
-    covariance_scale: float | None = None
+    covariance_scale: CovarianceScale | None = None
     default_model: str = "default"
 
     def __post_init__(self) -> None:
@@ -620,8 +674,11 @@ class MethodSpec:
         return replace(self, lm=replace(self.lm, levels=levels)) if self.lm is not None else self
 
 
-COVARIANCE_SCALES: Mapping[str, float] = MappingProxyType({"classical": 4.257, "klt": 14.29})
-"""The fitted covariance scales of the methods without a model, as ``python -m
+COVARIANCE_SCALES: Mapping[str, CovarianceScale] = MappingProxyType({
+    "classical": CovarianceScale(4.257, "registry"),
+    "klt": CovarianceScale(19.78, "registry", 1.484e-3),
+})
+"""The fitted covariance calibrations (scale, floor in px^2) of the methods without a model, as ``python -m
 nsflow_ros.evaluation.covariance fit`` prints them (the learned methods' are stored with their model)."""
 
 METHODS: Mapping[str, MethodSpec] = MappingProxyType({

@@ -1,6 +1,6 @@
 """The per-feature covariance: is it calibrated, does it rank bad features, does weighting by it help?
 
-Data with exact ground truth, held out from the scale's fit: the homography pairs of the held-out photos
+Data with exact ground truth, held out from the calibration's fit: the homography pairs of the held-out photos
 (:mod:`~nsflow_ros.evaluation.pairs`, both subsets, every strength level) and consecutive frame pairs of
 the sample sequence (seed 0) under every illumination perturbation level. GFTT points of frame 1 are
 tracked into frame 2 by each method's forward solve from zero flow (the tracker's solve without a prior)
@@ -15,9 +15,9 @@ back by the flow-back check's solve. Against the truth:
 * use: the relative rotation of each sample-sequence frame pair (5-point RANSAC, then a Sampson
   refinement over its inliers) with isotropic weights against weights from Sigma.
 
-``python -m nsflow_ros.evaluation.covariance fit [--model M]`` fits each method's scale on training data
-(the training photos' pairs and a sample sequence of another seed) and writes the model's scales beside
-it (:func:`~nsflow_ros.core.covariance.sidecar_path`).
+``python -m nsflow_ros.evaluation.covariance fit [--model M]`` fits each method's scale and variance floor on
+training data (the training photos' pairs and a sample sequence of another seed) and writes the model's
+beside it (:func:`~nsflow_ros.core.covariance.sidecar_path`).
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ __all__ = [
     "ause_ratio",
     "calibration",
     "collect",
+    "fit_calibration",
     "fit_scale",
     "main",
     "run",
@@ -199,7 +200,7 @@ def _cost_and_cov(method: EvalMethod, f1: Any, f2: Any, pts: np.ndarray) -> tupl
     if isinstance(core, LMMethod):
         new, status, res = core.solve_result(SolveKind.FORWARD, f1, f2, pts)
         elements = core.lm.window * core.lm.window * f2.channels
-        cov = lm_covariance(res.hessian, res.cost, elements, core.covariance_scale.scale)
+        cov = core.covariance_scale.apply(lm_covariance(res.hessian, res.cost, elements))
         return new, status, cov, res.cost
     if not isinstance(core, KLTMethod):
         raise EvaluationError(f"{method.name}: no covariance for {type(core).__name__}")
@@ -334,8 +335,8 @@ def collect(
 ) -> dict[str, dict[str, Samples]]:
     """Track every pair with every method of ``ctx``: ``{method: {group: Samples}}``.
 
-    ``scaled`` False divides each covariance by the method's current scale (the raw Gauss-Newton one, for
-    the fit).
+    ``scaled`` False undoes each covariance's current calibration (the raw Gauss-Newton one, for the
+    fit).
 
     Raises:
         EvaluationError: a method or the sample sequence fails.
@@ -356,7 +357,7 @@ def collect(
                 f1, f2 = m.prepare(pair.image1), m.prepare(pair.image2)
                 new, status, cov, cost = _cost_and_cov(m, f1, f2, pair.points)
                 if not scaled:
-                    cov = cov / m.core.covariance_scale.scale
+                    cov = m.core.covariance_scale.raw(cov)
                 fb = np.full(len(new), np.inf)
                 if status.any():
                     back, ok = m.core.solve(SolveKind.FLOW_BACK, f2, f1, new[status], pair.points[status])
@@ -404,6 +405,72 @@ def fit_scale(error: np.ndarray, cov: np.ndarray) -> float:
     if d2.size == 0:
         raise EvaluationError("no inlier to fit the covariance scale on")
     return float(np.mean(d2) / 2.0)
+
+
+def _nll(e: np.ndarray, c: np.ndarray, scale: float, floor: float) -> float:
+    """Mean Gaussian NLL (without the constant) of errors ``e`` under scale * c + floor * I."""
+    a, b, d = scale * c[:, 0] + floor, scale * c[:, 1], scale * c[:, 2] + floor
+    det = np.maximum(a * d - b * b, 1e-300)
+    d2 = (d * e[:, 0] ** 2 - 2 * b * e[:, 0] * e[:, 1] + a * e[:, 1] ** 2) / det
+    return float(np.mean(0.5 * np.log(det) + 0.5 * d2))
+
+
+def _golden(f: Any, lo: float, hi: float, iterations: int = 32) -> float:
+    """The minimum of a unimodal ``f`` on [lo, hi] by golden-section search."""
+    g = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(iterations):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = f(d)
+    return (a + b) / 2.0
+
+
+def fit_calibration(error: np.ndarray, cov: np.ndarray, floor: bool = True) -> tuple[float, float]:
+    """The scale s and floor f (px^2) of Sigma = s * cov + f * I that maximise the likelihood of the
+    inliers' errors.
+
+    Maximum likelihood rather than matching the coverages: it uses every error's size, not only which side
+    of two ellipses it falls, weighs the small-sigma and the large-sigma features by how much data each
+    has, and with f = 0 it is :func:`fit_scale` exactly (an older scale-only fit is its special case).
+    Searched on log s for each f (golden section, nested), f from 0 to the errors' own mean variance.
+
+    Args:
+        floor: False fits the scale alone (f = 0).
+
+    Returns:
+        (s, f); f = 0 where a floor does not raise the likelihood.
+
+    Shape:
+        error: (N, 2). cov: (N, 3). Raises EvaluationError with no inlier.
+    """
+    inl = (np.hypot(*error.T) < INLIER_PX) & np.isfinite(cov).all(axis=1)
+    e, c = error[inl], cov[inl]
+    if len(e) == 0:
+        raise EvaluationError("no inlier to fit the covariance calibration on")
+    s0 = fit_scale(e, c)
+    if not floor:
+        return s0, 0.0
+    top = float(np.mean(e**2))  # a floor beyond the errors' own variance cannot help
+
+    def best_scale(floor: float) -> float:
+        return float(np.exp(_golden(lambda ls: _nll(e, c, float(np.exp(ls)), floor),
+                                    np.log(s0) - 12.0, np.log(s0) + 2.0)))
+
+    def profile(floor: float) -> float:
+        return _nll(e, c, best_scale(floor), floor)
+
+    floor = _golden(profile, 0.0, top)  # 32 steps: a bracket of 2e-7 of the range, in f and in log s
+    if profile(0.0) <= profile(floor):
+        return s0, 0.0
+    return best_scale(floor), floor
 
 
 def calibration(error: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
@@ -674,13 +741,15 @@ def run(ctx: EvalContext) -> Section:
         curves["oracle"] = oracle
         curves["random"] = np.full(len(oracle), float(np.mean(err)))
     fig = _figure(results, curves, ctx.out_dir / f"{KEY}.png")
-    scales = {m.name: (m.core.covariance_scale.scale, m.core.covariance_scale.source) for m in ctx.methods}
-    scale_text = ", ".join(f"{n} {s:.3g} ({src})" for n, (s, src) in scales.items())
+    cals = {m.name: m.core.covariance_scale for m in ctx.methods}
+    scales = {n: (c.scale, c.source, c.floor) for n, c in cals.items()}
+    scale_text = ", ".join(f"{n} {c.scale:.3g} / {c.floor:.2g} ({c.source})" for n, c in cals.items())
     w, h = setup.pair_size
     md = "\n\n".join([
-        "Sigma = s sigma_hat^2 (J^T J)^-1 per tracked feature (the LM methods: the solver's own final J^T J "
-        "and cost; the OpenCV LK methods: Scharr gradients and the difference of the 21x21 windows at the "
-        f"solution). Scales s: {scale_text}. Data held out from the fit: homography pairs of the photos "
+        "Sigma = s sigma_hat^2 (J^T J)^-1 + f I per tracked feature (the LM methods: the solver's own final "
+        "J^T J and cost; the OpenCV LK methods: the template's gradients over the 21x21 window at the "
+        "rounded point and OpenCV's own err, the mean absolute window difference at the solution). "
+        f"Scale s / floor f (px^2): {scale_text}. Data held out from the fit: homography pairs of the photos "
         f"{', '.join(setup.photos)} ({w}x{h}, {setup.pair_levels} strengths per subset) and every "
         f"{setup.stride}. frame pair of the sample sequence seed {setup.sequence_seed} "
         f"({setup.duration:g} s, "
@@ -724,24 +793,32 @@ def _jsonable(x: Any) -> Any:
 # -- the fit ------------------------------------------------------------------------------------------
 
 
-def fit(ctx: EvalContext, setup: CovarianceSetup) -> dict[str, float]:
-    """Each method's NLL-optimal scale (:func:`fit_scale`) on ``setup``'s data, all groups pooled."""
+def fit(ctx: EvalContext, setup: CovarianceSetup) -> dict[str, tuple[float, float]]:
+    """Each method's maximum-likelihood (scale, floor) (:func:`fit_calibration`) on ``setup``'s data, all
+    groups pooled.
+
+    The OpenCV LK methods get a floor, the LM methods a scale alone: their covariance was calibrated
+    without one, and a floor, which evens out the weights of the best features, made the relative
+    rotation weighted by them worse at every perturbation level (docs/evaluation.md).
+    """
     data = collect(ctx, setup, scaled=False)
     out = {}
-    for m, groups in data.items():
-        pooled = _pool(groups, "")
-        out[m] = fit_scale(pooled["error"], pooled["cov"])
+    for m in ctx.methods:
+        pooled = _pool(data[m.name], "")
+        out[m.name] = fit_calibration(pooled["error"], pooled["cov"], floor=not m.core.spec.is_lm)
     return out
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """``python -m nsflow_ros.evaluation.covariance fit``: fit the scales on training data; the learned
-    methods' go into the JSON beside the model, the others' are printed for their registry entries."""
+    """``python -m nsflow_ros.evaluation.covariance fit``: fit the scales and floors on training data; the
+    learned methods' go into the JSON beside the model, the others' are printed for their registry
+    entries."""
     from nsflow_ros.core.encoder import model_file
     from nsflow_ros.evaluation.methods import VARIANTS, usable_methods
 
     parser = argparse.ArgumentParser(prog="python -m nsflow_ros.evaluation.covariance",
-                                     description="Fit the per-feature covariance scales on training data.")
+                                     description="Fit the per-feature covariance scales and floors on "
+                                                 "training data.")
     parser.add_argument("command", choices=["fit"])
     parser.add_argument("--model", default=None, help="ONNX encoder (file or shipped name; default: default)")
     parser.add_argument("--out", default="out/covariance_fit", help="folder for the sample-sequence cache")
@@ -763,11 +840,11 @@ def main(args: Sequence[str] | None = None) -> int:
     except (EvaluationError, CoreError, OSError) as err:
         print(f"covariance fit: {err}", file=sys.stderr)
         return 1
-    by_method = {VARIANTS[label].method: s for label, s in scales.items()}
-    for name, s in by_method.items():
-        print(f"{name}: scale {s:.4g}")
-    # each learned method's scale goes beside the model it was fitted with
-    files: dict[Path, dict[str, float]] = {}
+    by_method = {VARIANTS[label].method: {"scale": s, "floor": f} for label, (s, f) in scales.items()}
+    for name, cal in by_method.items():
+        print(f"{name}: scale {cal['scale']:.4g} floor {cal['floor']:.4g} px^2")
+    # each learned method's calibration goes beside the model it was fitted with
+    files: dict[Path, dict[str, dict[str, float]]] = {}
     for m in methods:
         name = VARIANTS[m.name].method
         if VARIANTS[m.name].spec.learned and name in by_method:
@@ -776,7 +853,7 @@ def main(args: Sequence[str] | None = None) -> int:
         side = sidecar_path(path)
         sha = hashlib.sha256(path.read_bytes()).hexdigest()
         kept = {}
-        if side.is_file():  # another method's scale fitted on this same file stays
+        if side.is_file():  # another method's calibration fitted on this same file stays
             old = json.loads(side.read_text())
             if isinstance(old, dict) and old.get("model_sha256") == sha:
                 kept = old.get("scales", {})

@@ -269,8 +269,8 @@ class TrackerNode(Node):
         )
         if s.covariance:  # what the covariance channels are scaled by, and whether it was fitted
             scale = self.tracker.method.covariance_scale
-            self.get_logger().info(f"covariance scale {scale.scale:.4g} ({scale.source}), max_sigma "
-                                   f"{s.max_sigma:g} px (0 = off)")
+            self.get_logger().info(f"covariance scale {scale.scale:.4g}, floor {scale.floor:.3g} px^2 "
+                                   f"({scale.source}), max_sigma {s.max_sigma:g} px (0 = off)")
 
     # -- accessors -------------------------------------------------------------------------------------
 

@@ -255,8 +255,8 @@ SETTINGS: tuple[Setting, ...] = (
         "after the layout's own: 9-11 of 'fusion', 5-7 of 'mono'; the stock estimators ignore them "
         "(docs/vins_fusion.md: a patch that uses them), 0/1. -1 = on for the 'fusion' layout with an LM "
         "method ('nsflow', 'classical': the solver's own J^T J, no measurable cost), off for the OpenCV LK "
-        "methods ('klt', 'nsflow_lk': formed from the windows, about a fifth of their frame's CPU) and "
-        "for 'mono'.",
+        "methods ('klt', 'nsflow_lk': read again from the windows, 3-8 % of their frame's CPU) and for "
+        "'mono'.",
         tracker=True, session=True, switch=True),
     Setting(
         "max_sigma", 0.0, Mode.LIVE,
@@ -442,7 +442,7 @@ def session_tracker_fields(values: Mapping[str, Any], layout: str) -> dict[str, 
     ``reject_with_f`` unset is on for the ``mono`` layout (VINS-Mono runs it), off for ``fusion``;
     ``publish_covariance`` unset is on for ``fusion`` (channels 9 and up, which its estimator never reads)
     with an LM method, whose solver hands the covariance over at no cost, off for the OpenCV LK methods
-    (it would cost them about a fifth of their frame) and for ``mono`` (its five channels unchanged).
+    (it would cost them 3-8 % of their frame) and for ``mono`` (its five channels unchanged).
     """
     out: dict[str, Any] = {}
     for s in SETTINGS:

@@ -10,6 +10,8 @@ import pytest
 
 from nsflow_ros.core.covariance import (
     METADATA_KEY,
+    CovarianceScale,
+    klt_covariance,
     lm_covariance,
     max_sigma,
     read_scale,
@@ -17,7 +19,7 @@ from nsflow_ros.core.covariance import (
     window_covariance,
 )
 from nsflow_ros.core.errors import CoreError
-from nsflow_ros.core.methods import SolveKind, make_method
+from nsflow_ros.core.methods import SolveKind, klt_track_error, make_method
 from nsflow_ros.core.solver import LMConfig, sample_windows, track
 
 CFG = LMConfig(window=11, levels=1, eps=1e-4, max_iterations=30, margin=6)
@@ -116,8 +118,14 @@ def test_klt_method_gives_covariances_where_tracked():
     plain, plain_status = method.solve(SolveKind.FORWARD, img, img2, pts)
     np.testing.assert_array_equal(new, plain)  # the covariance does not change the track
     np.testing.assert_array_equal(status, plain_status)
-    assert status[:2].all() and not status[2]
-    assert np.all(cov[status, 0] > 0) and np.all(np.isnan(cov[~status]))
+    assert status[:2].all() and not status[2] and np.all(np.isnan(cov[~status]))
+    # an exact match (OpenCV's err 0): the fitted floor alone, never a zero covariance
+    floor = method.covariance_scale.floor
+    assert floor > 0
+    np.testing.assert_allclose(cov[status], [[floor, 0.0, floor]] * 2)
+    noisy = np.clip(img2 + np.random.default_rng(5).normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    _, status, cov = method.solve_with_covariance(SolveKind.FORWARD, img, noisy, pts)
+    assert status[:2].all() and np.all(cov[status][:, [0, 2]] > floor)
 
 
 def test_lm_method_covariance_leaves_the_track_bit_identical(textures):
@@ -182,3 +190,120 @@ def test_bad_sidecar_is_named(tmp_path):
     sidecar_path(model).write_text('{"nsflow": 2}')
     with pytest.raises(CoreError, match=r"m\.covariance\.json"):
         read_scale("nsflow", None, model)
+
+
+def test_klt_covariance_from_opencv_s_err_agrees_with_the_window_sampled_one():
+    # A smooth texture (central differences and Scharr agree there), shifted, with white noise of 3 grey
+    # levels: the residual is nearly Gaussian, the case in which pi/2 err^2 is the residual variance.
+    d1 = np.round(_smooth_texture(200, seed=5, blur=3.0) * 200 + 25).astype(np.uint8)
+    rng = np.random.default_rng(6)
+    d2 = np.clip(_shifted(d1.astype(np.float32), 0.4, -0.3) + rng.normal(0, 3.0, d1.shape), 0, 255)
+    d2 = np.round(d2).astype(np.uint8)
+    g = np.arange(30, 171, 20, dtype=np.float64)
+    pts = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + 0.3  # off the pixel grid: rounded to read
+    new, ok, err = klt_track_error(d1, d2, pts)
+    assert ok.all() and np.all(err > 0)
+    cheap = klt_covariance(d1, pts, err, 21)
+    ref = window_covariance(d1, d2, pts, new, 21)
+    # sigma along each axis within 10 %: the window's 441 residuals leave the mean-absolute-to-RMS ratio
+    # a few per cent of spread, and J^T J is read at most half a pixel off the point on image 1 rather
+    # than at the solution on image 2, a few per cent more on this texture.
+    np.testing.assert_allclose(np.sqrt(cheap[:, [0, 2]]), np.sqrt(ref[:, [0, 2]]), rtol=0.10)
+    corr = cheap[:, 1] / np.sqrt(cheap[:, 0] * cheap[:, 2])
+    np.testing.assert_allclose(corr, ref[:, 1] / np.sqrt(ref[:, 0] * ref[:, 2]), atol=0.1)
+    # and the whole: scale 2 doubles it; one channel of three identical ones is the same covariance
+    np.testing.assert_allclose(klt_covariance(d1, pts, err, 21, scale=2.0), 2 * cheap)
+    three = np.repeat(d1[:, :, None], 3, axis=2)
+    # three channels: J^T J three times, the same per-element residual, 3 x 441 - 2 degrees of freedom
+    dof = (3 * 441 / (3 * 441 - 2)) / (441 / (441 - 2))
+    np.testing.assert_allclose(klt_covariance(three, pts, err, 21), cheap / 3 * dof, rtol=1e-6)
+
+
+@pytest.mark.parametrize("args, match", [
+    ({"err": np.array([1.0, -1.0])}, r"err must be finite and >= 0, got -1\.0 at point 1"),
+    ({"err": np.array([np.nan, 1.0])}, r"err must be finite and >= 0, got nan at point 0"),
+    ({"err": np.ones(3)}, r"pts must be \(N, 2\) and err \(N,\), got \(2, 2\) and \(3,\)"),
+    ({"pts": np.array([[10.0, np.inf], [20.0, 20.0]])}, r"pts must be finite, got \[10\.0, inf\] at point 0"),
+    ({"window": 20}, "window must be odd"),
+    ({"image": np.zeros((20, 40), np.uint8)}, r"image 40x20 is smaller than the 23x23 window"),
+])
+def test_klt_covariance_names_bad_input(args, match):
+    kw = {"image": np.zeros((60, 60), np.uint8), "pts": np.array([[10.0, 10.0], [20.0, 20.0]]),
+          "err": np.ones(2), "window": 21, **args}
+    with pytest.raises(CoreError, match=match):
+        klt_covariance(**kw)
+
+
+def test_klt_covariance_of_a_border_point_reads_a_window_inside_the_image():
+    img = np.round(_smooth_texture(80, seed=8, blur=2.0) * 255).astype(np.uint8)
+    pts = np.array([[0.0, 0.0], [11.0, 11.0], [79.0, 40.0]])
+    cov = klt_covariance(img, pts, np.ones(3), 21)
+    np.testing.assert_allclose(cov[0], cov[1])  # moved inside: the same window as the corner one
+    assert np.isfinite(cov).all() and np.all(cov[:, 0] > 0)
+
+
+def test_calibration_applies_scale_and_floor_and_inverts():
+    cal = CovarianceScale(4.0, "registry", 0.01)
+    raw = np.array([[1.0, 0.5, 2.0], [np.inf, 0.0, np.inf]])
+    got = cal.apply(raw)
+    np.testing.assert_allclose(got[0], [4.01, 2.0, 8.01])
+    assert np.isinf(got[1, 0]) and got[1, 1] == 0.0  # a singular J^T J stays unbounded
+    np.testing.assert_allclose(cal.raw(got)[0], raw[0])
+    with pytest.raises(CoreError, match=r"floor must be a finite number >= 0 \(px\^2\), got -0\.1"):
+        CovarianceScale(1.0, "registry", -0.1)
+    with pytest.raises(CoreError, match="scale must be a finite number > 0, got nan"):
+        CovarianceScale(float("nan"))
+
+
+def test_sidecar_with_a_floor_and_an_older_one_without(tmp_path):
+    model = tmp_path / "enc.onnx"
+    model.write_bytes(b"model")
+    import hashlib
+
+    sha = hashlib.sha256(b"model").hexdigest()
+    side = sidecar_path(model)
+    side.write_text(json.dumps({"scales": {"nsflow": 5.0}, "model_sha256": sha}))  # an older sidecar
+    old = read_scale("nsflow", {}, model)
+    assert (old.scale, old.floor, old.calibrated) == (5.0, 0.0, True)
+    side.write_text(json.dumps({"scales": {"nsflow": {"scale": 4.0, "floor": 0.002}}, "model_sha256": sha}))
+    new = read_scale("nsflow", {}, model)
+    assert (new.scale, new.floor, new.source) == (4.0, 0.002, "enc.covariance.json")
+    model.write_bytes(b"another model")  # replaced under the same name: the stale check still holds
+    stale = read_scale("nsflow", {}, model)
+    assert (stale.scale, stale.floor, stale.calibrated) == (1.0, 0.0, False)
+    meta = {METADATA_KEY: json.dumps({"nsflow": {"scale": 3.0, "floor": 0.5}})}
+    assert read_scale("nsflow", meta).floor == 0.5
+    reg = CovarianceScale(2.0, "registry", 0.1)
+    assert read_scale("klt", registry=reg) is reg
+
+
+@pytest.mark.parametrize("entry, match", [
+    ({"scale": 2.0, "floor": -1}, r"covariance floor of 'nsflow' must be a finite number >= 0, got -1"),
+    ({"scale": 2.0, "floor": "x"}, r"covariance floor of 'nsflow' must be a finite number >= 0, got 'x'"),
+    ({"floor": 0.1}, r"covariance scale of 'nsflow' must be a finite number > 0, got None"),
+    ({"scale": 0, "floor": 0.1}, r"covariance scale of 'nsflow' must be a finite number > 0, got 0"),
+])
+def test_bad_stored_floors_are_named(entry, match):
+    with pytest.raises(CoreError, match=match):
+        read_scale("nsflow", {METADATA_KEY: json.dumps({"nsflow": entry})})
+
+
+def test_klt_template_hessian_is_read_once_for_a_stereo_then_temporal_solve_and_never_stale():
+    rng = np.random.default_rng(9)
+    left = cv2.GaussianBlur(rng.integers(0, 255, (120, 160)).astype(np.uint8), (0, 0), 1.5)
+    right = np.roll(left, -3, axis=1)
+    nxt = np.clip(np.roll(left, 1, axis=0) + rng.normal(0, 3, left.shape), 0, 255).astype(np.uint8)
+    pts = np.array([[60.0, 60.0], [100.5, 50.2], [40.3, 80.0]])
+    method, fresh = make_method("klt"), make_method("klt")
+    method.solve_with_covariance(SolveKind.STEREO, left, right, pts)
+    # the next frame's temporal solve from the same left image and points: the windows are not read again
+    hess = method._hessian_memo[2]
+    _, status, cov = method.solve_with_covariance(SolveKind.FORWARD, left, nxt, pts)
+    assert method._hessian_memo[2] is hess and status.all()
+    np.testing.assert_array_equal(cov, fresh.solve_with_covariance(SolveKind.FORWARD, left, nxt, pts)[2])
+    # another image or other points: read again
+    _, _, other = method.solve_with_covariance(SolveKind.FORWARD, nxt, left, pts)
+    np.testing.assert_array_equal(other, fresh.solve_with_covariance(SolveKind.FORWARD, nxt, left, pts)[2])
+    moved = pts + 5.0
+    _, _, cov2 = method.solve_with_covariance(SolveKind.FORWARD, nxt, left, moved)
+    np.testing.assert_array_equal(cov2, fresh.solve_with_covariance(SolveKind.FORWARD, nxt, left, moved)[2])

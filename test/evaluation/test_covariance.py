@@ -33,6 +33,23 @@ def test_a_true_covariance_is_calibrated_and_its_scale_is_one():
     assert cv.fit_scale(err, cov / 9.0) == pytest.approx(9.0, rel=0.03)  # a 3x optimistic sigma
 
 
+def test_fit_calibration_recovers_a_scale_and_a_floor():
+    err, cov = _gaussian(8000, seed=1)
+    # Errors whose covariance is cov / 4 x 4 + 0.01 I: the raw covariance (cov / 4) is too small and its
+    # range too wide (sigmas up to 0.5 px: the 2 px inlier cut leaves the Gaussian whole).
+    rng = np.random.default_rng(2)
+    noisy = err + rng.normal(0, 0.1, err.shape)
+    s, f = cv.fit_calibration(noisy, cov / 4.0)
+    assert s == pytest.approx(4.0, rel=0.05) and f == pytest.approx(0.01, rel=0.15)
+    # Without a floor in the data the fit finds (nearly) none and the scale alone, as fit_scale does.
+    s0, f0 = cv.fit_calibration(err, cov / 9.0)
+    assert s0 == pytest.approx(9.0, rel=0.05) and f0 < 1e-3
+    cal = cv.calibration(noisy, cov / 4.0 * s + np.array([f, 0.0, f]))
+    assert 0.66 < cal["inside_68"] < 0.70 and 0.9 < cal["decile_ratio_min"] <= cal["decile_ratio_max"] < 1.1
+    with pytest.raises(cv.EvaluationError, match="no inlier"):
+        cv.fit_calibration(np.full((3, 2), 5.0), cov[:3])
+
+
 def test_ranking_metrics_on_known_orders():
     err = np.linspace(0, 3, 301)
     bad = err > 1.0
@@ -83,12 +100,13 @@ def test_quick_run_reports_every_metric_per_method(ctx):
         assert 0.0 <= pooled["calibration"]["inside_68"] <= pooled["calibration"]["inside_95"] <= 1.0
         assert sec.data["rotation"][name]  # weighted and isotropic rotation errors per level
     assert "AUROC" in sec.markdown and "Quick mode" in sec.markdown
-    scale, source = sec.data["scales"][NSFLOW]
+    scale, source, floor = sec.data["scales"][NSFLOW]
     assert scale > 1 and source.endswith(".covariance.json")  # the shipped model's fitted scale
+    assert floor >= 0
 
 
 def test_fit_command_prints_each_method_s_scale(tmp_path, capsys):
     assert cv.main(["fit", "--quick", "--no-write", "--out", str(tmp_path), "--threads", "1"]) == 0
     out = capsys.readouterr().out
     for name in ("nsflow", "nsflow_lk", "classical", "klt"):
-        assert f"{name}: scale" in out
+        assert f"{name}: scale" in out and "floor" in out
