@@ -866,11 +866,5 @@ def main(args: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _label(method: str) -> str:
-    from nsflow_ros.evaluation.methods import VARIANTS
-
-    return next(label for label, v in VARIANTS.items() if v.method == method and not v.equalize)
-
-
 if __name__ == "__main__":
     sys.exit(main())
