@@ -464,6 +464,12 @@ _GAIN_LO, _GAIN_HI = 0.25, 4.0
 _PER_CHANNEL = "imjk,imjk->mk"
 
 
+def _gain_template_sums(template: list[np.ndarray]) -> list[np.ndarray]:
+    """Per chunk, minus the template's window sums as (1, M, K): the first row of :func:`_template_sums`'s
+    layout, all the gain's equations need of the template's sums, taken once per level."""
+    return [-_window_sums(t)[None] for t in template]
+
+
 def _gain_equations(
     level: tuple[np.ndarray, ...],
     centers: np.ndarray,
@@ -471,9 +477,10 @@ def _gain_equations(
     window: int,
     below: np.ndarray | None = None,
     template_patch: list[np.ndarray] | None = None,
-    template_sums: None = None,
+    template_sums: list[np.ndarray] | None = None,
 ) -> np.ndarray:
-    """:func:`_normal_equations` (same arguments; ``template_sums`` unused) for the bias
+    """:func:`_normal_equations` (same arguments; ``template_sums`` per chunk only its first row, minus the
+    template's window sum, computed here when None) for the bias
     and gain residual r = g (w - mean w) - (t - mean t) per channel, g the least-squares gain of the
     candidate window w onto the template t (clipped).
 
@@ -489,10 +496,12 @@ def _gain_equations(
     patches = _sample_level(level, centers, window + 2)
     sums = np.zeros((m, 6))
     parts = []
+    if template_sums is None:
+        template_sums = _gain_template_sums(template)
     with np.errstate(divide="ignore", invalid="ignore"):
-        for p, t in zip(patches, template, strict=True):
+        for p, t, ts in zip(patches, template, template_sums, strict=True):
             inner = p[1:-1, :, 1:-1]
-            s1, st = _window_sums(inner).astype(np.float64), _window_sums(t).astype(np.float64)
+            s1, st = _window_sums(inner).astype(np.float64), -ts[0].astype(np.float64)
             spt = np.einsum(_PER_CHANNEL, inner, t) - s1 * st / n  # sum (w - mean w)(t - mean t)
             sww = np.einsum(_PER_CHANNEL, inner, inner) - s1 * s1 / n
             g = spt / sww
@@ -564,7 +573,10 @@ def _solve_level(
     # The Jacobian kind is settled here, once per level: ESM carries the template's patches.
     template, tpatch = _templates(level1, pts, win, cfg.jacobian)
     gain = cfg.gain_at(level_index)
-    tsums = _template_sums(template, tpatch) if cfg.zero_mean and not gain else None
+    if gain:
+        tsums = _gain_template_sums(template)
+    else:
+        tsums = _template_sums(template, tpatch) if cfg.zero_mean else None
     contrast = np.zeros(n)
     if level_index == 0:  # only level 0's is reported
         # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count.
