@@ -675,7 +675,7 @@ class MethodSpec:
 
 
 COVARIANCE_SCALES: Mapping[str, CovarianceScale] = MappingProxyType({
-    "classical": CovarianceScale(4.257, "registry"),
+    "classical": CovarianceScale(3.22, "registry", 7.289e-4),
     "klt": CovarianceScale(19.78, "registry", 1.484e-3),
 })
 """The fitted covariance calibrations (scale, floor in px^2) of the methods without a model, as ``python -m
