@@ -463,9 +463,13 @@ class LMMethod(TrackingMethod):
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         new, status, res = self.solve_result(kind, frame1, frame2, pts, start, prior)
-        # The solver's own final J^T J and cost: a few operations per point, no pass over the window.
+        return new, status, self.result_covariance(res, frame2)
+
+    def result_covariance(self, result: TrackResult, frame2: DescriptorPyramid) -> np.ndarray:
+        """The calibrated covariances of a solve's :class:`TrackResult` into ``frame2`` (N, 3): from the
+        solver's own final J^T J and cost, a few operations per point, no pass over the window."""
         elements = self.lm.window * self.lm.window * frame2.channels
-        return new, status, self.covariance_scale.apply(lm_covariance(res.hessian, res.cost, elements))
+        return self.covariance_scale.apply(lm_covariance(result.hessian, result.cost, elements))
 
     def solve_result(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,

@@ -34,7 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.covariance import lm_covariance, sidecar_path
+from nsflow_ros.core.covariance import sidecar_path
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.methods import KLTMethod, LMMethod, SolveKind
 from nsflow_ros.evaluation.context import EvalContext, new_figure, sample_sequence, save_figure
@@ -199,9 +199,7 @@ def _cost_and_cov(method: EvalMethod, f1: Any, f2: Any, pts: np.ndarray) -> tupl
     core = method.core
     if isinstance(core, LMMethod):
         new, status, res = core.solve_result(SolveKind.FORWARD, f1, f2, pts)
-        elements = core.lm.window * core.lm.window * f2.channels
-        cov = core.covariance_scale.apply(lm_covariance(res.hessian, res.cost, elements))
-        return new, status, cov, res.cost
+        return new, status, core.result_covariance(res, f2), res.cost
     if not isinstance(core, KLTMethod):
         raise EvaluationError(f"{method.name}: no covariance for {type(core).__name__}")
     new, status, cov = core.solve_with_covariance(SolveKind.FORWARD, f1, f2, pts)
@@ -433,7 +431,7 @@ def _golden(f: Any, lo: float, hi: float, iterations: int = 32) -> float:
     return (a + b) / 2.0
 
 
-def fit_calibration(error: np.ndarray, cov: np.ndarray, floor: bool = True) -> tuple[float, float]:
+def fit_calibration(error: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
     """The scale s and floor f (px^2) of Sigma = s * cov + f * I that maximise the likelihood of the
     inliers' errors.
 
@@ -441,9 +439,6 @@ def fit_calibration(error: np.ndarray, cov: np.ndarray, floor: bool = True) -> t
     of two ellipses it falls, weighs the small-sigma and the large-sigma features by how much data each
     has, and with f = 0 it is :func:`fit_scale` exactly (an older scale-only fit is its special case).
     Searched on log s for each f (golden section, nested), f from 0 to the errors' own mean variance.
-
-    Args:
-        floor: False fits the scale alone (f = 0).
 
     Returns:
         (s, f); f = 0 where a floor does not raise the likelihood.
@@ -456,8 +451,6 @@ def fit_calibration(error: np.ndarray, cov: np.ndarray, floor: bool = True) -> t
     if len(e) == 0:
         raise EvaluationError("no inlier to fit the covariance calibration on")
     s0 = fit_scale(e, c)
-    if not floor:
-        return s0, 0.0
     top = float(np.mean(e**2))  # a floor beyond the errors' own variance cannot help
 
     def best_scale(floor: float) -> float:
