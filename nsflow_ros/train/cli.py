@@ -423,13 +423,15 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             (out / f"eval_{name}.md").write_text(footage_table + "\n")
             plot_footage(rows, out / f"eval_{name}.png")
             print(f"held-out frames of {src.describe()['path']}:\n{footage_table}")
-    files = {"loss": result.files["loss_png"], "val": result.files["val_png"], "eval": eval_png}
+    # --val-every 0 runs no validation, so there is no validation figure to install
+    files = {"loss": result.files["loss_png"], "val": result.files.get("val_png"), "eval": eval_png}
     if opts.install:
         models = Path(opts.models_dir)
         models.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(onnx_path, models / "nsflow_encoder.onnx")
         shutil.copyfile(files["loss"], models / "train_loss.png")
-        shutil.copyfile(files["val"], models / "train_validation.png")
+        if files["val"] is not None:
+            shutil.copyfile(files["val"], models / "train_validation.png")
         shutil.copyfile(files["eval"], models / "eval_heldout.png")
         notes = opts.card_notes.read_text() if opts.card_notes else ""
         write_model_card(
@@ -444,8 +446,9 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             figures={
                 "Held-out comparison, NumPy solver as deployed (3 levels), 5 px start": "eval_heldout.png",
                 "Training loss and held-out validation share < 1 px per epoch": "train_loss.png",
+            } | ({} if files["val"] is None else {
                 "Held-out validation, last epoch (torch layer, levels=1, 5 px start)": "train_validation.png",
-            },
+            }),
             notes=notes,
             loss=opts.rho,
             levels=opts.levels,

@@ -120,6 +120,15 @@ def test_cli_runs_end_to_end(tmp_path, capsys):
         assert (models / png).stat().st_size < 200_000
 
 
+def test_cli_without_validation_installs_without_its_figure(tmp_path):
+    out, models = tmp_path / "run", tmp_path / "models"
+    args = "--steps 2 --d 2 --val-every 0 --eval-per-image 1 --no-progress --install"
+    assert main([*args.split(), "--out", str(out), "--models-dir", str(models)]) == 0
+    assert not list(out.glob("val_epoch*.png"))
+    assert (models / "train_loss.png").is_file() and not (models / "train_validation.png").exists()
+    assert "train_validation.png" not in (models / "README.md").read_text()
+
+
 def test_cli_reports_known_errors(tmp_path, capsys):
     assert main(["--steps", "1", "--d", "0", "--out", str(tmp_path / "x")]) == 1
     assert "EncoderSpec.d" in capsys.readouterr().err
