@@ -118,6 +118,17 @@ class VinsConfig:
         """The value of every key in :data:`OVERRIDABLE_KEYS`."""
         return {key: getattr(self, key) for key in OVERRIDABLE_KEYS}
 
+    def tracker_fields(self) -> dict[str, Any]:
+        """The TrackerSettings fields this config sets, by field name: its settings with a VINS key, in
+        the tracker's types, and ``stereo``."""
+        out: dict[str, Any] = {}
+        for s in SETTINGS:
+            if s.tracker and s.vins_key is not None:
+                value = getattr(self, s.vins_key)
+                out[s.name] = bool(value) if s.switch else (s.tracker_type or s.type)(value)
+        out["stereo"] = self.stereo
+        return out
+
 
 # ----------------------------------------------------------------------------------------------------------
 # Typed access to the parsed file

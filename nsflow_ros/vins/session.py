@@ -45,7 +45,6 @@ from nsflow_ros.vins.settings import (
     TRACKER_SETTINGS,
     Mode,
     Setting,
-    config_tracker_fields,
     is_unset,
     session_tracker_fields,
     setting,
@@ -280,7 +279,7 @@ class FrontEndSession:
 
     def _apply_live(self, config: VinsConfig, fields: dict[str, Any], names: list[str]) -> None:
         """Give the running tracker new values of live settings (the one place its settings change)."""
-        target = {**config_tracker_fields(config), **fields}
+        target = {**config.tracker_fields(), **fields}
         try:
             self.tracker.update_settings({**{n: target[n] for n in names}, **self._fixed})
         except CoreError as err:

@@ -15,14 +15,11 @@ import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import Enum
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from nsflow_ros.resources import DEFAULT_CONFIG
 from nsflow_ros.vins.errors import ConfigError
 from nsflow_ros.vins.pairing import STEREO_SYNC_TOLERANCE
-
-if TYPE_CHECKING:
-    from nsflow_ros.vins.config import VinsConfig
 
 __all__ = [
     "KEEP",
@@ -34,7 +31,6 @@ __all__ = [
     "Mode",
     "Setting",
     "Value",
-    "config_tracker_fields",
     "is_unset",
     "session_tracker_fields",
     "setting",
@@ -422,17 +418,6 @@ def setting(name: str) -> Setting:
         return _BY_NAME[name]
     except KeyError:
         raise ConfigError(f"unknown setting {name!r}; known: {', '.join(_BY_NAME)}") from None
-
-
-def config_tracker_fields(config: VinsConfig) -> dict[str, Any]:
-    """The TrackerSettings fields a VINS config sets: its settings with a VINS key, and ``stereo``."""
-    out: dict[str, Any] = {}
-    for s in SETTINGS:
-        if s.tracker and s.vins_key is not None:
-            value = getattr(config, s.vins_key)
-            out[s.name] = bool(value) if s.switch else (s.tracker_type or s.type)(value)
-    out["stereo"] = int(config.num_of_cam) == 2
-    return out
 
 
 def session_tracker_fields(values: Mapping[str, Any], layout: str) -> dict[str, Any]:

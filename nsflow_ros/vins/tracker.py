@@ -21,7 +21,6 @@ from nsflow_ros.core.masks import binarize, check_mask, combine
 from nsflow_ros.core.tracker import FeatureTracker, TrackerSettings
 from nsflow_ros.vins.config import VinsConfig
 from nsflow_ros.vins.errors import ConfigError
-from nsflow_ros.vins.settings import config_tracker_fields
 
 __all__ = ["FISHEYE_MASK_NAME", "find_fisheye_mask", "load_mask", "load_static_masks", "tracker_from_config"]
 
@@ -127,7 +126,7 @@ def tracker_from_config(
         CoreError: an unknown or bad setting (or a mask of the wrong size); EncoderError: the model cannot
             be loaded.
     """
-    settings = TrackerSettings(**config_tracker_fields(config)).with_overrides(overrides or {})
+    settings = TrackerSettings(**config.tracker_fields()).with_overrides(overrides or {})
     body_r = np.asarray(config.body_T_cam[0], dtype=np.float64)[:3, :3] if config.body_T_cam else None
     cams = list(config.cameras)
     fisheye = None

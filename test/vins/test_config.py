@@ -177,6 +177,17 @@ def test_shipped_stereo_config() -> None:
     assert all(t.dtype == np.float64 and not t.flags.writeable for t in config.body_T_cam)
 
 
+def test_tracker_fields_are_the_vins_keyed_tracker_settings_in_the_trackers_types() -> None:
+    fields = load_vins_config(STEREO).tracker_fields()
+    # show_track and freq have VINS keys but are the session's, not the tracker's
+    assert fields == {
+        "max_cnt": 150, "min_dist": 30.0, "F_threshold": 1.0, "flow_back": True, "equalize": False,
+        "stereo": True,
+    }
+    assert isinstance(fields["min_dist"], float) and fields["flow_back"] is True
+    assert load_vins_config(MONO).tracker_fields()["stereo"] is False
+
+
 def test_shipped_mono_config() -> None:
     config = load_vins_config(MONO)
     assert config.dialect == "fusion" and config.num_of_cam == 1 and not config.stereo
