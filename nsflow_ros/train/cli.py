@@ -430,9 +430,15 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         models.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(onnx_path, models / "nsflow_encoder.onnx")
         shutil.copyfile(files["loss"], models / "train_loss.png")
+        shutil.copyfile(files["eval"], models / "eval_heldout.png")
+        figures = {
+            "Held-out comparison, NumPy solver as deployed (3 levels), 5 px start": "eval_heldout.png",
+            "Training loss and held-out validation share < 1 px per epoch": "train_loss.png",
+        }
         if files["val"] is not None:
             shutil.copyfile(files["val"], models / "train_validation.png")
-        shutil.copyfile(files["eval"], models / "eval_heldout.png")
+            last_epoch = "Held-out validation, last epoch (torch layer, levels=1, 5 px start)"
+            figures[last_epoch] = "train_validation.png"
         notes = opts.card_notes.read_text() if opts.card_notes else ""
         write_model_card(
             models / "README.md",
@@ -443,12 +449,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             steps=result.steps,
             seconds=result.seconds,
             tables=table,
-            figures={
-                "Held-out comparison, NumPy solver as deployed (3 levels), 5 px start": "eval_heldout.png",
-                "Training loss and held-out validation share < 1 px per epoch": "train_loss.png",
-            } | ({} if files["val"] is None else {
-                "Held-out validation, last epoch (torch layer, levels=1, 5 px start)": "train_validation.png",
-            }),
+            figures=figures,
             notes=notes,
             loss=opts.rho,
             levels=opts.levels,
