@@ -32,6 +32,7 @@ from nsflow_ros.core.covariance import (
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
+from nsflow_ros.core.refine import IntensityRefinement, gray_level, refine
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
 __all__ = [
@@ -400,6 +401,7 @@ class LMMethod(TrackingMethod):
         self.lm: LMConfig = declared_residual(spec.lm, encoder)
         self.policy: SolvePolicy = spec.policy
         self.pyramid_smoothing = pyramid_smoothing(encoder)
+        self.refinement: IntensityRefinement | None = spec.refine
 
     @staticmethod
     def residual_ratio(result: TrackResult) -> np.ndarray:
@@ -413,16 +415,18 @@ class LMMethod(TrackingMethod):
         return build_pyramid(desc, self.lm.levels, self.pyramid_smoothing)
 
     def prepare(self, image: np.ndarray, gray: np.ndarray) -> DescriptorPyramid:
-        return self.pyramid(self.encoder(self.encoder_input(image, gray)))
+        pyr = self.pyramid(self.encoder(self.encoder_input(image, gray)))
+        return pyr if self.refinement is None else replace(pyr, image=gray_level(gray))
 
     def track_pair_result(
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         flow0: np.ndarray | None = None, config: LMConfig | None = None, *, record: bool = False,
-        first_level: np.ndarray | None = None,
+        first_level: np.ndarray | None = None, finest_level: int = 0,
     ) -> TrackResult:
         """The solver call itself (:func:`~nsflow_ros.core.solver.track`) with its full result; ``config``
         None = :attr:`lm`."""
-        return track(frame1, frame2, pts, flow0, config or self.lm, record=record, first_level=first_level)
+        return track(frame1, frame2, pts, flow0, config or self.lm, record=record, first_level=first_level,
+                     finest_level=finest_level)
 
     def track_pair(
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
@@ -439,15 +443,17 @@ class LMMethod(TrackingMethod):
         self, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, levels: int | None = None, first_level: np.ndarray | None = None,
         *, residual_test: bool = False, jacobian: Jacobian | None = None, eps: float | None = None,
-        coarse_window: bool = True,
+        coarse_window: bool = True, finest_level: int = 0,
     ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
-        """:meth:`track_pair` with the solver's full result."""
+        """:meth:`track_pair` with the solver's full result; the residual test needs level 0's contrast,
+        so a solve that ends above it (``finest_level``) skips it."""
         cfg = replace(self.lm, levels=levels or self.lm.levels, jacobian=jacobian or self.lm.jacobian,
                       eps=eps or self.lm.eps, coarse_window=self.lm.coarse_window if coarse_window else None)
         flow0 = None if start is None else start - pts
-        res = self.track_pair_result(frame1, frame2, pts, flow0, cfg, first_level=first_level)
+        res = self.track_pair_result(frame1, frame2, pts, flow0, cfg, first_level=first_level,
+                                     finest_level=finest_level)
         status = res.status
-        if residual_test and np.isfinite(self.policy.max_residual) and status.any():
+        if residual_test and not finest_level and np.isfinite(self.policy.max_residual) and status.any():
             status = status & (self.residual_ratio(res) <= self.policy.max_residual)
         return np.where(np.isfinite(res.flow), pts + res.flow, pts), status, res
 
@@ -475,7 +481,48 @@ class LMMethod(TrackingMethod):
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
-        """:meth:`solve` with the solver's full result (cost, J^T J, ...), e.g. for the evaluation."""
+        """:meth:`solve` with the solver's full result (cost, J^T J, ...), e.g. for the evaluation.
+
+        With an intensity step (:attr:`refinement`), a forward or stereo solve from the pyramid stops one
+        level short of full resolution and the step on the images finishes it; the points it does not keep
+        get the descriptor solve's last level as before. A kept point's row of the result holds the
+        step's J^T J and its cost rescaled to the descriptor window's degrees of freedom, so that
+        :meth:`result_covariance` is the step's covariance there.
+        """
+        step_applies = (self.refinement is not None and not kind.is_check and frame1.image is not None
+                        and frame2.image is not None)
+        if not step_applies:
+            return self._descriptor_solve(kind, frame1, frame2, pts, start, prior)
+        assert self.refinement is not None
+        # From the IMU prediction the descriptor solve has one level only: the step follows it whole.
+        finest = 0 if start is not None else 1
+        new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest)
+        step = refine(frame1.image, frame2.image, pts, new, status, self.refinement)
+        new, kept = step.positions, step.kept
+        flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
+        contrast = res.contrast.copy()
+        rest = np.flatnonzero(status & ~kept) if finest else np.zeros(0, np.int64)
+        status = status.copy()
+        if rest.size:  # the descriptors' own last level, from where the coarse levels left them
+            fine_new, fine_status, fine = self._track_pair(frame1, frame2, pts[rest], new[rest], 1,
+                                                           residual_test=True)
+            new[rest], status[rest] = fine_new, fine_status
+            flow[rest], hessian[rest], cost[rest] = fine.flow, fine.hessian, fine.cost
+            contrast[rest] = fine.contrast
+        dof = self.lm.window * self.lm.window * frame2.channels - 2
+        win = self.refinement.window
+        flow[kept] = new[kept] - pts[kept]
+        hessian[kept] = step.hessian[kept]
+        cost[kept] = step.cost[kept] * dof / (win * win - 2)
+        contrast[kept] = step.contrast[kept]
+        merged = TrackResult(flow, status, cost, res.iterations, contrast, res.history, hessian)
+        return new, status, merged
+
+    def _descriptor_solve(
+        self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
+        start: np.ndarray | None = None, prior: np.ndarray | None = None, finest: int = 0,
+    ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
+        """The pyramid solve of :meth:`solve_result`, ending at level ``finest``."""
         p = self.policy
         if kind.is_check:
             return self._track_pair(frame1, frame2, pts, start, CHECK_LEVELS, jacobian=p.check_jacobian,
@@ -490,12 +537,12 @@ class LMMethod(TrackingMethod):
         if p.prior_levels > 0 and prior is not None:
             known = np.isfinite(prior).all(axis=1)
         if prior is None or not known.any():  # no prior, or the median of nothing: all from zero flow
-            return self._track_pair(frame1, frame2, pts, residual_test=True)
+            return self._track_pair(frame1, frame2, pts, residual_test=True, finest_level=finest)
         flow0 = _fill_prior(pts, prior, known)
         first = np.where(known, p.prior_levels, p.fill_levels or self.lm.levels).astype(np.int64) - 1
         # Every point starts near its answer: the coarse window, there for starts far off, is not needed.
         return self._track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,
-                                coarse_window=False)
+                                coarse_window=False, finest_level=finest)
 
 
 class KLTMethod(TrackingMethod):
@@ -643,6 +690,7 @@ class MethodSpec:
     clahe: Clahe = CLAHE
     covariance_scale: CovarianceScale | None = None
     default_model: str = "default"
+    refine: IntensityRefinement | None = None
 
     def __post_init__(self) -> None:
         is_lm = self.lm is not None and self.policy is not None
@@ -687,8 +735,8 @@ nsflow_ros.evaluation.covariance fit`` prints them (the learned methods' are sto
 
 METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     "nsflow": MethodSpec(
-        "nsflow", "NSFlow", "learned encoder + the LM solver (NumPy)", EncoderSource.LEARNED,
-        lm=DEPLOYED_LM, policy=SolvePolicy(),
+        "nsflow", "NSFlow", "learned encoder + the LM solver (NumPy), finished on the image",
+        EncoderSource.LEARNED, lm=DEPLOYED_LM, policy=SolvePolicy(), refine=IntensityRefinement(),
     ),
     "nsflow_lk": MethodSpec(
         "nsflow_lk", "NSFlow + OpenCV LK", "learned encoder as uint8 + OpenCV's pyramidal LK (VINS's calls)",

@@ -129,10 +129,13 @@ class DescriptorPyramid:
             K <= 4, together the C descriptor channels in order (2-3 channel chunks padded in memory to 4,
             :func:`sampling_source`).
         channels: C, the descriptor dimension.
+        image: the frame's gray image as a one-chunk level ((H, W, 1) float32 in [0, 1]) for a method that
+            refines on intensity (:mod:`~nsflow_ros.core.refine`); None = none kept.
     """
 
     levels: tuple[tuple[np.ndarray, ...], ...]
     channels: int
+    image: tuple[np.ndarray, ...] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -686,6 +686,7 @@ def track(
     *,
     record: bool = False,
     first_level: np.ndarray | None = None,
+    finest_level: int = 0,
 ) -> TrackResult:
     """Track points from frame 1 to frame 2 with the descriptor LM-LK solver.
 
@@ -698,6 +699,9 @@ def track(
         record: keep a per-iteration history (costs time).
         first_level: per point, the coarsest level it is solved on (a trusted start needs fewer); None =
             all levels. Points share the passes of the levels they have in common.
+        finest_level: the last level solved (0 = full resolution); above 0 the result's cost and J^T J
+            are that level's (J^T J zero where a point stopped), its contrast is zero and the status tests
+            no texture, for a caller that finishes the solve itself.
 
     Raises:
         CoreError: on mismatched maps, a wrong points/flow0 shape, or non-finite input.
@@ -724,6 +728,8 @@ def track(
             raise CoreError(f"flow0 must have shape ({n}, 2) like points, got {flow.shape}")
     if not (np.isfinite(pts).all() and np.isfinite(flow).all()):
         raise CoreError("points and flow0 must be finite")
+    if finest_level < 0:
+        raise CoreError(f"finest_level must be >= 0, got {finest_level}")
     iterations = np.zeros(n, np.int64)
     history: list[IterationRecord] | None = [] if record else None
     if n == 0:
@@ -731,6 +737,7 @@ def track(
         return TrackResult(np.zeros((0, 2)), np.zeros(0, bool), empty, iterations, empty, history or [])
 
     nlev = min(cfg.levels, pyr1.num_levels, pyr2.num_levels)
+    finest = min(finest_level, nlev - 1)
     if first_level is None:
         first = np.full(n, nlev - 1)
     else:
@@ -738,10 +745,11 @@ def track(
         if first.shape != (n,) or not np.issubdtype(first.dtype, np.integer):
             raise CoreError(f"first_level must be ({n},) integers, got {first.dtype} {first.shape}")
         first = np.minimum(first, nlev - 1)
+    first = np.maximum(first, finest)
     # u in level-0 pixels (scaling by powers of two is exact); a point joins at its first level, so
     # coarse passes carry only those that need them.
     u = flow.copy()
-    for lev in range(int(first.max(initial=0)), -1, -1):
+    for lev in range(int(first.max(initial=0)), finest - 1, -1):
         s = 2.0**lev
         sel = first >= lev
         part = sel.all()
@@ -756,13 +764,15 @@ def track(
         else:
             u[sel] = state[:, _U] * s
             iterations[sel] += it
-    # level 0 holds every point
-    status = _valid(pts, u, state[:, _HESS], pyr1.shape, pyr1.channels, cfg)
+    # the finest level holds every point
+    # A coarse level skips J^T J for points that stop (their J is never used): no texture test there.
+    status = _valid(pts, u, state[:, _HESS] if finest == 0 else None, pyr1.shape, pyr1.channels, cfg)
     return TrackResult(u, status, state[:, _COST], iterations, contrast, history or [], state[:, _HESS])
 
 
 def _valid(
-    pts: np.ndarray, u: np.ndarray, hess: np.ndarray, shape: tuple[int, int], channels: int, cfg: LMConfig
+    pts: np.ndarray, u: np.ndarray, hess: np.ndarray | None, shape: tuple[int, int], channels: int,
+    cfg: LMConfig,
 ) -> np.ndarray:
     h, w = shape
     r = cfg.window // 2 if cfg.margin is None else cfg.margin
@@ -772,6 +782,8 @@ def _valid(
 
     new = pts + u
     finite = np.isfinite(new).all(axis=1)
+    if hess is None:  # no J^T J to test
+        return finite & inside(pts) & inside(np.where(finite[:, None], new, -1e9))
     # Smallest eigenvalue of the symmetric 2x2 J^T J, per window element.
     tr = hess[:, 0] + hess[:, 2]
     diff = hess[:, 0] - hess[:, 2]
