@@ -54,7 +54,9 @@ FEATURE_TOPIC = "/feature_tracker/feature"
 """The topic ``vins_node`` takes features from; a run starts the play once it has subscribed."""
 
 RUN_RECORD = "estimator_run.json"
-"""Written into the run folder beside ``vio.csv``: wall times, the master's port, exit codes."""
+"""Written into the run folder beside ``vio.csv``: wall times, the master's port, exit codes. The stock
+``vins_node`` aborts on SIGINT (``terminate called without an active exception``: upstream leaves its
+sync thread joinable at exit), so its status after the stop is -6; the trajectory is complete by then."""
 
 _SYSTEM_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 _POLL_S = 0.05
