@@ -19,6 +19,7 @@ TOOLS = [
     ("nsflow-train", "train", "nsflow_ros.tools:train"),
     ("nsflow-evaluate", "evaluate", "nsflow_ros.evaluation.cli:main"),
     ("nsflow-config", "config", "nsflow_ros.vins.cli:main"),
+    ("nsflow-scenes", "scenes", "nsflow_ros.evaluation.scenes:main"),
 ]
 
 

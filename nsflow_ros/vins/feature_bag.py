@@ -10,7 +10,7 @@ publishes them.
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -18,6 +18,7 @@ from typing import Any, Literal
 import numpy as np
 
 from nsflow_ros import threads as process_threads
+from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.data.errors import DataError
 from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
 from nsflow_ros.data.writers import BagWriter, temp_sibling
@@ -104,6 +105,7 @@ def write_feature_bag(
     masks: tuple[np.ndarray | None, ...] | None = None,
     progress: bool = True,
     opencv_threads: int | None = None,
+    observe: Callable[[FrameFeatures], None] | None = None,
 ) -> FeatureBagSummary:
     """Track every image of a stream and write the features and IMU as a new bag.
 
@@ -118,6 +120,7 @@ def write_feature_bag(
         masks: static masks per camera (:func:`~nsflow_ros.vins.tracker.load_static_masks`); None = the
             config's mask0 / mask1 keys, if any.
         opencv_threads: OpenCV's threads while tracking; None = the node's ``opencv_threads`` default.
+        observe: called with every frame written, e.g. to score what the estimator will get.
 
     Raises:
         NSFlowError: an existing output, a bad source, config or model, or a frame the tracker refuses.
@@ -163,6 +166,8 @@ def write_feature_bag(
                         raise NSFlowError(f"frame at {left.stamp_ns} ns: {outcome.note}")
                     if outcome.features is None:
                         continue
+                    if observe is not None:
+                        observe(outcome.features)
                     cloud = encode_fusion(outcome.features)
                     bag.write_point_cloud(FEATURE_TOPIC, left.stamp_ns, cloud.points, cloud.channels,
                                           cloud.names, frame_id=left.frame_id or "world")

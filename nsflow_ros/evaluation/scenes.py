@@ -1,0 +1,325 @@
+"""The front-ends over many scenes and camera rates: per-feature errors, and the estimator's ATE when a build
+is given (``nsflow-scenes``).
+
+One sample sequence per (scene seed, camera rate) is rendered once (cached); per perturbation and method it is
+tracked frame by frame into a feature bag exactly as ``nsflow-replay --features-bag`` does, and every frame
+written is scored against the exact optical flow as it goes: camera 0's carried-over features (from where
+the truth carries the previous published pixel) and the stereo matches. With a VINS-Fusion build
+(:mod:`~nsflow_ros.evaluation.estimator`) each bag is played into the stock estimator ``runs`` times and its
+trajectory scored (ATE RMSE, SE3 alignment); a cell's figure is the mean of its runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nsflow_ros.core.methods import BASELINE
+from nsflow_ros.core.tracker import FrameFeatures
+from nsflow_ros.errors import NSFlowError
+from nsflow_ros.evaluation.errors import EvaluationError
+
+__all__ = ["CellResult", "FeatureErrors", "evaluate_cell", "format_table", "main", "summary"]
+
+DEFAULT_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
+
+
+class FeatureErrors:
+    """Errors of a published feature stream against a sample's exact flow, frame by frame.
+
+    Temporal: camera 0's features carried over from the previous published frame, measured from where the
+    truth carries the previous pixel. Stereo: camera 1's matches against camera 0's pixel moved by the
+    truth. Occluded or out-of-image truth is left out.
+    """
+
+    def __init__(self, sample: Any) -> None:
+        self.sample = sample
+        self._stamps = np.asarray(sample.stamps_ns, dtype=np.int64)
+        self._prev: dict[int, np.ndarray] = {}
+        self._prev_index: int | None = None
+        self.temporal: list[np.ndarray] = []
+        self.stereo: list[np.ndarray] = []
+        self.features = 0
+        self.frames = 0
+
+    def __call__(self, frame: FrameFeatures) -> None:
+        c0 = frame.cameras[0]
+        self.frames += 1
+        self.features += len(c0)
+        # The frame's stamp is seconds as a float (a few hundred ns off): the nearest image stamp.
+        gap = np.abs(self._stamps - int(frame.stamp * 1e9))
+        i = int(np.argmin(gap))
+        if gap[i] > 1_000_000:
+            return
+        if self._prev_index is not None and self._prev:
+            rows = [k for k, j in enumerate(c0.ids) if int(j) in self._prev]
+            if rows:
+                prev = np.array([self._prev[int(c0.ids[k])] for k in rows])
+                flow, visible = self.sample.flow(self._prev_index, i, prev)
+                self.temporal.append(np.hypot(*(c0.pixels[rows] - prev - flow).T)[visible])
+        if len(frame.cameras) > 1 and len(frame.cameras[1]):
+            c1 = frame.cameras[1]
+            idx = np.searchsorted(c0.ids, c1.ids)
+            flow, visible = self.sample.flow(i, i, c0.pixels[idx], 0, 1)
+            self.stereo.append(np.hypot(*(c1.pixels - c0.pixels[idx] - flow).T)[visible])
+        self._prev = {int(j): p for j, p in zip(c0.ids, c0.pixels, strict=True)}
+        self._prev_index = i
+
+    def figures(self) -> dict[str, float]:
+        """Median error and share above 1 px, temporal and stereo, and features per frame."""
+        out: dict[str, float] = {"features_per_frame": self.features / max(self.frames, 1)}
+        for key, parts in (("temporal", self.temporal), ("stereo", self.stereo)):
+            e = np.concatenate(parts) if parts else np.zeros(0)
+            out[f"{key}_median_px"] = float(np.median(e)) if e.size else float("nan")
+            out[f"{key}_over_1px"] = float(np.mean(e > 1.0)) if e.size else float("nan")
+            out[f"{key}_count"] = float(e.size)
+        return out
+
+
+@dataclass
+class CellResult:
+    """One (scene seed, camera rate, perturbation, method): its feature errors and estimator ATEs (m)."""
+
+    seed: int
+    rate: float
+    perturb: str
+    method: str
+    errors: dict[str, float]
+    ate_runs: list[float] = field(default_factory=list)
+    failures: list[str] = field(default_factory=list)
+
+    @property
+    def ate(self) -> float:
+        """Mean ATE RMSE over the runs (m); inf when every run failed or diverged, NaN without runs."""
+        if not self.ate_runs and not self.failures:
+            return float("nan")
+        return float(np.mean(self.ate_runs)) if self.ate_runs else float("inf")
+
+
+def evaluate_cell(
+    sample: Any,
+    out_dir: Path,
+    method: str,
+    perturb: str,
+    *,
+    config: Path,
+    model: str | None = None,
+    vins: Any = None,
+    runs: int = 2,
+    timeout_s: float = 300.0,
+    progress: bool = False,
+) -> CellResult:
+    """Track one sample into a feature bag (as ``nsflow-replay --features-bag``), score it, and with a
+    VINS-Fusion build run the estimator ``runs`` times on it.
+
+    Args:
+        sample: a :class:`~nsflow_ros.data.sample.SampleSequence` with an ASL folder.
+        out_dir: this cell's folder (the bag, each estimator run's folder).
+        method, perturb: the tracking method and the perturbation (seeded by the sample's seed).
+        config: the VINS-Fusion config tracked with and given to the estimator.
+        model: the learned methods' model (None: each method's shipped default).
+        vins: a :class:`~nsflow_ros.evaluation.estimator.VinsBuild`, or None for no estimator.
+
+    Raises:
+        NSFlowError: a source, config or model that cannot be used.
+    """
+    from nsflow_ros.data.replay import ReplayOptions, replay_records
+    from nsflow_ros.vins.config import load_vins_config
+    from nsflow_ros.vins.feature_bag import feature_bag_topics, write_feature_bag
+
+    seed = int(sample.params["seed"])
+    cfg = load_vins_config(config)
+    bag = out_dir / "features.bag"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bag.unlink(missing_ok=True)  # a cell is re-measured whole
+    errors = FeatureErrors(sample)
+    records = replay_records(ReplayOptions(sample.root / "asl", topics=feature_bag_topics(cfg), rate=0.0,
+                                           perturb=perturb, seed=seed))
+    write_feature_bag(records, bag, cfg, method=method, overrides={"model_path": model} if model else None,
+                      progress=progress, observe=errors)
+    cell = CellResult(seed, float(sample.params["rate_hz"]), perturb, method, errors.figures())
+    if vins is None:
+        return cell
+    from nsflow_ros.evaluation.estimator import run_vins, score_vio
+
+    for r in range(runs):
+        try:
+            vio = run_vins(bag, config, vins, out_dir / f"run{r}", timeout_s=timeout_s)
+            cell.ate_runs.append(float(score_vio(vio, sample.root / "groundtruth.csv").stats.rmse))
+        except NSFlowError as err:  # a diverged or dead estimator is a result of the cell, not the end
+            cell.failures.append(str(err).splitlines()[0])
+    return cell
+
+
+def summary(cells: Sequence[CellResult], baseline: str = BASELINE) -> dict[str, dict[str, float]]:
+    """Per method, its figures over ``baseline``'s in the same cells: ATE ratio (max, median; a failed
+    baseline counts as a win, ratio 0), the share of cells at most 1.15x, and the median error ratios."""
+    base = {(c.seed, c.rate, c.perturb): c for c in cells if c.method == baseline}
+    out: dict[str, dict[str, float]] = {}
+    for method in dict.fromkeys(c.method for c in cells if c.method != baseline):
+        ate, temporal, stereo = [], [], []
+        for c in cells:
+            b = base.get((c.seed, c.rate, c.perturb))
+            if c.method != method or b is None:
+                continue
+            if np.isfinite(b.ate) or np.isfinite(c.ate):
+                ate.append(0.0 if not np.isfinite(b.ate) and np.isfinite(c.ate) else c.ate / b.ate)
+            temporal.append(c.errors["temporal_median_px"] / b.errors["temporal_median_px"])
+            stereo.append(c.errors["stereo_median_px"] / b.errors["stereo_median_px"])
+        a = np.array([x for x in ate if not np.isnan(x)])
+        out[method] = {
+            "cells": float(len(temporal)),
+            "ate_ratio_max": float(a.max()) if a.size else float("nan"),
+            "ate_ratio_median": float(np.median(a)) if a.size else float("nan"),
+            "ate_cells_within_1.15": float(np.mean(a <= 1.15)) if a.size else float("nan"),
+            "temporal_median_ratio_max": float(np.max(temporal)) if temporal else float("nan"),
+            "stereo_median_ratio_max": float(np.max(stereo)) if stereo else float("nan"),
+        }
+    return out
+
+
+def _mm(v: float) -> str:
+    return "-" if np.isnan(v) else ("failed" if not np.isfinite(v) else f"{v * 1e3:.1f}")
+
+
+def format_table(cells: Sequence[CellResult], header: str) -> str:
+    """The cells as one Markdown table (a row per cell and method) and the summary against the baseline."""
+    lines = [header, "",
+             "| scene | rate Hz | perturbation | method | ATE mm (runs) | temporal median px "
+             "| temporal > 1 px | stereo median px | stereo > 1 px | features/frame |", "|---" * 10 + "|"]
+    for c in cells:
+        e = c.errors
+        runs = ", ".join(_mm(a) for a in c.ate_runs) + (f"; {len(c.failures)} failed" if c.failures else "")
+        lines.append(
+            f"| {c.seed} | {c.rate:g} | {c.perturb} | {c.method} | {_mm(c.ate)} ({runs or '-'}) "
+            f"| {e['temporal_median_px']:.4f} | {100 * e['temporal_over_1px']:.2f} % "
+            f"| {e['stereo_median_px']:.4f} | {100 * e['stereo_over_1px']:.2f} % "
+            f"| {e['features_per_frame']:.1f} |"
+        )
+    lines += ["", f"Against `{BASELINE}` in the same cells:", "",
+              "| method | cells | ATE ratio, max | ATE ratio, median | cells <= 1.15x "
+              "| temporal median ratio, max | stereo median ratio, max |", "|---" * 7 + "|"]
+    for method, s in summary(cells).items():
+        lines.append(
+            f"| {method} | {s['cells']:.0f} | {s['ate_ratio_max']:.2f} | {s['ate_ratio_median']:.2f} "
+            f"| {100 * s['ate_cells_within_1.15']:.0f} % | {s['temporal_median_ratio_max']:.2f} "
+            f"| {s['stereo_median_ratio_max']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _seeds(text: str) -> list[int]:
+    try:
+        out: list[int] = []
+        for part in text.split(","):
+            lo, _, hi = part.partition("-")
+            out += list(range(int(lo), int(hi or lo) + 1))
+        return out
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seeds like 1-8 or 1,2,5, got {text!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command's argument parser."""
+    from nsflow_ros.argtypes import program_name
+
+    p = argparse.ArgumentParser(
+        prog=program_name("nsflow-scenes"),
+        description="Track sample scenes at several camera rates with every method into feature bags (as "
+        "nsflow-replay --features-bag), score each feature against the exact optical flow, and with "
+        "--vins play each bag into a stock VINS-Fusion estimator and score its trajectory (ATE, SE3). "
+        "Writes scenes.json and scenes.md.",
+    )
+    p.add_argument("--seeds", type=_seeds, default=[1, 2], help="scene seeds, e.g. 1-8 (default 1,2)")
+    p.add_argument("--rates", type=_floats, default=[20.0, 10.0, 20.0 / 3.0],
+                   help="camera rates in Hz (default 20,10,6.67)")
+    p.add_argument("--perturb", default="none", help="perturbations, comma-separated (default none)")
+    p.add_argument("--methods", default="nsflow,klt", help="methods, comma-separated (default nsflow,klt)")
+    p.add_argument("--model", default=None, help="the learned methods' model (default: each one's own)")
+    p.add_argument("--duration", type=float, default=20.0, help="seconds per scene (default 20)")
+    p.add_argument("--config", default=None, help=f"VINS-Fusion config (default {DEFAULT_CONFIG})")
+    p.add_argument("--vins", default=None,
+                   help="a VINS-Fusion catkin workspace (scripts/build_vins_fusion.sh): run the estimator")
+    p.add_argument("--runs", type=int, default=2, help="estimator runs per bag (default 2)")
+    p.add_argument("--out", default="out/scenes", help="output folder (default out/scenes)")
+    p.add_argument("--cache", default="data/scenes", help="where scenes are rendered (default data/scenes)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
+def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellResult]:
+    """Every cell of the command line's grid, scene by scene, printing a line for each."""
+    from nsflow_ros.data.sample import make_sample_sequence
+
+    levels = [p.strip() for p in opts.perturb.split(",") if p.strip()]
+    methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
+    for seed in opts.seeds:
+        for rate in opts.rates:
+            sample = make_sample_sequence(Path(opts.cache) / f"seed{seed}-{rate:g}hz-{opts.duration:g}s",
+                                          seed=seed, duration=opts.duration, rate_hz=rate, stereo=True,
+                                          formats=("asl",), progress=not opts.no_progress)
+            for level in levels:
+                for method in methods:
+                    where = Path(opts.out) / f"seed{seed}" / f"{rate:g}hz" / level / method
+                    cell = evaluate_cell(sample, where, method, level, config=config, model=opts.model,
+                                         vins=vins, runs=opts.runs, progress=not opts.no_progress)
+                    e = cell.errors
+                    print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {method}: ATE {_mm(cell.ate)} mm, "
+                          f"median {e['temporal_median_px']:.4f} / {e['stereo_median_px']:.4f} px",
+                          flush=True)
+                    yield cell
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point; 0 when every cell was measured, 1 on a known error."""
+    from nsflow_ros.evaluation.report import command_line, machine_info, now
+
+    opts = build_parser().parse_args(args)
+    try:
+        from nsflow_ros.resources import STEREO_CONFIG, share_file
+
+        if opts.runs < 1 or opts.duration <= 0:
+            raise EvaluationError(f"--runs must be >= 1 and --duration > 0, got {opts.runs}, {opts.duration}")
+        config = Path(opts.config) if opts.config else Path(share_file(STEREO_CONFIG))
+        vins = None
+        if opts.vins:
+            from nsflow_ros.evaluation.estimator import VinsBuild
+
+            vins = VinsBuild.locate(opts.vins)
+        out = Path(opts.out)
+        started = now()
+        cells = list(_cells(opts, config, vins))
+        info = machine_info(Path(opts.model) if opts.model else None)
+        header = (f"Measured {started:%Y-%m-%d %H:%M %Z} on {info['cpu_count']} x {info['processor']} (load "
+                  f"{info['load_average_1_5_15'][0]} at the end); command: "
+                  f"`{command_line(args).replace('nsflow-evaluate', 'nsflow-scenes', 1)}`")
+        table = format_table(cells, header)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "scenes.md").write_text(table, encoding="utf-8")
+        payload = {"machine": info, "started": started.isoformat(), "cells": [asdict(c) | {"ate": c.ate}
+                                                                              for c in cells],
+                   "summary": summary(cells)}
+        (out / "scenes.json").write_text(json.dumps(payload, indent=2, default=str) + "\n", encoding="utf-8")
+    except NSFlowError as err:
+        print(f"nsflow-scenes: {err}", file=sys.stderr)
+        return 1
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
