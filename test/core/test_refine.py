@@ -1,0 +1,163 @@
+"""The intensity step: smoke, exception and numeric cases, and its place in the LM method."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from nsflow_ros.core.errors import CoreError
+from nsflow_ros.core.methods import METHODS, SolveKind, klt_track, make_method
+from nsflow_ros.core.refine import IntensityRefinement, gray_level, refine
+
+SHIFT = np.array([2.37, -1.61])
+
+
+def _texture(seed: int = 0, size: tuple[int, int] = (120, 160)) -> np.ndarray:
+    """A smooth random texture (float, 0-255), rendered at 4x and area-downsampled."""
+    rng = np.random.default_rng(seed)
+    big = cv2.GaussianBlur(rng.uniform(0, 255, (size[0] * 4, size[1] * 4)).astype(np.float32), (0, 0), 6)
+    big = cv2.normalize(big, None, 20, 235, cv2.NORM_MINMAX)
+    return cv2.resize(big, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+
+
+def _shifted(img: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    m = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def _u8(img: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+@pytest.fixture
+def pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    tex = _texture()
+    pts = np.array([[40.0, 40.0], [80.5, 60.25], [120.0, 80.0], [60.0, 90.0]])
+    return _u8(tex), _u8(_shifted(tex, SHIFT)), pts
+
+
+def test_refines_to_the_true_shift_as_precisely_as_opencv_lk(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, pts = pair
+    start = pts + SHIFT + np.array([0.6, -0.4])
+    out = refine(gray_level(g1), gray_level(g2), pts, start, np.ones(len(pts), bool), IntensityRefinement())
+    assert out.kept.all()
+    err = np.abs(out.positions - pts - SHIFT).max()
+    # Bilinear sampling of a uint8 image leaves a few hundredths of a pixel, to OpenCV's LK as well.
+    new, ok = klt_track(g1, g2, pts)
+    assert ok.all()
+    assert err < 0.05
+    assert err < 1.3 * np.abs(new - pts - SHIFT).max()
+
+
+def test_gain_and_offset_cost_nothing(pair: tuple[np.ndarray, ...]) -> None:
+    g1, _, pts = pair
+    lit = _u8(0.7 * _shifted(_texture(), SHIFT) + 40.0)
+    out = refine(gray_level(g1), gray_level(lit), pts, pts + SHIFT + 0.5, np.ones(len(pts), bool),
+                 IntensityRefinement())
+    assert out.kept.all()
+    assert np.abs(out.positions - pts - SHIFT).max() < 0.05
+
+
+def test_a_move_past_max_shift_is_not_kept(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, pts = pair
+    start = pts + SHIFT + np.array([1.2, 0.0])
+    out = refine(gray_level(g1), gray_level(g2), pts, start, np.ones(len(pts), bool),
+                 IntensityRefinement(max_shift=0.5))
+    assert not out.kept.any()
+    np.testing.assert_array_equal(out.positions, start)
+
+
+def test_other_content_is_not_kept(pair: tuple[np.ndarray, ...]) -> None:
+    g1, _, pts = pair
+    other = _u8(_texture(seed=7))  # the windows do not match at all: residual ratio about 1
+    start = pts + SHIFT
+    out = refine(gray_level(g1), gray_level(other), pts, start, np.ones(len(pts), bool), IntensityRefinement())
+    assert not out.kept.any()
+    np.testing.assert_array_equal(out.positions, start)
+
+
+def test_flat_window_and_lost_points_are_left_alone(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, pts = pair
+    flat = np.full_like(g1, 128)
+    start = pts + SHIFT + 0.3
+    out = refine(gray_level(flat), gray_level(flat), pts, start, np.ones(len(pts), bool), IntensityRefinement())
+    assert not out.kept.any()
+    status = np.array([True, False, True, False])
+    out = refine(gray_level(g1), gray_level(g2), pts, start, status, IntensityRefinement())
+    np.testing.assert_array_equal(out.kept, status)
+    np.testing.assert_array_equal(out.positions[~status], start[~status])
+
+
+def test_window_moved_inside_near_the_border(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, _ = pair
+    pts = np.array([[2.0, 60.0], [100.0, 3.0]])  # the 15 px window would reach 4-5 px past the edge
+    out = refine(gray_level(g1), gray_level(g2), pts, pts + SHIFT + 0.4, np.ones(2, bool),
+                 IntensityRefinement())
+    assert out.kept.all()
+    assert np.abs(out.positions - pts - SHIFT).max() < 0.05
+
+
+def test_empty_input() -> None:
+    img = gray_level(np.zeros((20, 20), np.uint8))
+    out = refine(img, img, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool), IntensityRefinement())
+    assert out.positions.shape == (0, 2) and out.kept.shape == (0,)
+
+
+@pytest.mark.parametrize("kwargs", [{"window": 4}, {"window": 1}, {"iterations": 0}, {"max_shift": 0.0},
+                                    {"max_residual": -1.0}, {"min_eigen": -1.0}])
+def test_settings_out_of_range(kwargs: dict[str, float]) -> None:
+    with pytest.raises(CoreError, match=next(iter(kwargs))):
+        IntensityRefinement(**kwargs)
+
+
+def test_gray_level_needs_uint8_gray() -> None:
+    with pytest.raises(CoreError, match="uint8 gray"):
+        gray_level(np.zeros((4, 4), np.float32))
+    with pytest.raises(CoreError, match="uint8 gray"):
+        gray_level(np.zeros((4, 4, 3), np.uint8))
+    level = gray_level(np.full((4, 4), 255, np.uint8))
+    assert level[0].shape == (4, 4, 1) and level[0].dtype == np.float32 and level[0].max() == 1.0
+
+
+def test_method_refines_forward_and_stereo_not_checks(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, pts = pair
+    method = make_method("nsflow")
+    assert method.refinement == IntensityRefinement()  # the default finishes on the image
+    f1, f2 = method.prepare(g1, g1), method.prepare(g2, g2)
+    for kind in (SolveKind.FORWARD, SolveKind.STEREO):
+        new, status = method.solve(kind, f1, f2, pts)
+        assert status.all()
+        assert np.abs(new - pts - SHIFT).max() < 0.05
+    # a check stays on the descriptors: its result is the plain method's
+    plain = make_method(replace(METHODS["nsflow"], refine=None))
+    back, ok = method.solve(SolveKind.FLOW_BACK, f2, f1, pts + SHIFT, pts)
+    back0, ok0 = plain.solve(SolveKind.FLOW_BACK, plain.prepare(g2, g2), plain.prepare(g1, g1), pts + SHIFT, pts)
+    np.testing.assert_array_equal(back, back0)
+    np.testing.assert_array_equal(ok, ok0)
+
+
+def test_points_the_step_rejects_get_the_descriptors_last_level(pair: tuple[np.ndarray, ...]) -> None:
+    """No point kept: the coarse levels, then the last level on its own, are the plain method's solve."""
+    g1, g2, pts = pair
+    never = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(max_residual=1e-30)))
+    plain = make_method(replace(METHODS["nsflow"], refine=None))
+    a = never.solve_with_covariance(SolveKind.FORWARD, never.prepare(g1, g1), never.prepare(g2, g2), pts)
+    b = plain.solve_with_covariance(SolveKind.FORWARD, plain.prepare(g1, g1), plain.prepare(g2, g2), pts)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+
+
+def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, pts = pair
+    method = make_method("nsflow")
+    f1, f2 = method.prepare(g1, g1), method.prepare(g2, g2)
+    new, status, cov = method.solve_with_covariance(SolveKind.FORWARD, f1, f2, pts)
+    assert status.all() and np.isfinite(cov).all()
+    step = refine(f1.image, f2.image, pts, new, status, method.refinement)
+    # the covariance is the step's own: smaller along the better-textured axis, positive definite
+    assert (cov[:, 0] > 0).all() and (cov[:, 0] * cov[:, 2] - cov[:, 1] ** 2 > 0).all()
+    assert step.kept.all()
