@@ -75,7 +75,8 @@ def test_other_content_is_not_kept(pair: tuple[np.ndarray, ...]) -> None:
     g1, _, pts = pair
     other = _u8(_texture(seed=7))  # the windows do not match at all: residual ratio about 1
     start = pts + SHIFT
-    out = refine(gray_level(g1), gray_level(other), pts, start, np.ones(len(pts), bool), IntensityRefinement())
+    ones = np.ones(len(pts), bool)
+    out = refine(gray_level(g1), gray_level(other), pts, start, ones, IntensityRefinement())
     assert not out.kept.any()
     np.testing.assert_array_equal(out.positions, start)
 
@@ -84,7 +85,8 @@ def test_flat_window_and_lost_points_are_left_alone(pair: tuple[np.ndarray, ...]
     g1, g2, pts = pair
     flat = np.full_like(g1, 128)
     start = pts + SHIFT + 0.3
-    out = refine(gray_level(flat), gray_level(flat), pts, start, np.ones(len(pts), bool), IntensityRefinement())
+    ones = np.ones(len(pts), bool)
+    out = refine(gray_level(flat), gray_level(flat), pts, start, ones, IntensityRefinement())
     assert not out.kept.any()
     status = np.array([True, False, True, False])
     out = refine(gray_level(g1), gray_level(g2), pts, start, status, IntensityRefinement())
@@ -135,7 +137,8 @@ def test_method_refines_forward_and_stereo_not_checks(pair: tuple[np.ndarray, ..
     # a check stays on the descriptors: its result is the plain method's
     plain = make_method(replace(METHODS["nsflow"], refine=None))
     back, ok = method.solve(SolveKind.FLOW_BACK, f2, f1, pts + SHIFT, pts)
-    back0, ok0 = plain.solve(SolveKind.FLOW_BACK, plain.prepare(g2, g2), plain.prepare(g1, g1), pts + SHIFT, pts)
+    p1, p2 = plain.prepare(g1, g1), plain.prepare(g2, g2)
+    back0, ok0 = plain.solve(SolveKind.FLOW_BACK, p2, p1, pts + SHIFT, pts)
     np.testing.assert_array_equal(back, back0)
     np.testing.assert_array_equal(ok, ok0)
 
