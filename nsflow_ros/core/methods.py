@@ -496,7 +496,8 @@ class LMMethod(TrackingMethod):
         assert self.refinement is not None
         # From the IMU prediction the descriptor solve has one level only: the step follows it whole.
         finest = 0 if start is not None else 1
-        new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest)
+        eps = self.refinement.coarse_eps if finest else None
+        new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
         step = refine(frame1.image, frame2.image, pts, new, status, self.refinement)
         new, kept = step.positions, step.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
@@ -521,8 +522,10 @@ class LMMethod(TrackingMethod):
     def _descriptor_solve(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,
         start: np.ndarray | None = None, prior: np.ndarray | None = None, finest: int = 0,
+        eps: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
-        """The pyramid solve of :meth:`solve_result`, ending at level ``finest``."""
+        """The pyramid solve of :meth:`solve_result`, ending at level ``finest`` (``eps`` None: the
+        method's own)."""
         p = self.policy
         if kind.is_check:
             return self._track_pair(frame1, frame2, pts, start, CHECK_LEVELS, jacobian=p.check_jacobian,
@@ -537,12 +540,12 @@ class LMMethod(TrackingMethod):
         if p.prior_levels > 0 and prior is not None:
             known = np.isfinite(prior).all(axis=1)
         if prior is None or not known.any():  # no prior, or the median of nothing: all from zero flow
-            return self._track_pair(frame1, frame2, pts, residual_test=True, finest_level=finest)
+            return self._track_pair(frame1, frame2, pts, residual_test=True, finest_level=finest, eps=eps)
         flow0 = _fill_prior(pts, prior, known)
         first = np.where(known, p.prior_levels, p.fill_levels or self.lm.levels).astype(np.int64) - 1
         # Every point starts near its answer: the coarse window, there for starts far off, is not needed.
         return self._track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,
-                                coarse_window=False, finest_level=finest)
+                                coarse_window=False, finest_level=finest, eps=eps)
 
 
 class KLTMethod(TrackingMethod):

@@ -37,23 +37,26 @@ class IntensityRefinement:
             the window in a way a gain and an offset do not explain.
         min_eigen: the smallest eigenvalue of the window's gradient matrix per pixel below which the image
             does not pin the point down (a flat or edge-only window): the descriptors' answer stands.
+        coarse_eps: the stop tolerance of the descriptor levels before the step (the LM solver's ``eps``):
+            they need only bring the point within the step's reach.
 
     Raises:
         CoreError: a value out of range (named in the message).
     """
 
     window: int = 15
-    iterations: int = 3
+    iterations: int = 2
     max_shift: float = 2.0
     max_residual: float = 0.2
     min_eigen: float = 1e-5
+    coarse_eps: float = 0.2
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
             raise CoreError(f"IntensityRefinement.window must be odd and >= 3, got {self.window}")
         if self.iterations < 1:
             raise CoreError(f"IntensityRefinement.iterations must be >= 1, got {self.iterations}")
-        for name in ("max_shift", "max_residual"):
+        for name in ("max_shift", "max_residual", "coarse_eps"):
             if not getattr(self, name) > 0:
                 raise CoreError(f"IntensityRefinement.{name} must be > 0, got {getattr(self, name)}")
         if not self.min_eigen >= 0:
