@@ -1,0 +1,105 @@
+"""nsflow-scenes: the feature scoring, the summary against klt, the table, and the command on a tiny scene."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nsflow_ros.core.tracker import CameraFeatures, FrameFeatures
+from nsflow_ros.data.sample import make_sample_sequence
+from nsflow_ros.evaluation.scenes import CellResult, FeatureErrors, evaluate_cell, format_table, main, summary
+from nsflow_ros.resources import STEREO_CONFIG, share_file
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> object:
+    return make_sample_sequence(tmp_path_factory.mktemp("scene") / "s", seed=3, duration=0.5, rate_hz=20.0,
+                                stereo=True, formats=("asl",), progress=False)
+
+
+def _camera(cam: int, ids: list[int], pixels: np.ndarray) -> CameraFeatures:
+    n = len(ids)
+    z = np.zeros((n, 2))
+    nan = np.full((n, 2), np.nan)
+    return CameraFeatures(cam, np.asarray(ids, np.int64), pixels, z, z, np.ones(n, np.int64), nan)
+
+
+def _frame(sample: object, i: int, left: np.ndarray, right: np.ndarray | None = None) -> FrameFeatures:
+    ids = list(range(len(left)))
+    cams = [_camera(0, ids, left)] + ([] if right is None else [_camera(1, ids, right)])
+    return FrameFeatures(sample.stamps_ns[i] * 1e-9, tuple(cams), (752, 480))  # type: ignore[attr-defined]
+
+
+def test_feature_errors_against_the_exact_flow(tiny: object) -> None:
+    pts = np.array([[200.0, 150.0], [400.0, 250.0], [500.0, 300.0]])
+    flow, visible = tiny.flow(0, 1, pts)  # type: ignore[attr-defined]
+    assert visible.all()
+    stereo, _ = tiny.flow(1, 1, pts + flow, 0, 1)  # type: ignore[attr-defined]
+    errors = FeatureErrors(tiny)
+    errors(_frame(tiny, 0, pts))
+    moved = pts + flow + np.array([[0.0, 0.0], [0.1, 0.0], [2.0, 0.0]])  # errors 0, 0.1 and 2 px
+    errors(_frame(tiny, 1, moved, pts + flow + stereo + 0.3))
+    fig = errors.figures()
+    assert fig["temporal_median_px"] == pytest.approx(0.1, abs=1e-6)
+    assert fig["temporal_over_1px"] == pytest.approx(1 / 3)
+    # the stereo error is measured from the published left pixel, so the left error carries into it
+    assert fig["stereo_count"] == 3 and fig["features_per_frame"] == 3
+
+
+def test_summary_ratios_and_a_failed_baseline() -> None:
+    e = {"temporal_median_px": 0.04, "stereo_median_px": 0.06}
+    cells = [
+        CellResult(1, 20.0, "none", "klt", e, [0.010, 0.010]),
+        CellResult(1, 20.0, "none", "nsflow", {**e, "temporal_median_px": 0.05}, [0.012, 0.012]),
+        CellResult(2, 20.0, "none", "klt", e, [], ["vins_node died"]),
+        CellResult(2, 20.0, "none", "nsflow", e, [0.020]),
+    ]
+    assert cells[2].ate == float("inf") and np.isnan(CellResult(1, 1.0, "none", "klt", e).ate)
+    s = summary(cells)["nsflow"]
+    assert s["ate_ratio_max"] == pytest.approx(1.2)  # the failed klt counts as a win: ratio 0
+    assert s["ate_ratio_median"] == pytest.approx(0.6)
+    assert s["ate_cells_within_1.15"] == pytest.approx(0.5)
+    assert s["temporal_median_ratio_max"] == pytest.approx(1.25)
+    full = {k: 0.0 for k in ("temporal_over_1px", "stereo_over_1px", "features_per_frame")}
+    for c in cells:
+        c.errors.update(full)
+    table = format_table(cells, "header")
+    assert "| 2 | 20 | none | klt | failed (; 1 failed) |" in table
+    assert "| nsflow | 2 | 1.20 | 0.60 | 50 % | 1.25 | 1.00 |" in table
+
+
+def test_a_cell_without_estimator(tiny: object, tmp_path: Path) -> None:
+    cell = evaluate_cell(tiny, tmp_path / "cell", "klt", "none", config=Path(share_file(STEREO_CONFIG)))
+    assert (tmp_path / "cell" / "features.bag").is_file()
+    assert cell.ate_runs == [] and np.isnan(cell.ate)
+    assert cell.errors["features_per_frame"] > 50
+    assert 0 < cell.errors["temporal_median_px"] < 0.5 and 0 < cell.errors["stereo_median_px"] < 0.5
+
+
+def test_command_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    rc = main(["--seeds", "4", "--rates", "20", "--duration", "0.3", "--methods", "klt", "--no-progress",
+               "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache")])
+    assert rc == 0
+    data = json.loads((tmp_path / "out" / "scenes.json").read_text())
+    assert [c["method"] for c in data["cells"]] == ["klt"]
+    assert "nsflow-scenes" in (tmp_path / "out" / "scenes.md").read_text()
+    assert "| 4 | 20 | none | klt |" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--vins", "/nonexistent/ws"], "/nonexistent/ws"),
+    (["--runs", "0"], "--runs"),
+])
+def test_known_errors_exit_1(argv: list[str], message: str, capsys: pytest.CaptureFixture) -> None:
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("nsflow-scenes: ") and message in err
+
+
+def test_bad_option_values_exit_2() -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--seeds", "one"])
+    assert exc.value.code == 2
