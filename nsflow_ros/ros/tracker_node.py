@@ -44,7 +44,7 @@ from nsflow_ros.data.images import ImageDecodeError, compressed_for_tracker, dec
 from nsflow_ros.data.messages import image_fields
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
-from nsflow_ros.ros.counters import CAUSES, Kind, NodeCounters, cause, image_cause
+from nsflow_ros.ros.counters import CAUSES, DROPPED, Kind, NodeCounters, cause, image_cause
 from nsflow_ros.ros.errors import ParameterError
 from nsflow_ros.ros.frame_masks import FrameMasks
 from nsflow_ros.ros.frame_queue import LatestFrames
@@ -76,8 +76,10 @@ IMU_QOS = QoSProfile(
 DIAGNOSTIC_NAME = f"{NODE_NAME}: front-end"
 MASK_ENCODINGS = ("mono8", "8UC1")
 """Encodings of the per-frame mask topics (8-bit, one channel)."""
-MASK_COUNTS = ("masks_received", "masks_missing", "masks_late", "masks_unused", "masks_refused")
-"""The per-frame mask counts (:meth:`TrackerNode.mask_counters`) as the summary and /diagnostics name them."""
+MASK_COUNTS = ("masks_received", "masks_used", "masks_missing", "masks_late", "masks_unused", "masks_refused",
+               "masks_left_at_stop")
+"""The per-frame mask counts (:meth:`TrackerNode.mask_counters`) as the summary and /diagnostics name them:
+received = used + late + unused + refused + left at the stop (missing counts frames, not masks)."""
 
 IMAGE_TRANSPORTS: dict[str, tuple[type, Any, str]] = {
     "raw": (Image, image_for_tracker, ""),
@@ -244,6 +246,7 @@ class TrackerNode(Node):
         self._masks, self._mask_subs = self._subscribe_masks(cfg, float(p["stereo_sync_tolerance"]))
         self.masks_received = 0
         self.masks_refused = 0
+        self._mask_waiting = False  # the worker waits for a frame's mask (see _enqueue)
         self._mask_last: dict[str, int] = {}  # the mask counts at the last status report
         self._timer: Any = None
         self._set_status_timer(float(p["status_period"]))
@@ -333,7 +336,10 @@ class TrackerNode(Node):
     def _on_mask(self, cam: int, msg: Image) -> None:
         """A per-frame mask: checked (encoding, size), read in mask_convention and kept for its frame."""
         self.masks_received += 1
-        topic = self._mask_subs[cam].topic_name if cam < len(self._mask_subs) else f"camera {cam}"
+        topic = self._mask_topic(cam)
+        buffer = self._masks[cam]
+        if buffer is not None and buffer.silent and buffer.silences == 1:
+            self.get_logger().info(f"masks on {topic} again: frames wait for theirs again (mask_wait_ms)")
         if msg.encoding not in MASK_ENCODINGS:
             self._bad_mask(f"mask_encoding:{msg.encoding}",
                            f"{topic}: encoding {msg.encoding!r}, expected {' or '.join(MASK_ENCODINGS)}")
@@ -351,29 +357,53 @@ class TrackerNode(Node):
                 f"{topic}: mask is {w}x{h} but the images are {cfg.image_width}x{cfg.image_height}",
             )
             return
-        buffer = self._masks[cam]
         if buffer is not None:
             buffer.add(stamp_to_ns(msg.header.stamp), binarize(raw, self._mask_convention))
 
     def _take_masks(self, frame: _Frame) -> tuple[np.ndarray | None, ...]:
-        """The frame's masks per camera, each waited for until mask_wait_ms after its image arrived."""
+        """The frame's masks per camera, each waited for until mask_wait_ms after its image arrived, or
+        until the next frame arrives (a longer wait would cost that frame), but not on a silent topic."""
         if all(b is None for b in self._masks):  # (an empty buffer is falsy: test for None)
             return ()
         deadline = frame.t_recv + float(self._params["mask_wait_ms"]) * 1e-3
         stamp = stamp_to_ns(frame.header.stamp)
-        return tuple(
-            None if b is None else b.take(stamp, deadline - time.perf_counter()) for b in self._masks
-        )
+        masks = []
+        for cam, b in enumerate(self._masks):
+            if b is None:
+                masks.append(None)
+                continue
+            silences = b.silences
+            self._mask_waiting = True  # a frame superseded meanwhile is the wait's, not the CPU's
+            try:
+                masks.append(b.take(stamp, deadline - time.perf_counter(), until=self._newer_frame))
+            finally:
+                self._mask_waiting = False
+            if b.silences > silences:
+                self._once(f"mask_silent:{cam}",
+                           f"no mask on {self._mask_topic(cam)} within mask_wait_ms "
+                           f"{float(self._params['mask_wait_ms']):g} ms: frames are tracked without waiting "
+                           "for it until a mask comes again (counted as missing)")
+        return tuple(masks)
+
+    def _newer_frame(self) -> bool:
+        """Whether a newer frame waits for the tracker (ends a wait for a mask)."""
+        return len(self._queue) > 0
+
+    def _mask_topic(self, cam: int) -> str:
+        return self._mask_subs[cam].topic_name if cam < len(self._mask_subs) else f"camera {cam}"
 
     def mask_counters(self) -> dict[str, int]:
-        """Per-frame masks received, missing (frames tracked without theirs), late, unused and refused."""
+        """Per-frame masks received, used, missing (frames tracked without theirs), late, unused, refused
+        and left at the stop."""
         buffers = [b for b in self._masks if b is not None]
         return {
             "masks_received": self.masks_received,
+            "masks_used": sum(b.used for b in buffers),
             "masks_missing": sum(b.missing for b in buffers),
             "masks_late": sum(b.late for b in buffers),
             "masks_unused": sum(b.unused for b in buffers),
             "masks_refused": self.masks_refused,
+            "masks_left_at_stop": sum(b.left_at_stop for b in buffers),
         }
 
     # -- parameters ------------------------------------------------------------------------------------
@@ -418,6 +448,9 @@ class TrackerNode(Node):
             return SetParametersResult(successful=False, reason=str(err))
         if period is not None:
             self._set_status_timer(period)
+        # the node's own settings: the session's notes name its changes
+        notes += [f"{k} is now {v}" for k, v in values.items()
+                  if k not in SESSION_SETTINGS and v != self._params.get(k)]
         self._params.update(values)
         for note in notes:
             self.get_logger().info(f"parameter change: {note}")
@@ -513,9 +546,13 @@ class TrackerNode(Node):
     def _enqueue(self, frame: _Frame) -> None:
         self.stats.add("frames_received")
         frame.t_queued = time.perf_counter()
+        waiting = self._mask_waiting  # before the put: the worker may take the frame at once
         superseded = self._queue.put(frame)
-        if superseded:
-            self.stats.count("superseded", superseded)
+        if superseded:  # the worker waiting for a mask is not the CPU falling behind
+            self.stats.count("mask_wait" if waiting else "superseded", superseded)
+        for buffer in self._masks:
+            if buffer is not None:
+                buffer.wake()  # a frame waiting for its mask is tracked now (see _take_masks)
 
     # -- the worker --------------------------------------------------------------------------------------
 
@@ -567,7 +604,8 @@ class TrackerNode(Node):
         self.stats.add("frames_processed")
         if not checks:
             self.stats.add("frames_unchecked")
-        if out.features is None:
+        if out.features is None:  # tracked, held back by publish_rate / freq or VINS-Mono's first
+            self.stats.count(out.held or "throttled")
             return
         msg = self._cloud(item.header, out.features)
         latency = (time.perf_counter() - item.t_recv) * 1e3
@@ -627,8 +665,7 @@ class TrackerNode(Node):
             "stereo": bool(settings.stereo),
             **s.totals(),
             "frames_skipped_by_policy": s.of(Kind.POLICY),
-            "dropped": {c.key: s.lost[c.key] for c in CAUSES
-                        if c.unit == "frame" and c.kind is not Kind.EVENT},
+            "dropped": {c.key: s.lost[c.key] for c in CAUSES if c.unit == "frame" and c.kind in DROPPED},
             "cpu_ms_per_frame": _cpu_per_frame(time.process_time() - self._cpu_start, s.frames_processed),
             "track_images_published": self.track_images_published,
             "restarts": self.session.counters.restarts,
@@ -662,8 +699,9 @@ class TrackerNode(Node):
         if not self._mask_subs:
             return ""
         return (f"; masks received {c['masks_received']}, missing (frames tracked without theirs) "
-                f"{c['masks_missing']}, late {c['masks_late']}, unused {c['masks_unused']}, refused "
-                f"{c['masks_refused']}")
+                f"{c['masks_missing']}, used {c['masks_used']}, late {c['masks_late']}, unused "
+                f"{c['masks_unused']}, refused {c['masks_refused']}, left at the stop "
+                f"{c['masks_left_at_stop']}")
 
     def _report_status(self) -> None:
         """Log one status line and publish it on /diagnostics (see :func:`_status_level`)."""
@@ -864,6 +902,8 @@ def _status_level(window: dict[str, Any], topics: list[str]) -> tuple[int, str]:
     if window["frames_superseded"]:
         parts.append(f"falling behind: {window['frames_superseded']} of {window['frames_received']} frames "
                      "superseded by newer ones")
+    if waited := _by_cause(window, Kind.WAIT):  # the mask's wait, not the CPU
+        parts.append(f"{waited} (mask_wait_ms)")
     if window["frames_missing_upstream"]:
         parts.append(f"{window['frames_missing_upstream']} frames missing before the node (stamp gaps)")
     if events := _by_cause(window, Kind.EVENT):

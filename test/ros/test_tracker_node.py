@@ -1081,10 +1081,10 @@ def test_mask_topic_masks_moving_objects_and_counts_what_was_missing_late_or_ref
         assert (c["masks_received"], c["masks_missing"], c["masks_late"], c["masks_refused"]) == (7, 2, 1, 2)
         assert node.stats.detail["mask_size"] == 1 and node.stats.detail["mask_encoding:bgr8"] == 1
         assert c["frames_published"] == 6 and c["frames_refused"] == 0
-        assert "masks received 7, missing (frames tracked without theirs) 2, late 1" in node.summary()
+        assert "masks received 7, missing (frames tracked without theirs) 2, used 4, late 1" in node.summary()
         assert "2 frames tracked without their mask" in node._mask_window(c)
         # with mask_wait_ms the frame waits for a mask that comes after it, without blocking the node
-        assert all(r.successful for r in _set_remote(h, mask_wait_ms=5000.0))
+        assert all(r.successful for r in _set_remote(h, mask_wait_ms=1000.0))
         box = boxes[3]
         h.pubs[0].publish(image_msg(pan.frames[6], T0 + pan.stamps[6]))
         h.spin_until(lambda: False, 0.1)
@@ -1135,3 +1135,141 @@ def test_main_exits_1_with_one_line_on_a_mask_of_another_size(tmp_path, prefix):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
     assert out.returncode == 1
     assert out.stderr.count("\n") == 1 and "small.png is 10x20 but the image size of" in out.stderr
+
+
+# -- health the operator can trust: silent mask topics, ranges, every count under one cause ----------------
+
+
+def assert_sums(c: dict, stereo: bool = False) -> None:
+    """Every image, frame and mask of a summary (:meth:`TrackerNode.counters`) ends under one cause."""
+    image_causes = sum(c[k] for k in ("images_undecodable", "images_wrong_encoding", "images_wrong_size",
+                                      "images_unpaired"))
+    assert c["images_received"] == (2 if stereo else 1) * c["frames_received"] + image_causes
+    assert c["frames_received"] == c["frames_processed"] + c["frames_dropped"]
+    assert c["frames_dropped"] == sum(c["dropped"].values())
+    held = c["frames_throttled"] + c["frames_first_published"]
+    assert c["frames_processed"] == c["frames_published"] + held
+    if "masks_received" in c:
+        assert c["masks_received"] == sum(c[f"masks_{k}"] for k in ("used", "late", "unused", "refused",
+                                                                      "left_at_stop"))
+
+
+def _stream(h: Harness, pan, frames: range, period: float = 0.05, t0: float = T0) -> None:
+    """Publish frames at camera rate (one every ``period`` s of wall time), spinning in between."""
+    start = time.monotonic()
+    for k in frames:
+        h.pubs[0].publish(image_msg(pan.frames[k % len(pan.frames)], t0 + period * k))
+        h.spin_until(lambda k=k: time.monotonic() - start >= period * (k - frames.start + 1), period + 1.0)
+
+
+def test_a_silent_mask_topic_costs_one_wait_not_the_frames_and_is_not_falling_behind(tmp_path, prefix, pan,
+                                                                                     capfd):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix), prefix, mask_topic=f"{prefix}/mask", mask_wait_ms=500.0,
+                status_period=0.0)
+    node = h.tracker
+    try:
+        _stream(h, pan, range(40))  # 2 s at 20 Hz, no mask ever published
+        _settle(h)
+        level, message, values = _status(h)
+        c = node.counters()
+        assert c["frames_received"] >= 38 and c["frames_processed"] >= 0.95 * c["frames_received"]
+        assert c["frames_superseded"] == 0 and "falling behind" not in message
+        assert c["masks_missing"] == c["frames_processed"] == int(values["masks missing"])
+        assert level == DiagnosticStatus.WARN
+        assert f"{c['frames_processed']} frames tracked without their mask" in message
+        said = _lines(capfd, "no mask on")
+        assert len(said) == 1 and "within mask_wait_ms 500 ms" in said[0] and "until a mask comes" in said[0]
+        node.stop_worker()
+        assert_sums(node.counters())
+    finally:
+        h.close()
+
+
+def test_mask_wait_ms_has_an_upper_bound_and_its_changes_are_logged(tmp_path, prefix, pan, capfd):
+    from nsflow_ros.ros.errors import ParameterError
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        with pytest.raises(ParameterError, match=r"mask_wait_ms: got 1000000000.0, expected a number in \["):
+            TrackerNode(context=ctx, parameter_overrides=[
+                Parameter("config_file", value=str(write_config(tmp_path, prefix))),
+                Parameter("mask_wait_ms", value=1e9)])
+    finally:
+        rclpy.shutdown(context=ctx)
+    h = Harness(write_config(tmp_path, prefix), prefix, mask_topic=f"{prefix}/mask")
+    try:
+        (res,) = _set_remote(h, mask_wait_ms=1e9)
+        assert not res.successful and "expected a number in [0, 1000]" in res.reason
+        assert _set_remote(h, mask_wait_ms=20.0)[0].successful
+        assert _set_remote(h, mask_wait_ms=20.0)[0].successful  # the same value again: nothing changes
+        assert len(_lines(capfd, "parameter change: mask_wait_ms is now 20.0")) == 1
+    finally:
+        h.close()
+
+
+def test_out_of_range_live_values_are_refused_at_start_up_and_at_run_time_with_the_reason(tmp_path, prefix,
+                                                                                          capfd):
+    bad = {"downsample": -1, "max_sigma": -1.0, "publish_covariance": 2}
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        for name, value in bad.items():
+            with pytest.raises(Exception, match=f"{name}"):
+                TrackerNode(context=ctx, parameter_overrides=[
+                    Parameter("config_file", value=str(write_config(tmp_path, prefix))),
+                    Parameter(name, value=value)])
+    finally:
+        rclpy.shutdown(context=ctx)
+    h = Harness(write_config(tmp_path, prefix), prefix)
+    try:
+        for name, value, reason in (
+            ("downsample", -1, "downsample must be one of 1, 2, 4, got -1"),
+            ("max_sigma", -1.0, "parameter max_sigma: got -1.0, expected a number >= 0"),
+            *(("publish_covariance", v, f"parameter publish_covariance: got {v}, expected 0 or 1 (or -1: the "
+               "default)") for v in (2, 5, -2)),
+        ):
+            (res,) = _set_remote(h, **{name: value})
+            assert not res.successful and res.reason == reason
+            assert h.tracker.get_parameter(name).value == {"downsample": 1, "max_sigma": 0.0}.get(name, -1)
+        assert _set_remote(h, publish_covariance=0)[0].successful
+        assert not h.tracker.tracker.settings.covariance
+        assert _set_remote(h, status_period=2.0)[0].successful
+        err = capfd.readouterr().err
+        assert err.count("parameter change: publish_covariance is now False") == 1
+        assert err.count("parameter change: status_period is now 2.0") == 1
+    finally:
+        h.close()
+
+
+def test_frames_held_back_by_publish_rate_and_masks_pending_at_the_stop_are_counted(tmp_path, prefix, pan):
+    import json
+
+    out = tmp_path / "summary.json"
+    h = Harness(write_config(tmp_path, prefix), prefix, publish_rate=10.0, mask_topic=f"{prefix}/mask",
+                summary_file=str(out), status_period=0.0)
+    pub = h.io.create_publisher(Image, f"{prefix}/mask", qos_profile_sensor_data)
+    node = h.tracker
+    try:
+        assert h.spin_until(lambda: pub.get_subscription_count() > 0, 10.0)
+        usable = np.full((syn.H, syn.W), 255, np.uint8)
+        for k in range(6):
+            pub.publish(image_msg(usable, T0 + 0.05 * k))
+            assert h.spin_until(lambda k=k: node.masks_received == k + 1, 5.0)
+            h.send(0, image_msg(pan.frames[k], T0 + 0.05 * k), expect_cloud=k % 2 == 0)
+            _settle(h)
+        for k in range(6, 9):  # masks whose frames never come: still waiting at the stop
+            pub.publish(image_msg(usable, T0 + 0.05 * k))
+        assert h.spin_until(lambda: node.masks_received == 9, 5.0)
+        node.stop_worker()
+        assert node.write_summary_file() == out
+        c = json.loads(out.read_text())
+        assert (c["frames_processed"], c["frames_published"], c["frames_throttled"]) == (6, 3, 3)
+        assert (c["masks_received"], c["masks_used"], c["masks_left_at_stop"]) == (9, 6, 3)
+        assert_sums(c)
+        assert "frames held back (publish rate) 3" in node.summary()
+        assert "left at the stop 3" in node.summary()
+    finally:
+        h.close()
