@@ -56,6 +56,13 @@ from nsflow_ros.threads import set_opencv_threads
 from nsflow_ros.vins.config import load_vins_config
 from nsflow_ros.vins.draw import draw_tracks
 from nsflow_ros.vins.errors import ConfigError
+from nsflow_ros.vins.health import (
+    HealthMonitor,
+    HealthReport,
+    Thresholds,
+    check_static_masks,
+    usable_share,
+)
 from nsflow_ros.vins.messages import FeatureCloud, encode
 from nsflow_ros.vins.pairing import StereoPairer
 from nsflow_ros.vins.session import FrameOutcome, FrontEndSession, Skip
@@ -188,6 +195,11 @@ class TrackerNode(Node):
             )
         self._mask_convention = convention
         static = load_static_masks(cfg, str(p["mask0"]) or None, str(p["mask1"]) or None, convention)
+        # before the tracker is built: a mask with no usable pixel stops the node in one line
+        names = [f"mask{i} {str(p[f'mask{i}']) or getattr(cfg, f'mask{i}')}" for i in range(2)]
+        mask_warnings = check_static_masks(dict(zip(names, static, strict=True)), float(p["mask_min_usable"]))
+        self._health = HealthMonitor(Thresholds.from_values(p))
+        self._gated_last = 0  # the session's gated count at the last status report
         self.session = FrontEndSession(
             cfg,
             {**settings, "use_imu_prediction": use_imu},
@@ -270,6 +282,8 @@ class TrackerNode(Node):
             + f"; features on {self._feature_pub.topic_name}"
             + self._mask_note(static)
         )
+        for warning in mask_warnings:
+            self.get_logger().warning(warning)
         if s.covariance:  # what the covariance channels are scaled by, and whether it was fitted
             scale = self.tracker.method.covariance_scale
             self.get_logger().info(f"covariance scale {scale.scale:.4g}, floor {scale.floor:.3g} px^2 "
@@ -434,6 +448,7 @@ class TrackerNode(Node):
             tolerance = values.get("stereo_sync_tolerance")
             if tolerance is not None and (problem := self._tolerance_problem(float(tolerance))):
                 raise ParameterError(f"parameter {problem}")
+            thresholds = Thresholds.from_values({**self._params, **values})  # lost <= degraded
             with self._lock:
                 notes = self.session.update(**session) if session else []
                 self._set_track_publisher(self.session.show_track)
@@ -448,6 +463,7 @@ class TrackerNode(Node):
             return SetParametersResult(successful=False, reason=str(err))
         if period is not None:
             self._set_status_timer(period)
+        self._health.thresholds = thresholds
         # the node's own settings: the session's notes name its changes
         notes += [f"{k} is now {v}" for k, v in values.items()
                   if k not in SESSION_SETTINGS and v != self._params.get(k)]
@@ -612,6 +628,10 @@ class TrackerNode(Node):
         with self._lat_lock:
             self.latencies_ms.append(latency)
         self._status.add(latency, len(out.features.cameras[0]))
+        # what reaches the estimator: its ids, the image and the masks, for the tracking state
+        frame_mask = item.masks[0] if item.masks else None
+        self._health.add_frame(out.features.cameras[0].ids, image=item.image0,
+                               usable=usable_share(self.tracker.mask, frame_mask))
         self._feature_pub.publish(msg)
         self.stats.add("frames_published")
         if self._track_pub is not None and self._track_due():
@@ -673,6 +693,20 @@ class TrackerNode(Node):
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p90": _percentile(lat, 90),
             **self.mask_counters(),
+            **self._health_counters(),
+        }
+
+    def _health_counters(self) -> dict[str, Any]:
+        """The run's tracking state (the whole run judged as one period) and the status periods by state."""
+        gated = self.session.counters.gated
+        run = self._health.run_report(max_cnt=self.tracker.settings.max_cnt, gated=gated)
+        return {
+            "tracking_state": run.state.value,
+            "tracking_cause": run.cause,
+            "tracking_state_last": self._health.state.value,
+            "tracking_periods": dict(self._health.periods),
+            "features_per_frame": run.features,
+            "ids_carried": run.carried,
         }
 
     def summary(self) -> str:
@@ -691,8 +725,17 @@ class TrackerNode(Node):
             f"{c['frames_processed']} (late, without the reverse checks: {c['frames_unchecked']}), published "
             f"{c['frames_published']}, dropped {c['frames_dropped']}; by cause: {causes}; frames missing "
             f"before the node (stamp gaps) {c['frames_missing_upstream']}{lat}"
-            f"{self._mask_summary(c)}"
+            f"{self._mask_summary(c)}{self._health_summary(c)}"
         )
+
+    @staticmethod
+    def _health_summary(c: dict[str, Any]) -> str:
+        """The run's tracking state for the summary line."""
+        periods = ", ".join(f"{k} {n}" for k, n in c["tracking_periods"].items() if n)
+        cause = f": {c['tracking_cause']}" if c["tracking_cause"] else ""
+        carried = "" if c["ids_carried"] is None else f", {100 * c['ids_carried']:.0f} % of ids carried"
+        return (f"; tracking state {c['tracking_state']}{cause} ({c['features_per_frame']:.0f} features/frame"
+                f"{carried}{'; status periods ' + periods if periods else ''})")
 
     def _mask_summary(self, c: dict[str, Any]) -> str:
         """The per-frame mask counts for the summary line ("" without mask topics)."""
@@ -712,6 +755,10 @@ class TrackerNode(Node):
         if masks:  # per-frame masks missing, late or refused in this period
             level = max(level, DiagnosticStatus.WARN)
             message = masks if message == "tracking" else f"{message}; {masks}"
+        health = self._assess(window)
+        if health.state.rank:  # DEGRADED or LOST: at least WARN, whatever the counts say
+            level = max(level, DiagnosticStatus.WARN)
+        message = f"{message} [{health.text}]"
         values = {
             **{_label(k): c[k] for k in _TOTALS},
             **{f"{_label(k)} (period)": window[k] for k in _TOTALS},
@@ -721,6 +768,10 @@ class TrackerNode(Node):
             "features per frame (period)": window["features"],
             "latency p50 ms (period)": window["latency_p50"],
             "latency p90 ms (period)": window["latency_p90"],
+            "tracking state": health.state.value,
+            "tracking state cause": health.cause,
+            "ids carried (period)": health.carried,
+            "features gated (period)": health.gated,
             "method": c["method"],
             "encoder provider": encoder_provider(self.session.tracker.encoder),
             "CPU ms per frame": c["cpu_ms_per_frame"],
@@ -758,6 +809,14 @@ class TrackerNode(Node):
             self.get_logger().info(line)
         else:  # ERROR on /diagnostics (nothing tracked) is a WARN line: the node itself is fine
             self.get_logger().warning(line)
+
+    def _assess(self, window: dict[str, Any]) -> HealthReport:
+        """The period's tracking state from what reached the estimator (:class:`HealthMonitor`)."""
+        gated = self.session.counters.gated
+        report = self._health.assess(max_cnt=self.tracker.settings.max_cnt, gated=gated - self._gated_last,
+                                     images=window["images_received"], tracked=window["frames_processed"])
+        self._gated_last = gated
+        return report
 
     def _mask_window(self, c: dict[str, Any]) -> str:
         """The period's mask problems in words ("" = none); starts the next period."""

@@ -30,6 +30,7 @@ from nsflow_ros.vins.messages import decode_fusion, decode_mono
 
 DISPARITY = -9.5
 T0 = 100.0
+LOST_NOTHING = "[LOST: no frame reached the estimator]"
 
 
 def write_config(folder: Path, prefix: str, *, stereo: bool = False, dialect: str = "fusion") -> Path:
@@ -863,7 +864,7 @@ def test_undecodable_stereo_pairs_count_once_without_stamp_gaps_or_decoder_noise
         level, message, values = _status(h)
         # nothing tracked, all refused: ERROR, the counts by cause, no blame on the network
         assert level == DiagnosticStatus.ERROR
-        assert message == "nothing tracked: refused 12 images undecodable"
+        assert message == "nothing tracked: refused 12 images undecodable " + LOST_NOTHING
         assert values["images undecodable (period)"] == "12"
         assert values["frames missing upstream (period)"] == "0"
         for k in range(12, 14):
@@ -923,15 +924,17 @@ def test_refused_frames_are_not_falling_behind(tmp_path, prefix, pan):
         _settle(h)
         level, message, values = _status(h)
         assert level == DiagnosticStatus.ERROR
-        assert message == "nothing tracked: refused 4 frames repeated stamp" and "falling" not in message
+        assert message == "nothing tracked: refused 4 frames repeated stamp " + LOST_NOTHING
+        assert "falling" not in message
         assert values["frames repeated stamp (period)"] == "4" and values["frames superseded"] == "0"
         for k in range(3, 8):  # the wrong size
             _feed(h, 0, image_msg(np.zeros((100, 100), np.uint8), T0 + 0.05 * k))
         level, message, values = _status(h)
-        assert level == DiagnosticStatus.ERROR and message == "nothing tracked: refused 5 images wrong size"
+        assert level == DiagnosticStatus.ERROR
+        assert message == "nothing tracked: refused 5 images wrong size " + LOST_NOTHING
         h.send(0, image_msg(pan.frames[4], T0 + 0.05 * 8))
         level, message, _ = _status(h)
-        assert level == DiagnosticStatus.OK and message == "tracking"
+        assert level == DiagnosticStatus.OK and message == "tracking [OK: recovered from LOST]"
         c = h.tracker.counters()
         assert c["frames_received"] == c["frames_processed"] + c["frames_dropped"] == 8
         assert c["dropped"]["repeated_stamp"] == 4 and c["frames_superseded"] == 0
@@ -949,7 +952,7 @@ def test_frames_that_never_arrived_are_missing_upstream(tmp_path, prefix, pan):
             h.send(0, image_msg(pan.frames[k % 8], T0 + 0.05 * k))
         level, message, _ = _status(h)
         assert level == DiagnosticStatus.WARN
-        assert message == "tracking: 2 frames missing before the node (stamp gaps)"
+        assert message == "tracking: 2 frames missing before the node (stamp gaps) [OK]"
     finally:
         h.close()
 
@@ -963,7 +966,7 @@ def test_stamps_going_backwards_reset_the_tracks_once_logged(tmp_path, prefix, p
             h.send(0, image_msg(pan.frames[0], T0 + t))
         level, message, _ = _status(h)
         assert level == DiagnosticStatus.WARN
-        assert message == "tracking: 2 frames stamp backwards (tracks reset)"
+        assert message == "tracking: 2 frames stamp backwards (tracks reset) [OK]"
         assert h.tracker.stats.frames_processed == 6
         assert len(_lines(capfd, "time went backwards")) == 1
     finally:
@@ -1273,3 +1276,124 @@ def test_frames_held_back_by_publish_rate_and_masks_pending_at_the_stop_are_coun
         assert "left at the stop 3" in node.summary()
     finally:
         h.close()
+
+
+def test_uniform_frames_are_lost_within_one_period_and_the_recovery_is_reported(tmp_path, prefix, pan,
+                                                                               capfd):
+    import json
+
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    out = tmp_path / "summary.json"
+    h = Harness(write_config(tmp_path, prefix), prefix, status_period=0.0, summary_file=str(out))
+    try:
+        for k in range(4):
+            h.send(0, image_msg(pan.frames[k], T0 + 0.05 * k))
+        level, message, values = _status(h)
+        assert (level, message, values["tracking state"]) == (DiagnosticStatus.OK, "tracking [OK]", "OK")
+        for k, value in enumerate((0, 255, 0, 255)):  # all black, all white: 0 features, still published
+            h.send(0, image_msg(np.full((syn.H, syn.W), value, np.uint8), T0 + 0.05 * (4 + k)))
+        level, message, values = _status(h)
+        assert level == DiagnosticStatus.WARN and values["tracking state"] == "LOST"
+        assert message.startswith("tracking [LOST: images uniform (4 of 4 frames all one grey level")
+        assert message.endswith("; 0 features/frame, 0 % of ids carried]")
+        assert values["features per frame (period)"] == "0.0"
+        for k in range(8, 12):
+            h.send(0, image_msg(pan.frames[k - 8], T0 + 0.05 * k))
+        level, message, values = _status(h)
+        assert (level, message) == (DiagnosticStatus.OK, "tracking [OK: recovered from LOST]")
+        lines = _lines(capfd, "tracking [")
+        assert lines[1].startswith("[WARN]") and "tracking [LOST: images uniform" in lines[1]
+        assert "0 features/frame" in lines[1]
+        h.tracker.stop_worker()
+        h.tracker.write_summary_file()
+        c = json.loads(out.read_text())
+        assert c["tracking_periods"] == {"OK": 2, "DEGRADED": 0, "LOST": 1, "IDLE": 0}
+        assert c["tracking_state_last"] == "OK" and c["frames_published"] == 12
+        assert_sums(c)
+        summary = h.tracker.summary()
+        assert "; tracking state " in summary and "status periods OK 2, LOST 1)" in summary
+    finally:
+        h.close()
+
+
+def test_a_frame_mask_that_blocks_the_whole_image_is_lost_naming_the_mask(tmp_path, prefix, pan):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix), prefix, mask_topic=f"{prefix}/mask", status_period=0.0)
+    pub = h.io.create_publisher(Image, f"{prefix}/mask", qos_profile_sensor_data)
+    node = h.tracker
+    try:
+        assert h.spin_until(lambda: pub.get_subscription_count() > 0, 10.0)
+        blocked = np.zeros((syn.H, syn.W), np.uint8)  # vins convention: 0 = no feature here
+        for k in range(5):
+            pub.publish(image_msg(blocked, T0 + 0.05 * k))
+            assert h.spin_until(lambda k=k: node.masks_received == k + 1, 5.0)
+            h.send(0, image_msg(pan.frames[k], T0 + 0.05 * k))
+        level, message, values = _status(h)
+        assert level == DiagnosticStatus.WARN and values["tracking state"] == "LOST"
+        assert "[LOST: masks leave 0 % of the image usable; 0 features/frame]" in message
+        node.stop_worker()
+        c = node.counters()
+        assert c["masks_used"] == 5 and c["tracking_state"] == "LOST"
+        assert_sums(c)
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize(("max_sigma", "state", "cause"), [
+    (1e-9, "LOST", "every tracked feature gated by max_sigma"),
+    (0.05, "DEGRADED", "max_sigma gated"),
+])
+def test_max_sigma_that_breaks_the_tracks_is_not_ok(tmp_path, prefix, pan, max_sigma, state, cause):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    h = Harness(write_config(tmp_path, prefix), prefix, status_period=0.0, max_sigma=max_sigma)
+    try:
+        for k in range(8):
+            h.send(0, image_msg(pan.frames[k], T0 + 0.05 * k))
+        level, message, values = _status(h)
+        assert level == DiagnosticStatus.WARN and values["tracking state"] == state
+        assert message.startswith(f"tracking [{state}: {cause}") and "% of ids carried]" in message
+        assert int(values["features gated (period)"]) == h.tracker.session.counters.gated > 0
+        assert float(values["ids carried (period)"]) < 0.5
+        h.tracker.stop_worker()
+        c = h.tracker.counters()
+        assert c["tracking_state"] in ("DEGRADED", "LOST") and c["features_gated"] > 0
+        assert_sums(c)
+    finally:
+        h.close()
+
+
+def test_static_masks_with_little_or_no_usable_pixel_are_said_at_start_up(tmp_path, prefix, capfd):
+    from nsflow_ros.vins.errors import ConfigError
+
+    config = write_config(tmp_path, prefix)
+    corner = np.zeros((syn.H, syn.W), np.uint8)
+    corner[:40, :60] = 255
+    cv2.imwrite(str(tmp_path / "corner.png"), corner)
+    cv2.imwrite(str(tmp_path / "zeros.png"), np.zeros((syn.H, syn.W), np.uint8))
+    cv2.imwrite(str(tmp_path / "low16.png"), np.full((syn.H, syn.W), 1000, np.uint16))  # high byte 3
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        node = TrackerNode(context=ctx, parameter_overrides=[
+            Parameter("config_file", value=str(config)),
+            Parameter("mask0", value=str(tmp_path / "corner.png"))])
+        node.destroy_node()
+        (warned,) = _lines(capfd, "corner.png leaves")
+        assert warned.startswith("[WARN]")
+        assert "leaves 3.1 % of the image usable, less than mask_min_usable 0.25" in warned
+        with pytest.raises(ConfigError, match=r"zeros\.png leaves no usable pixel"):
+            TrackerNode(context=ctx, parameter_overrides=[
+                Parameter("config_file", value=str(config)),
+                Parameter("mask0", value=str(tmp_path / "zeros.png"))])
+    finally:
+        rclpy.shutdown(context=ctx)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 100))
+    code = ("import sys; from nsflow_ros.ros.tracker_node import main; "
+            f"sys.exit(main(['x', '--ros-args', '-p', 'config_file:={config}', '-p', "
+            f"'mask0:={tmp_path / 'low16.png'}']))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 1 and out.stderr.count("\n") == 1, out.stderr
+    assert "low16.png leaves no usable pixel" in out.stderr and "16-bit" in out.stderr
