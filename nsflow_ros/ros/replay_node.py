@@ -372,10 +372,19 @@ def _check_tracked_topics(opts: argparse.Namespace) -> None:
 
 
 def _static_masks(opts: argparse.Namespace, cfg: Any) -> tuple[Any, Any]:
-    """The static masks of --mask0 / --mask1 (else the config's keys) in --mask-convention."""
+    """The static masks of --mask0 / --mask1 (else the config's keys) in --mask-convention, checked as the
+    node checks them: a warning for little usable image, an error (ConfigError) for none."""
+    from nsflow_ros.vins.health import check_static_masks
+    from nsflow_ros.vins.settings import setting
     from nsflow_ros.vins.tracker import load_static_masks
 
-    return load_static_masks(cfg, opts.mask0, opts.mask1, opts.mask_convention)
+    masks = load_static_masks(cfg, opts.mask0, opts.mask1, opts.mask_convention)
+    given = (opts.mask0, opts.mask1)
+    names = [f"mask{i} {path or getattr(cfg, f'mask{i}')}" for i, path in enumerate(given)]
+    least = float(setting("mask_min_usable").default)  # the node's default: the tools have no option
+    for warning in check_static_masks(dict(zip(names, masks, strict=True)), least):
+        print(f"{program_name('nsflow-replay')}: warning: {warning}", file=sys.stderr)
+    return masks
 
 
 def _make_dir(path: Path) -> None:
@@ -458,6 +467,11 @@ def main(args: list[str] | None = None) -> int:
                 progress=not opts.no_progress,
             )
             print(bag.text())
+            if not bag.features:  # a bag the estimator can do nothing with is a failure
+                cause = bag.health.cause if bag.health is not None else ""
+                print(f"{prog}: no feature was tracked in {bag.frames} frames"
+                      + (f": {cause}" if cause else ""), file=sys.stderr)
+                return 1
             return 0
         if opts.offline is not None:
             from nsflow_ros.resources import DEFAULT_CONFIG, share_file
@@ -474,6 +488,11 @@ def main(args: list[str] | None = None) -> int:
                 progress=not opts.no_progress,
             )
             print(summary.text())
+            if not summary.figures["features_per_frame"]:
+                cause = f": {summary.tracking_cause}" if summary.tracking_cause else ""
+                print(f"{prog}: no feature was tracked in {summary.figures['frames']} frames{cause}",
+                      file=sys.stderr)
+                return 1
             return 0
         if opts.write_bag is not None:
             from nsflow_ros.data.replay import replay_records

@@ -145,3 +145,9 @@ def test_usable_share_combines_masks_of_different_resolutions():
     assert usable_share(full) == pytest.approx(0.5)
     assert usable_share(full, half) == pytest.approx(0.25)
     assert usable_share(None) is None
+
+
+def test_the_default_thresholds_are_the_settings_tables():
+    from nsflow_ros.vins.settings import SETTINGS
+
+    assert Thresholds() == Thresholds.from_values({s.name: s.default for s in SETTINGS})
