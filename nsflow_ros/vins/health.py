@@ -233,8 +233,9 @@ class HealthMonitor:
             max_cnt: the tracker's max_cnt now.
             gated: features the ``max_sigma`` gate dropped in the period.
             images: images received in the period (0 = IDLE).
-            tracked: frames tracked in the period (None = as many as published); tracked frames that were
-                all held back by ``publish_rate`` keep the state as it was.
+            tracked: frames tracked in the period (None = as many as published); 0 is LOST whatever was
+                published meanwhile, and tracked frames that were all held back by ``publish_rate`` keep
+                the state as it was.
 
         Returns:
             the judgement; :attr:`state` and :attr:`cause` follow it.
@@ -244,6 +245,8 @@ class HealthMonitor:
         previous = self.state
         if not images:
             report = HealthReport(State.IDLE, previous)
+        elif tracked == 0:  # a frame of the period before may have been published since: not this one's
+            report = HealthReport(State.LOST, previous, "no frame reached the estimator")
         elif not window.frames and tracked:  # tracked, all held back by publish_rate: nothing new
             report = HealthReport(previous, previous, self.cause)
         else:
