@@ -164,7 +164,8 @@ class _Window:
     features: int = 0
     uniform: int = 0
     carried: list[float] = field(default_factory=list)
-    usable: list[float] = field(default_factory=list)
+    usable_sum: float = 0.0
+    usable_frames: int = 0
     carried_bins: np.ndarray = field(default_factory=lambda: np.zeros(101, np.int64))
 
     def add(self, n: int, carried: float | None, uniform: bool, usable: float | None, keep: bool) -> None:
@@ -175,8 +176,9 @@ class _Window:
             if keep:
                 self.carried.append(carried)
             self.carried_bins[round(100 * carried)] += 1  # the run's median in bounded memory
-        if usable is not None and keep:
-            self.usable.append(usable)
+        if usable is not None:
+            self.usable_sum += usable
+            self.usable_frames += 1
 
     def median_carried(self) -> float | None:
         if self.carried:
@@ -288,7 +290,7 @@ class HealthMonitor:
         if 2 * w.uniform >= w.frames:
             return (f"images uniform ({w.uniform} of {w.frames} frames all one grey level: exposure, lens "
                     "cap or camera driver)")
-        usable = float(np.mean(w.usable)) if w.usable else None
+        usable = w.usable_sum / w.usable_frames if w.usable_frames else None
         if usable is not None and usable < self.thresholds.mask_min_usable:
             return f"masks leave {100 * usable:.0f} % of the image usable"
         per_frame = gated / w.frames

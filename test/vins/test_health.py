@@ -56,6 +56,7 @@ def test_a_mask_that_blocks_the_image_is_named_with_its_share():
     _frames(m, 10, 0, 0, usable=0.0)
     r = m.assess(max_cnt=150)
     assert r.state is State.LOST and r.cause == "masks leave 0 % of the image usable"
+    assert m.run_report(max_cnt=150).cause == "masks leave 0 % of the image usable"  # the run's too
 
 
 def test_every_feature_gated_by_max_sigma_is_lost_though_150_features_are_published():
