@@ -1336,6 +1336,7 @@ def test_a_frame_mask_that_blocks_the_whole_image_is_lost_naming_the_mask(tmp_pa
         node.stop_worker()
         c = node.counters()
         assert c["masks_used"] == 5 and c["tracking_state"] == "LOST"
+        assert c["tracking_cause"] == "masks leave 0 % of the image usable"
         assert_sums(c)
     finally:
         h.close()
