@@ -1178,7 +1178,9 @@ def test_a_silent_mask_topic_costs_one_wait_not_the_frames_and_is_not_falling_be
         level, message, values = _status(h)
         c = node.counters()
         assert c["frames_received"] >= 38 and c["frames_processed"] >= 0.95 * c["frames_received"]
-        assert c["frames_superseded"] == 0 and "falling behind" not in message
+        # without the fix every frame waited 500 ms and 9 in 10 were superseded; a machine under load
+        # may still give up a frame or two to the CPU, never to the silent topic
+        assert c["frames_superseded"] + c["frames_mask_wait"] <= 2
         assert c["masks_missing"] == c["frames_processed"] == int(values["masks missing"])
         assert level == DiagnosticStatus.WARN
         assert f"{c['frames_processed']} frames tracked without their mask" in message
