@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, fields
 from enum import StrEnum
 from typing import Any
 
-__all__ = ["CAUSES", "DROPPED", "Cause", "Kind", "NodeCounters", "cause", "image_cause"]
+__all__ = ["CAUSES", "DROPPED", "Cause", "CauseLog", "Kind", "NodeCounters", "cause", "image_cause"]
 
 
 class Kind(StrEnum):
@@ -219,3 +219,35 @@ class NodeCounters:
     def since(self, before: dict[str, Any]) -> dict[str, int]:
         """The change of every count of :meth:`totals` since an earlier :meth:`totals`."""
         return {k: v - before.get(k, 0) for k, v in self.totals().items()}
+
+
+class CauseLog:
+    """Each precise cause logged once, every occurrence counted: the node's log stays readable under a
+    stream of bad input.
+
+    Args:
+        stats: where occurrences are counted.
+        logger: anything with ``error`` and ``warning`` methods (the node's logger).
+    """
+
+    def __init__(self, stats: NodeCounters, logger: Any) -> None:
+        self._stats = stats
+        self._logger = logger
+        self._logged: set[str] = set()
+
+    def bad(self, key: str, detail: str, message: str, n: int = 1) -> None:
+        """Count ``n`` images or frames under cause ``key``; log once per precise ``detail``."""
+        self._stats.count(key, n, detail)
+        if detail not in self._logged:
+            self._logged.add(detail)
+            c = cause(key)
+            what = "image" if c.unit == "image" else "frame"
+            self._logger.error(
+                f"skipping {what} ({c.label}): {message} (further {what}s like it are only counted)"
+            )
+
+    def once(self, key: str, message: str) -> None:
+        """Log a warning the first time ``key`` happens; after that it is only counted."""
+        if key not in self._logged:
+            self._logged.add(key)
+            self._logger.warning(f"{message} (further ones are only counted)")

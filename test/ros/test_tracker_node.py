@@ -497,15 +497,6 @@ def test_late_frames_are_tracked_without_checks_and_counted(tmp_path, prefix, pa
         h.close()
 
 
-def test_frames_lost_before_the_node_are_inferred_from_stamp_gaps():
-    from nsflow_ros.ros.tracker_node import _StampGaps
-
-    gaps = _StampGaps()
-    stamps = [0.05 * k for k in range(10)] + [0.05 * k for k in (12, 13, 17, 18)]  # 2, then 3 frames lost
-    assert [gaps.add(t) for t in stamps] == [0] * 10 + [2, 0, 3, 0]
-    assert gaps.add(0.1) == 0  # time going back is not a gap
-
-
 def test_declared_parameters_are_the_settings_table(tmp_path, prefix):
     from nsflow_ros.vins.settings import SETTINGS, Mode
 
@@ -1085,7 +1076,7 @@ def test_mask_topic_masks_moving_objects_and_counts_what_was_missing_late_or_ref
         assert node.stats.detail["mask_size"] == 1 and node.stats.detail["mask_encoding:bgr8"] == 1
         assert c["frames_published"] == 6 and c["frames_refused"] == 0
         assert "masks received 7, missing (frames tracked without theirs) 2, used 4, late 1" in node.summary()
-        assert "2 frames tracked without their mask" in node._mask_window(c)
+        assert "2 frames tracked without their mask" in node._masks.window(c)
         # with mask_wait_ms the frame waits for a mask that comes after it, without blocking the node
         assert all(r.successful for r in _set_remote(h, mask_wait_ms=1000.0))
         box = boxes[3]
