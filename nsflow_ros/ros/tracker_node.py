@@ -10,11 +10,9 @@ frames and every superseded frame is counted. A bad frame is logged once per cau
 skipped; a bad config, model or parameter stops the node at start-up with one line and exit code 1;
 SIGINT and SIGTERM stop it with exit code 0 after its summary line.
 
-This module wires the parts together; each concern lives in its own module: the process and its command
-line (:mod:`~nsflow_ros.ros.node_process`), QoS, transports and messages
-(:mod:`~nsflow_ros.ros.node_messages`), the per-frame mask topics (:mod:`~nsflow_ros.ros.node_masks`), the
-status line, /diagnostics and the summary (:mod:`~nsflow_ros.ros.node_status`), the counts by cause
-(:mod:`~nsflow_ros.ros.counters`) and the tracking state (:mod:`nsflow_ros.vins.health`).
+This module wires the parts: the process (:mod:`.node_process`), messages and QoS (:mod:`.node_messages`),
+mask topics (:mod:`.node_masks`), status, /diagnostics and summary (:mod:`.node_status`), the counts by
+cause (:mod:`.counters`) and the tracking state (:mod:`nsflow_ros.vins.health`).
 """
 
 from __future__ import annotations
