@@ -136,3 +136,19 @@ def test_console_script_prints_no_traceback(seq, tmp_path):
     )
     assert proc.returncode == 1
     assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_an_asl_image_missing_from_its_folder_is_one_line_without_a_decoder_warning(seq, tmp_path, capfd):
+    import shutil
+
+    asl = tmp_path / "asl"
+    shutil.copytree(seq.asl_dir, asl)
+    images = sorted((asl / "mav0" / "cam0" / "data").iterdir())
+    images[2].unlink()  # data.csv still names it
+    from nsflow_ros.ros.replay_node import main
+
+    code = main([str(asl), "--write-bag", str(tmp_path / "o"), "--no-progress"])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1, err  # OpenCV's imread would have written "can't open/read file"
+    assert err[0].startswith("nsflow-replay: image ") and f"{images[2].name} named in" in err[0]
+    assert err[0].endswith("cam0/data.csv does not exist")

@@ -377,9 +377,11 @@ def _read_imu_csv(path: Path) -> list[tuple[int, np.ndarray]]:
 
 
 def _read_png(path: Path) -> tuple[np.ndarray, str]:
+    if not path.is_file():  # before OpenCV, which would print its own warning first
+        raise DataError(f"image {path} named in {path.parent.parent / 'data.csv'} does not exist")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise DataError(f"cannot read image {path} (missing or not an image)")
+        raise DataError(f"cannot read image {path} (not an image)")
     ch = 1 if img.ndim == 2 else img.shape[2]
     enc = default_encoding(img.dtype, ch)
     if enc is None:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, fields
 from enum import StrEnum
 from typing import Any
 
-__all__ = ["CAUSES", "Cause", "Kind", "NodeCounters", "cause", "image_cause"]
+__all__ = ["CAUSES", "DROPPED", "Cause", "CauseLog", "Kind", "NodeCounters", "cause", "image_cause"]
 
 
 class Kind(StrEnum):
@@ -24,12 +24,18 @@ class Kind(StrEnum):
     """Bad input: the image or frame cannot be used (WARN; ERROR when nothing was tracked)."""
     BEHIND = "behind"
     """The tracker was busy: the node itself gave the frame up (WARN, "falling behind")."""
+    WAIT = "wait"
+    """The tracker waited for a frame's per-frame mask and the frame behind it was given up (WARN, names
+    mask_wait_ms, never "falling behind")."""
     POLICY = "policy"
     """The VINS front-end's policy skipped the frame (INFO: it is what VINS-Mono does)."""
     STOP = "stop"
     """Still waiting when the node stopped (summary only)."""
     EVENT = "event"
     """Something noteworthy about a frame that was still tracked (not a loss; WARN)."""
+    HELD = "held"
+    """Tracked but not published by the publishing policy (``publish_rate``, ``freq``; not a loss; INFO):
+    frames processed = published + held."""
 
 
 @dataclass(frozen=True)
@@ -77,6 +83,9 @@ CAUSES: tuple[Cause, ...] = (
           "the tracker raised on the frame (the log names the error once)"),
     Cause("superseded", "frame", "superseded", Kind.BEHIND,
           "given up unprocessed for a newer frame while the tracker was busy: the node is falling behind"),
+    Cause("mask_wait", "frame", "superseded while waiting for a mask", Kind.WAIT,
+          "given up for a newer frame while the tracker waited for the frame before it to get its per-frame "
+          "mask (mask_wait_ms), not for the CPU"),
     Cause("first_frame", "frame", "first frame (VINS-Mono)", Kind.POLICY,
           "VINS-Mono layout: the first image, at start and after a restart, is dropped as VINS-Mono does"),
     Cause("restart", "frame", "restart (stamp jump)", Kind.POLICY,
@@ -86,10 +95,19 @@ CAUSES: tuple[Cause, ...] = (
     Cause("reset_backwards", "frame", "stamp backwards (tracks reset)", Kind.EVENT,
           "VINS-Fusion layout: the stamp is older than the previous frame's; the tracks restart and the "
           "frame is tracked (it also counts as processed)"),
+    Cause("throttled", "frame", "held back (publish rate)", Kind.HELD,
+          "tracked but not published: publish_rate (or VINS-Mono's freq) lets only that many frames a "
+          "second through to the estimator (it also counts as processed)"),
+    Cause("first_published", "frame", "held back (VINS-Mono's first published frame)", Kind.HELD,
+          "VINS-Mono layout: tracked but not published, as VINS-Mono skips its first published frame (it "
+          "also counts as processed)"),
 )
 """Every cause, in the order of the status line. Add a row here for a new one (see the module docstring)."""
 
 _BY_KEY = {c.key: c for c in CAUSES}
+
+DROPPED: frozenset[Kind] = frozenset({Kind.REFUSED, Kind.BEHIND, Kind.WAIT, Kind.POLICY, Kind.STOP})
+"""The kinds of cause that end a frame untracked (EVENT and HELD frames are tracked)."""
 
 _IMAGE_CAUSES = {"encoding": "wrong_encoding", "format": "wrong_encoding", "size": "wrong_size"}
 """The image decoder's cause prefixes (:class:`~nsflow_ros.data.images.ImageDecodeError`) that are not
@@ -186,7 +204,7 @@ class NodeCounters:
     @property
     def frames_dropped(self) -> int:
         """Frames received but not tracked, all causes: received = processed + dropped (+ in flight)."""
-        return sum(self.lost[c.key] for c in CAUSES if c.unit == "frame" and c.kind is not Kind.EVENT)
+        return sum(self.lost[c.key] for c in CAUSES if c.unit == "frame" and c.kind in DROPPED)
 
     def totals(self) -> dict[str, int]:
         """Every count by its name: the plain counters, one ``<unit>s_<key>`` per cause, the sums."""
@@ -201,3 +219,35 @@ class NodeCounters:
     def since(self, before: dict[str, Any]) -> dict[str, int]:
         """The change of every count of :meth:`totals` since an earlier :meth:`totals`."""
         return {k: v - before.get(k, 0) for k, v in self.totals().items()}
+
+
+class CauseLog:
+    """Each precise cause logged once, every occurrence counted: the node's log stays readable under a
+    stream of bad input.
+
+    Args:
+        stats: where occurrences are counted.
+        logger: anything with ``error`` and ``warning`` methods (the node's logger).
+    """
+
+    def __init__(self, stats: NodeCounters, logger: Any) -> None:
+        self._stats = stats
+        self._logger = logger
+        self._logged: set[str] = set()
+
+    def bad(self, key: str, detail: str, message: str, n: int = 1) -> None:
+        """Count ``n`` images or frames under cause ``key``; log once per precise ``detail``."""
+        self._stats.count(key, n, detail)
+        if detail not in self._logged:
+            self._logged.add(detail)
+            c = cause(key)
+            what = "image" if c.unit == "image" else "frame"
+            self._logger.error(
+                f"skipping {what} ({c.label}): {message} (further {what}s like it are only counted)"
+            )
+
+    def once(self, key: str, message: str) -> None:
+        """Log a warning the first time ``key`` happens; after that it is only counted."""
+        if key not in self._logged:
+            self._logged.add(key)
+            self._logger.warning(f"{message} (further ones are only counted)")

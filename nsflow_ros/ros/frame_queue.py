@@ -7,13 +7,28 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import Generic, TypeVar
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+import numpy as np
 
 from nsflow_ros.ros.errors import ParameterError
 
-__all__ = ["LatestFrames"]
+__all__ = ["LatestFrames", "QueuedFrame"]
 
 T = TypeVar("T")
+
+
+@dataclass
+class QueuedFrame:
+    """A decoded frame (a mono image or a stereo pair) waiting for the tracker's worker."""
+
+    header: Any
+    image0: np.ndarray
+    image1: np.ndarray | None
+    t_recv: float  # perf_counter when its (first) image arrived
+    t_queued: float = 0.0  # perf_counter when it joined the queue (decoded and paired)
+    masks: tuple[np.ndarray | None, ...] = ()  # this frame's masks per camera, once the worker took them
 
 
 class LatestFrames(Generic[T]):

@@ -354,37 +354,6 @@ def _remaps(groups: list[list[str]]) -> list[str]:
     return [item for g in groups for item in g]
 
 
-def _check_tracked_topics(opts: argparse.Namespace) -> None:
-    """--topics with --offline / --features-bag: they must hold the config's camera topics."""
-    if opts.topics is None:
-        return
-    from nsflow_ros.resources import DEFAULT_CONFIG, share_file
-    from nsflow_ros.vins.config import load_vins_config
-
-    cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
-    cams = list(cfg.image_topics) if opts.features_bag is not None else [cfg.image0_topic]
-    missing = [t for t in cams if t not in opts.topics]
-    if missing:
-        raise NSFlowError(
-            f"--topics {' '.join(opts.topics)} leaves out the camera topic(s) {', '.join(missing)} that "
-            f"the config {cfg.path} tracks"
-        )
-
-
-def _static_masks(opts: argparse.Namespace, cfg: Any) -> tuple[Any, Any]:
-    """The static masks of --mask0 / --mask1 (else the config's keys) in --mask-convention."""
-    from nsflow_ros.vins.tracker import load_static_masks
-
-    return load_static_masks(cfg, opts.mask0, opts.mask1, opts.mask_convention)
-
-
-def _make_dir(path: Path) -> None:
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise NSFlowError(f"cannot create output folder {path}: {err.strerror}") from None
-
-
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``nsflow-replay`` / ``ros2 run nsflow_ros replay``.
 
@@ -428,53 +397,9 @@ def main(args: list[str] | None = None) -> int:
             jpeg_quality=opts.jpeg_quality,
         )
         if opts.offline is not None or opts.features_bag is not None:
-            from nsflow_ros.allocator import keep_large_buffers
-            from nsflow_ros.data.sources import SensorSource
+            from nsflow_ros.ros.replay_tracked import run_tracked
 
-            _check_tracked_topics(opts)
-            # a file that is no bag at all fails here, before an output exists
-            next(iter(SensorSource(opts.path, topics=opts.topics).raw_messages()), None)
-            keep_large_buffers()  # the tracker runs in this process
-        if opts.features_bag is not None:
-            from dataclasses import replace
-
-            from nsflow_ros.data.replay import replay_records
-            from nsflow_ros.resources import DEFAULT_CONFIG, share_file
-            from nsflow_ros.vins.config import load_vins_config
-            from nsflow_ros.vins.feature_bag import feature_bag_topics, write_feature_bag
-
-            cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
-            asked = {"publish_rate": opts.publish_rate, "max_sigma": opts.max_sigma}
-            bag = write_feature_bag(
-                replay_records(replace(ropts, topics=feature_bag_topics(cfg))),
-                opts.features_bag,
-                cfg,
-                method=opts.method,
-                fmt=opts.features_bag_format,
-                overrides={"providers": opts.providers, "model_path": opts.model or None,
-                           "downsample": opts.downsample},
-                settings={k: v for k, v in asked.items() if v is not None} or None,
-                masks=_static_masks(opts, cfg),
-                progress=not opts.no_progress,
-            )
-            print(bag.text())
-            return 0
-        if opts.offline is not None:
-            from nsflow_ros.resources import DEFAULT_CONFIG, share_file
-            from nsflow_ros.vins.config import load_vins_config
-            from nsflow_ros.vins.offline import run_offline
-
-            masks = _static_masks(opts, load_vins_config(opts.config or share_file(DEFAULT_CONFIG)))
-            _make_dir(opts.offline)
-            summary = run_offline(
-                ropts, opts.offline, config=opts.config, method=opts.method,
-                overrides={"providers": opts.providers, "model_path": opts.model or None,
-                           "downsample": opts.downsample},
-                masks=masks,
-                progress=not opts.no_progress,
-            )
-            print(summary.text())
-            return 0
+            return run_tracked(opts, ropts, prog)
         if opts.write_bag is not None:
             from nsflow_ros.data.replay import replay_records
             from nsflow_ros.data.writers import write_ros2_bag

@@ -36,7 +36,10 @@ def spec(name: str) -> Setting:
 
 
 def coerce(p: Setting, value: Any) -> Value:
-    """Check a parameter value's type (an integer counts as a number) and a node-only parameter's range.
+    """Check a parameter value's type (an integer counts as a number) and its range from the settings table.
+
+    The same rule at start-up and for a change at run time (:meth:`Setting.problem`): -1 only where it is
+    the default, a switch 0 or 1, ``downsample`` one of its factors, every bound of the table.
 
     Raises:
         ParameterError: naming the parameter, the value given and the type (or range) expected.
@@ -47,11 +50,11 @@ def coerce(p: Setting, value: Any) -> Value:
     if isinstance(value, want) and (want is bool or not isinstance(value, bool)):
         if want is float and not math.isfinite(value):
             raise ParameterError(f"parameter {p.name}: got {value!r}, expected a finite number")
-        low = p.minimum
-        if not p.session and low is not None and not (value > low if p.positive else value >= low):
-            raise ParameterError(
-                f"parameter {p.name}: got {value}, expected {_article(p.kind)} {p.kind} {p.bound}"
-            )
+        problem = p.problem(value)
+        if problem is not None and p.choices is not None:  # the tracker's own words for its factors
+            raise ParameterError(f"{p.name} must be {problem}, got {value!r}")
+        if problem is not None:
+            raise ParameterError(f"parameter {p.name}: got {value}, expected {problem}")
         return value
     got = "no value" if value is None else f"{value!r} ({KINDS.get(type(value), type(value).__name__)})"
     example = _yaml_value(p.default if p.example is None else p.example)

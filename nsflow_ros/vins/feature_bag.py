@@ -24,6 +24,7 @@ from nsflow_ros.data.records import ImageRecord, ImuRecord, Record
 from nsflow_ros.data.writers import BagWriter, temp_sibling
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.vins.config import VinsConfig
+from nsflow_ros.vins.health import HealthMonitor, HealthReport, State, usable_share
 from nsflow_ros.vins.messages import encode_fusion
 from nsflow_ros.vins.pairing import StereoPairer
 from nsflow_ros.vins.session import FrontEndSession, Skip
@@ -52,6 +53,7 @@ class FeatureBagSummary:
         frames: feature messages written.
         unpaired: stereo images dropped because the other camera had no image within the tolerance.
         tracked: frames tracked (more than ``frames`` with a ``publish_rate``).
+        health: the run's tracking state (:class:`~nsflow_ros.vins.health.HealthMonitor`), None if unjudged.
     """
 
     path: Path
@@ -61,6 +63,7 @@ class FeatureBagSummary:
     imu: int
     unpaired: int = 0
     tracked: int = 0
+    health: HealthReport | None = None
 
     def text(self) -> str:
         """One line for the command line."""
@@ -68,6 +71,8 @@ class FeatureBagSummary:
         extra = f", {self.unpaired} stereo image(s) without a partner skipped" if self.unpaired else ""
         if self.tracked > self.frames:
             extra += f"; {self.tracked} frames tracked, {self.frames} published (publish_rate)"
+        if self.health is not None and self.health.state is not State.OK:  # what the estimator will get
+            extra += f"; tracking {self.health.text}"
         return (f"wrote {self.path} ({self.format}): {self.frames} feature messages on {FEATURE_TOPIC} "
                 f"({per:.1f} features/frame), {self.imu} IMU messages{extra}")
 
@@ -143,6 +148,7 @@ def write_feature_bag(
     except OSError as err:
         raise DataError(f"cannot create {path}: {err.strerror}") from None
     frames = features = imu = 0
+    health = HealthMonitor()  # the node's default thresholds: the bag is judged as the node judges
     error: NSFlowError | None = None
     bar = progress_bar(desc=f"feature bag {method}", unit="frame", enabled=progress)
     try:
@@ -160,7 +166,8 @@ def write_feature_bag(
                     if pair is None:
                         continue
                     left, right = pair
-                    outcome = session.process(left.stamp_ns * 1e-9, left.for_tracker(),
+                    image0 = left.for_tracker()
+                    outcome = session.process(left.stamp_ns * 1e-9, image0,
                                               None if right is None else right.for_tracker())
                     if outcome.skipped is Skip.TRACKER:
                         raise NSFlowError(f"frame at {left.stamp_ns} ns: {outcome.note}")
@@ -173,6 +180,8 @@ def write_feature_bag(
                                           cloud.names, frame_id=left.frame_id or "world")
                     frames += 1
                     features += len(cloud)
+                    health.add_frame(outcome.features.cameras[0].ids, image=image0,
+                                     usable=usable_share(session.tracker.mask))
                     bar.update(1)
             except NSFlowError as err:
                 error = err  # keep what was tracked; report after the bag is complete
@@ -186,4 +195,6 @@ def write_feature_bag(
         shutil.rmtree(tmp, ignore_errors=True)
     if error is not None:
         raise NSFlowError(f"{error} (the {frames} frames before it were tracked and written to {path})")
-    return FeatureBagSummary(path, kind, frames, features, imu, pairer.unpaired, session.counters.tracked)
+    report = health.run_report(max_cnt=session.tracker.settings.max_cnt, gated=session.counters.gated)
+    return FeatureBagSummary(path, kind, frames, features, imu, pairer.unpaired, session.counters.tracked,
+                             report)

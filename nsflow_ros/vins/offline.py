@@ -22,6 +22,7 @@ from nsflow_ros.data.scoring import TrackStats
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.files import atomic_write
 from nsflow_ros.vins.draw import draw_tracks
+from nsflow_ros.vins.health import HealthMonitor, usable_share
 from nsflow_ros.vins.session import FrontEndSession, Skip
 from nsflow_ros.vins.settings import setting
 from nsflow_ros.vins.sheet import contact_sheet, write_png
@@ -33,13 +34,20 @@ CSV_HEADER = "stamp_ns,camera_id,feature_id,u,v,x,y,velocity_x,velocity_y,track_
 
 @dataclass
 class OfflineSummary:
-    """What :func:`run_offline` did."""
+    """What :func:`run_offline` did.
+
+    Attributes:
+        tracking_state, tracking_cause: the run's tracking state judged as the node judges a status
+            period (:class:`~nsflow_ros.vins.health.HealthMonitor`), and its likely cause when not OK.
+    """
 
     source: str
     method: str
     perturb: str
     out_dir: str
     figures: dict[str, Any]
+    tracking_state: str = ""
+    tracking_cause: str = ""
 
     def text(self) -> str:
         f = self.figures
@@ -48,10 +56,11 @@ class OfflineSummary:
             if f["error_median_px"] is None
             else f"{f['error_median_px']:.3f} px median, {100 * f['error_within_1px']:.1f}% within 1 px"
         )
+        state = f"; tracking {self.tracking_state}: {self.tracking_cause}" if self.tracking_cause else ""
         return (
             f"{self.source} [{self.method}, perturbation {self.perturb}]: {f['frames']} frames, "
             f"{f['features_per_frame']:.1f} features/frame, mean track length {f['mean_track_length']:.1f}, "
-            f"tracking error {err}; outputs in {self.out_dir}"
+            f"tracking error {err}{state}; outputs in {self.out_dir}"
         )
 
 
@@ -111,6 +120,7 @@ def run_offline(
     rows: list[str] = []
     sheet: list[tuple[int, np.ndarray]] = []
     error: NSFlowError | None = None
+    health = HealthMonitor()  # the node's default thresholds
     bar = progress_bar(desc=f"offline {method}", unit="frame", enabled=progress)
     cv = int(setting("opencv_threads").default) if opencv_threads is None else opencv_threads
     with process_threads.opencv_threads(cv):
@@ -118,7 +128,8 @@ def run_offline(
             for rec in replay_records(replace(opts, topics=[cfg.image0_topic])):
                 if not isinstance(rec, ImageRecord):
                     continue
-                outcome = session.process(rec.stamp_ns * 1e-9, rec.for_tracker())
+                image = rec.for_tracker()
+                outcome = session.process(rec.stamp_ns * 1e-9, image)
                 if outcome.skipped is Skip.TRACKER:
                     raise NSFlowError(f"frame at {rec.stamp_ns} ns: {outcome.note}")
                 feats = outcome.features
@@ -126,6 +137,7 @@ def run_offline(
                 if feats is None:
                     continue
                 cf = feats.cameras[0]
+                health.add_frame(cf.ids, image=image, usable=usable_share(session.tracker.mask))
                 stats.add_frame(rec.stamp_ns, {int(i): p for i, p in zip(cf.ids, cf.pixels, strict=True)})
                 for j in range(len(cf.ids)):
                     rows.append(
@@ -145,7 +157,9 @@ def run_offline(
         img = contact_sheet([im for _, im in pick], labels=[f"{method} frame {n}" for n, _ in pick],
                             legend=True)
         atomic_write(out / "tracks.png", lambda p: write_png(p, img))
-    summary = OfflineSummary(str(opts.path), method, opts.perturb, str(out), stats.figures())
+    report = health.run_report(max_cnt=session.tracker.settings.max_cnt, gated=session.counters.gated)
+    summary = OfflineSummary(str(opts.path), method, opts.perturb, str(out), stats.figures(),
+                             report.state.value, report.cause)
     atomic_write(out / "summary.json", lambda p: p.write_text(json.dumps(asdict(summary), indent=2)))
     if error is not None:
         raise NSFlowError(

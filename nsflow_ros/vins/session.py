@@ -82,6 +82,8 @@ class FrameOutcome:
         restart: VINS-Mono layout: the estimator must restart (publish ``restart``).
         skipped: why the frame was not tracked; None when tracked.
         note: a sentence for the log when something noteworthy happened (a skip, a reset), else "".
+        held: why a tracked frame has no features to publish: ``throttled`` (``publish_rate`` / ``freq``)
+            or ``first_published`` (VINS-Mono skips its first published frame); "" otherwise.
     """
 
     features: FrameFeatures | None
@@ -89,6 +91,7 @@ class FrameOutcome:
     restart: bool = False
     skipped: Skip | None = None
     note: str = ""
+    held: str = ""
 
 
 @dataclass
@@ -428,11 +431,11 @@ class FrontEndSession:
                 self.gyro.prune(stamp)
         if not publish:
             self.counters.throttled += 1
-            return FrameOutcome(None, True, note=note)
+            return FrameOutcome(None, True, note=note, held="throttled")
         self._pub_count += 1
         if self.layout == "mono" and not self._init_pub:  # VINS-Mono skips the first published frame
             self._init_pub = True
-            return FrameOutcome(None, True, note=note)
+            return FrameOutcome(None, True, note=note, held="first_published")
         if self.publish_rate:
             frame = self._interval_velocities(frame)
         return FrameOutcome(self._shift_ids(self._trim(frame)), True, note=note)

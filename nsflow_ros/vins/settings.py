@@ -70,7 +70,9 @@ class Setting:
         tracker: a field of :class:`~nsflow_ros.core.tracker.TrackerSettings` of the same name.
         session: taken by :class:`~nsflow_ros.vins.session.FrontEndSession` (else the node's alone).
         minimum: the smallest value allowed (numbers; :data:`KEEP` aside); None = any.
+        maximum: the largest value allowed (numbers); None = any.
         positive: the value must be > ``minimum`` rather than >= it.
+        choices: the only values allowed (numbers); None = any in the range.
         switch: an integer 0/1 (or true/false) switch.
         none_value: the value that stands for None in TrackerSettings ("" = shipped model, 0 = all cores).
         tracker_type: the TrackerSettings field's type where it differs from the setting's (None = same).
@@ -86,7 +88,9 @@ class Setting:
     tracker: bool = False
     session: bool = False
     minimum: float | None = None
+    maximum: float | None = None
     positive: bool = False
+    choices: tuple[int, ...] | None = None
     switch: bool = False
     none_value: Value | None = None
     tracker_type: type | None = None
@@ -154,10 +158,43 @@ class Setting:
 
     @property
     def bound(self) -> str:
-        """The range in words, e.g. ">= 1"; "" when any value of the type is allowed."""
-        if self.minimum is None:
-            return ""
-        return f"{'>' if self.positive else '>='} {self.minimum:g}"
+        """The range in words, e.g. ">= 1" or "in [0, 1]"; "" when any value of the type is allowed."""
+        low, high = self.minimum, self.maximum
+        if low is not None and high is not None and not self.positive:
+            return f"in [{low:g}, {high:g}]"
+        words = [f"{'>' if self.positive else '>='} {low:g}"] if low is not None else []
+        words += [f"<= {high:g}"] if high is not None else []
+        return " and ".join(words)
+
+    @property
+    def keeps(self) -> bool:
+        """Whether :data:`KEEP` (-1) is a value of this setting: its default ("the VINS config's value" or
+        the layout's choice). Anywhere else -1 is out of range like any other value."""
+        return not isinstance(self.default, bool) and isinstance(self.default, int | float) \
+            and self.default == KEEP
+
+    def problem(self, value: Value) -> str | None:
+        """What is wrong with a value of the right type ("expected ..."); None when it is allowed.
+
+        The one range rule of the node's parameters, at start-up and at run time: :data:`KEEP` only where it
+        is the default (:attr:`keeps`), a switch 0 or 1, :attr:`choices`, then :attr:`minimum` and
+        :attr:`maximum`.
+        """
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return None  # strings and booleans: their type is their range
+        keep = f" (or {KEEP}: the default)" if self.keeps else ""
+        if self.keeps and value == KEEP:
+            return None
+        if self.switch:
+            return None if value in (0, 1) else f"0 or 1{keep}"
+        if self.choices is not None:
+            return None if value in self.choices else f"one of {', '.join(map(str, self.choices))}"
+        low, high = self.minimum, self.maximum
+        below = low is not None and (value <= low if self.positive else value < low)
+        above = high is not None and value > high
+        if below or above:
+            return f"{'an' if self.kind[0] in 'aeiou' else 'a'} {self.kind} {self.bound}{keep}"
+        return None
 
 
 def _describe(value: Any) -> str:
@@ -234,7 +271,7 @@ SETTINGS: tuple[Setting, ...] = (
         "have at full resolution, and the published pixels, undistorted points and velocities are in the "
         "config's full-resolution calibration, so the estimator's config stays as it is. The image size "
         "must be divisible by the factor.",
-        tracker=True, session=True, minimum=1, example=2),
+        tracker=True, session=True, minimum=1, choices=(1, 2, 4), example=2),
     Setting(
         "equalize", KEEP, Mode.REBUILD,
         "Equalise the image (CLAHE) before tracking (VINS-Mono equalize), 0/1.",
@@ -307,6 +344,14 @@ SETTINGS: tuple[Setting, ...] = (
         "segmentation's object pixels). A pixel > 127 counts as 255. The fisheye_mask is always 'vins'.",
         example="openvins"),
     Setting(
+        "mask_min_usable", 0.25, Mode.READ_ONLY,
+        "A static mask (mask0, mask1, the fisheye mask) that leaves less than this share of its image "
+        "usable is warned about at start-up with its share; one with no usable pixel stops the node (and "
+        "nsflow-replay --offline / --features-bag) with one line. Masks below it are named as the likely "
+        "cause when the tracking state drops. 0.25: EuRoC's max_cnt 150 features at min_dist 30 px need "
+        "about a third of a 752x480 image, so below a quarter they crowd or fall short.",
+        unit="share", minimum=0, maximum=1),
+    Setting(
         "mask_topic", "", Mode.READ_ONLY,
         "Topic of per-frame masks of camera 0 (sensor_msgs/Image mono8, the camera's size, stamped like its "
         "images, e.g. moving objects from a segmentation node; read as mask_convention says): a frame takes "
@@ -326,8 +371,11 @@ SETTINGS: tuple[Setting, ...] = (
         "How long a frame may wait for its per-frame mask before it is tracked without it (from the "
         "arrival of its image; the node goes on receiving meanwhile). 0 = no wait: only a mask that came "
         "before its frame's turn is used. Raise it to the segmentation's latency behind the camera when "
-        "/diagnostics counts masks as late.",
-        unit="ms", minimum=0),
+        "/diagnostics counts masks as late. A wait also ends when the next frame arrives, and after a wait "
+        "that ran out the node stops waiting for that topic until a mask comes again (it says so once), so "
+        "a silent mask publisher costs no frame: a wait lasts at most one frame period. At most 1000 (a mask "
+        "a second behind its camera is of no use at camera rate).",
+        unit="ms", minimum=0, maximum=1000),
     Setting(
         "queue_size", 1, Mode.READ_ONLY,
         "Frames waiting for the tracker at most (>= 1). When the tracker falls behind, a new frame "
@@ -346,6 +394,33 @@ SETTINGS: tuple[Setting, ...] = (
         "Seconds between status lines in the log and on /diagnostics (frames received / processed / "
         "dropped, features, latency); 0 = none.",
         unit="s", minimum=0),
+    # -- the tracking state (OK / DEGRADED / LOST) of each status period: what reaches the estimator --
+    Setting(
+        "degraded_features", 0.3, Mode.LIVE,
+        "Tracking state DEGRADED (status line, /diagnostics, summary) when the features published per frame "
+        "in a status period average below this share of max_cnt: VINS-Fusion weights every feature alike, "
+        "and on less than about a third of its max_cnt its solve rests on few points, often in one part of "
+        "the image. A state improves only once its thresholds are cleared by 20 %.",
+        unit="x max_cnt", minimum=0, maximum=1),
+    Setting(
+        "lost_features", 0.15, Mode.LIVE,
+        "Tracking state LOST when the features published per frame average below this share of max_cnt "
+        "(22 of EuRoC's 150: about what VINS-Fusion's initialisation needs, its relative pose takes more "
+        "than 20 correspondences). At most degraded_features.",
+        unit="x max_cnt", minimum=0, maximum=1),
+    Setting(
+        "degraded_carried", 0.5, Mode.LIVE,
+        "Tracking state DEGRADED when, over a status period, the median published frame carries on less "
+        "than this share of the previous published frame's feature ids: the estimator constrains the pose "
+        "with features seen in several frames; a camera tracked well carries 80-95 % (tracks of 5-20 "
+        "frames), at a half tracks last about two frames.",
+        unit="share", minimum=0, maximum=1),
+    Setting(
+        "lost_carried", 0.1, Mode.LIVE,
+        "Tracking state LOST when the median published frame carries on less than this share of the "
+        "previous frame's ids: tracks last barely one frame and the estimator has nothing to triangulate "
+        "(e.g. every feature gated by max_sigma). At most degraded_carried.",
+        unit="share", minimum=0, maximum=1),
     Setting(
         "summary_file", "", Mode.READ_ONLY,
         "Write the run's counters as JSON to this file when the node stops ('' = no file)."),

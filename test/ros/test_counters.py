@@ -15,12 +15,14 @@ def test_every_cause_has_one_counter_name_and_label():
     assert set(names) <= set(totals) and all(v == 0 for v in totals.values())
 
 
-def test_dropped_is_every_frame_cause_but_events_and_refused_is_bad_input_only():
+def test_dropped_is_every_frame_cause_but_events_and_held_frames_and_refused_is_bad_input_only():
     c = NodeCounters()
     for cause in CAUSES:
         c.count(cause.key, 2)
     frame_causes = [x for x in CAUSES if x.unit == "frame"]
-    assert c.frames_dropped == 2 * sum(x.kind is not Kind.EVENT for x in frame_causes)
+    # an event (tracks reset) or a frame held back by publish_rate was tracked: not dropped
+    assert c.frames_dropped == 2 * sum(x.kind not in (Kind.EVENT, Kind.HELD) for x in frame_causes)
+    assert c.totals()["frames_throttled"] == 2 and c.totals()["frames_mask_wait"] == 2
     assert c.frames_refused == 2 * sum(x.kind is Kind.REFUSED for x in frame_causes)
     assert c.totals()["images_unpaired"] == c.images_unpaired == 2
     before = c.totals()

@@ -55,6 +55,9 @@ def test_take_waits_at_most_as_told_and_wakes_when_the_mask_comes():
     t0 = time.monotonic()
     assert b.take(100 * MS, wait=0.05) is None
     assert 0.04 <= time.monotonic() - t0 < 1.0 and b.missing == 1
+    assert b.silent and b.silences == 1
+    b.add(150 * MS, _mask(0))  # a mask again: the topic is back, frames wait for theirs again
+    assert not b.silent
     timer = threading.Timer(0.05, lambda: b.add(200 * MS, _mask(7)))
     timer.start()
     t0 = time.monotonic()
@@ -66,3 +69,42 @@ def test_take_waits_at_most_as_told_and_wakes_when_the_mask_comes():
     t0 = time.monotonic()
     assert b.take(300 * MS, wait=5.0) is None and time.monotonic() - t0 < 2.0  # a stop ends the wait
     closer.join()
+
+
+def test_a_silent_topic_costs_one_wait_until_a_mask_comes_again():
+    b = FrameMasks(0.003)
+    t0 = time.monotonic()
+    assert b.take(100 * MS, wait=0.05) is None and b.silent
+    for k in range(1, 20):  # the publisher stopped: no frame waits any more
+        assert b.take((100 + 50 * k) * MS, wait=0.05) is None
+    assert time.monotonic() - t0 < 0.05 + 0.5 and b.missing == 20 and b.silences == 1
+    b.add(2000 * MS, _mask(3))
+    assert not b.silent and b.take(2000 * MS, wait=0.05)[0, 0] == 3
+
+
+def test_a_newer_frame_ends_the_wait():
+    b = FrameMasks(0.003)
+    newer = threading.Event()
+    timer = threading.Timer(0.05, lambda: (newer.set(), b.wake()))
+    timer.start()
+    t0 = time.monotonic()
+    assert b.take(100 * MS, wait=5.0, until=newer.is_set) is None
+    assert time.monotonic() - t0 < 2.0 and b.missing == 1
+    timer.join()
+
+
+def test_every_mask_ends_used_late_unused_or_left_at_the_stop():
+    b = FrameMasks(0.003, max_waiting=2)
+    received = 0
+    for stamp in (100, 150, 200, 250):  # 100 and 150 are pushed out: unused
+        b.add(stamp * MS, _mask(0))
+        received += 1
+    assert b.take(200 * MS) is not None  # used
+    b.add(190 * MS, _mask(0))  # its frame is gone: late
+    b.add(300 * MS, _mask(0))  # never taken: left at the stop, with the one at 250
+    received += 2
+    b.close()
+    b.add(350 * MS, _mask(0))  # after the stop
+    received += 1
+    assert (b.used, b.late, b.unused, b.left_at_stop) == (1, 1, 2, 3)
+    assert b.used + b.late + b.unused + b.left_at_stop == received

@@ -74,3 +74,29 @@ def test_opencv_threads_is_a_read_only_node_setting_checked_at_start_up():
     with pytest.raises(ParameterError, match=r"parameter opencv_threads: got -1, expected an integer >= 0"):
         coerce(p, -1)
     assert SETTINGS[-1] is p  # the last row of the table, as in the params file
+
+
+@pytest.mark.parametrize(("name", "value", "said"), [
+    ("downsample", -1, "downsample must be one of 1, 2, 4, got -1"),
+    ("downsample", 0, "downsample must be one of 1, 2, 4, got 0"),
+    ("max_sigma", -1.0, "parameter max_sigma: got -1.0, expected a number >= 0"),
+    ("publish_covariance", 2, r"parameter publish_covariance: got 2, expected 0 or 1 \(or -1: the default\)"),
+    ("publish_covariance", 5, "publish_covariance: got 5, expected 0 or 1"),
+    ("publish_covariance", -2, "publish_covariance: got -2, expected 0 or 1"),
+    ("max_cnt", 0, r"parameter max_cnt: got 0, expected an integer >= 1 \(or -1: the default\)"),
+    ("mask_wait_ms", 1e9, r"parameter mask_wait_ms: got 1000000000.0, expected a number in \[0, 1000\]"),
+    ("degraded_features", 1.5, r"degraded_features: got 1.5, expected a number in \[0, 1\]"),
+    ("num_threads", -1, "parameter num_threads: got -1, expected an integer >= 0"),
+])
+def test_out_of_range_values_are_refused_with_the_range_including_the_keep_value(name, value, said):
+    # the node's one rule, at start-up and at run time: -1 only where it is the default
+    with pytest.raises(ParameterError, match=said):
+        coerce(spec(name), value)
+
+
+def test_the_keep_value_and_the_range_ends_are_accepted_where_they_mean_something():
+    assert coerce(spec("publish_covariance"), -1) == -1 and coerce(spec("publish_covariance"), 1) == 1
+    assert coerce(spec("max_cnt"), -1) == -1 and coerce(spec("publish_rate"), -1) == -1.0
+    assert coerce(spec("downsample"), 4) == 4 and coerce(spec("mask_wait_ms"), 1000) == 1000.0
+    assert coerce(spec("max_sigma"), 0.0) == 0.0 and coerce(spec("lost_carried"), 1.0) == 1.0
+    assert all(p.keeps == (p.default == -1 and not isinstance(p.default, bool)) for p in PARAMETERS)

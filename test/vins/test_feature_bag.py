@@ -293,3 +293,57 @@ def test_cli_masks_keep_each_camera_off_its_masked_pixels(seq, tmp_path, capsys)
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and re.search(said, err), err
         assert not (tmp_path / "g.bag").exists()
+
+
+def _black_copy(seq, tmp_path, value: int = 0):
+    """The sample's ASL folder with every camera image uniform."""
+    import shutil
+
+    import cv2
+
+    asl = tmp_path / "black"
+    shutil.copytree(seq.asl_dir, asl)
+    for png in asl.glob("mav0/cam*/data/*.png"):
+        cv2.imwrite(str(png), np.full((480, 752), value, np.uint8))
+    return asl
+
+
+def test_cli_feature_bag_says_the_tracking_state_and_fails_when_nothing_was_tracked(seq, tmp_path, capsys):
+    # uniform images: a bag of empty clouds is written, the tool says why and exits 1
+    out = tmp_path / "black.bag"
+    code = replay_main([str(_black_copy(seq, tmp_path)), "--features-bag", str(out), "--method", "klt",
+                        "--no-progress"])
+    std = capsys.readouterr()
+    assert code == 1 and out.exists() and "0.0 features/frame" in std.out
+    assert "tracking LOST: images uniform" in std.out
+    (line,) = std.err.strip().splitlines()
+    assert line.startswith(f"nsflow-replay: no feature was tracked in {len(seq)} frames: images uniform")
+    # max_sigma far below the covariance floor: every track gated, features published, ids never carried
+    out = tmp_path / "gated.bag"
+    code = replay_main([str(seq.asl_dir), "--features-bag", str(out), "--method", "classical",
+                        "--no-progress", "--max-sigma", "1e-9"])
+    std = capsys.readouterr()
+    assert code == 0 and "tracking LOST: every tracked feature gated by max_sigma" in std.out, std
+    out = tmp_path / "plain.bag"
+    args = [str(seq.asl_dir), "--features-bag", str(out), "--method", "klt", "--no-progress"]
+    assert replay_main(args) == 0
+    assert "tracking" not in capsys.readouterr().out  # OK: nothing to say
+
+
+def test_cli_feature_bag_checks_static_masks_as_the_node_does(seq, tmp_path, capsys):
+    import cv2
+
+    corner = np.zeros((480, 752), np.uint8)
+    corner[:100, :100] = 255
+    cv2.imwrite(str(tmp_path / "corner.png"), corner)
+    cv2.imwrite(str(tmp_path / "zeros.png"), np.zeros((480, 752), np.uint8))
+    out = tmp_path / "corner.bag"
+    code = replay_main([str(seq.asl_dir), "--features-bag", str(out), "--method", "klt", "--no-progress",
+                        "--mask0", str(tmp_path / "corner.png")])
+    err = capsys.readouterr().err
+    assert code == 0 and out.exists()
+    assert "nsflow-replay: warning: mask0 " in err and "corner.png leaves 2.8 % of the image usable" in err
+    code = replay_main([str(seq.asl_dir), "--features-bag", str(tmp_path / "z.bag"), "--method", "klt",
+                        "--no-progress", "--mask0", str(tmp_path / "zeros.png")])
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and "zeros.png leaves no usable pixel" in line and not (tmp_path / "z.bag").exists()

@@ -66,3 +66,26 @@ def test_cli_offline_run_takes_a_static_mask(seq, tmp_path, capsys):
     with pytest.raises(SystemExit):  # publishing over ROS: masks are the tracker's
         replay_main([str(seq.asl_dir), "--mask0", str(tmp_path / "top.png")])
     assert "--mask0 / --mask1 apply to --offline / --features-bag" in capsys.readouterr().err
+
+
+def test_cli_offline_run_fails_in_one_line_when_nothing_was_tracked(seq, tmp_path, capsys):
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    from nsflow_ros.ros.replay_node import main as replay_main
+
+    asl = tmp_path / "white"
+    shutil.copytree(seq.asl_dir, asl)
+    for png in asl.glob("mav0/cam0/data/*.png"):
+        cv2.imwrite(str(png), np.full((480, 752), 255, np.uint8))
+    args = [str(asl), "--offline", str(tmp_path / "out"), "--method", "klt", "--no-progress",
+            "--duration", "0.3"]
+    assert replay_main(args) == 1
+    std = capsys.readouterr()
+    assert "0.0 features/frame" in std.out and "tracking LOST: images uniform" in std.out
+    (line,) = std.err.strip().splitlines()
+    assert line.startswith("nsflow-replay: no feature was tracked in ") and ": images uniform (" in line
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["tracking_state"] == "LOST" and summary["tracking_cause"].startswith("images uniform")
