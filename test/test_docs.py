@@ -89,3 +89,10 @@ def test_tables_regenerate_and_are_pasted_whole(stored):
     assert stored.with_suffix(".md").read_text(encoding="utf-8") == text
     docs = (ROOT / "docs" / "benchmarks.md").read_text() + (ROOT / "docs" / "evaluation.md").read_text()
     assert text in docs, f"{stored.with_suffix('.md').name} is not pasted whole into the docs"
+
+
+def test_the_readme_pastes_the_whole_tracker_table_whole():
+    doc = json.loads((ROOT / "docs" / "results" / "bench.json").read_text(encoding="utf-8"))
+    head = markdown({"header": doc["header"], "tables": doc["tables"][:1]})
+    assert doc["tables"][0]["title"] == "Whole tracker per frame"
+    assert head in (ROOT / "README.md").read_text(encoding="utf-8")
