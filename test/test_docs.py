@@ -4,6 +4,7 @@ docs whole."""
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import re
@@ -11,10 +12,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_help import TOOLS, _help
 
 from nsflow_ros.results import markdown
 from nsflow_ros.ros.tracker_params import PARAMETERS
-from test_help import TOOLS, _help
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", ROOT / "models" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -28,7 +29,8 @@ def _text() -> str:
 
 def _anchors(page: Path) -> set[str]:
     """GitHub's heading anchors: lower case, punctuation but '-' and '_' dropped, spaces to '-'."""
-    heads = re.findall(r"^#+ (.+)$", re.sub(r"```.*?```", "", page.read_text(encoding="utf-8"), flags=re.S), re.M)
+    text = re.sub(r"```.*?```", "", page.read_text(encoding="utf-8"), flags=re.S)
+    heads = re.findall(r"^#+ (.+)$", text, re.M)
     return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in heads}
 
 
@@ -66,10 +68,8 @@ def _help_sub(target: str, sub: str, monkeypatch, capsys) -> str:
     """``nsflow-ate SUB --help``."""
     module, _, func = target.partition(":")
     monkeypatch.setattr(sys, "argv", ["nsflow-ate", sub, "--help"])
-    try:
+    with contextlib.suppress(SystemExit):
         getattr(importlib.import_module(module), func)()
-    except SystemExit:
-        pass
     return capsys.readouterr().out
 
 
