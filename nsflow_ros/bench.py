@@ -216,16 +216,9 @@ def solver_cost_model(
         raise NSFlowError("the solver cost model found no corners to track in its frames")
     a, b = _fit_pass_costs(np.asarray(rows, np.float64), np.asarray(times))
     p, e, measured = (float(v) for v in np.median(np.asarray(full), axis=0))
-    return {
-        "passes": p,
-        "point_evaluations": e,
-        "measured_ms": measured,
-        "fixed_us_per_pass": a * 1e3,
-        "us_per_point_evaluation": b * 1e3,
-        "fixed_ms": a * p,
-        "per_point_ms": b * e,
-        "modelled_ms": a * p + b * e,
-    }
+    return {"passes": p, "point_evaluations": e, "measured_ms": measured, "fixed_us_per_pass": a * 1e3,
+            "us_per_point_evaluation": b * 1e3, "fixed_ms": a * p, "per_point_ms": b * e,
+            "modelled_ms": a * p + b * e}
 
 
 def run_benchmark(
@@ -274,16 +267,9 @@ def run_benchmark(
         methods["opencv_klt"] = _OpenCVKLT(points)
         out: dict[str, Any] = {
             "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "threads": threads},
-            "setup": {
-                "frames": frames,
-                "points": points,
-                "size": [WIDTH, HEIGHT],
-                "model": model_desc,
-                "descriptor_channels": encoder.channels,
-                "encoder_provider": encoder.provider,
-                "solver": classical.spec.lm.as_dict(),  # type: ignore[union-attr]
-                "interleaved": True,
-            },
+            "setup": {"frames": frames, "points": points, "size": [WIDTH, HEIGHT], "model": model_desc,
+                      "descriptor_channels": encoder.channels, "encoder_provider": encoder.provider,
+                      "solver": classical.spec.lm.as_dict(), "interleaved": True},  # type: ignore[union-attr]
         }
         # Frame by frame, every method in turn: on a shared machine the load drifts over seconds, and
         # interleaving exposes all methods to the same drift, so their ratios hold even when it is noisy.
@@ -309,16 +295,11 @@ def run_benchmark(
     finally:
         if tmp is not None:
             tmp.cleanup()
-    klt = out["opencv_klt"]
-    out["ratios"] = {
-        "classical_solver_vs_klt": out["classical"]["solver"]["median_ms"] / klt["klt"]["median_ms"]
-    }
-    nsflow = out.get("nsflow")
+    klt, nsflow, classical_ms = out["opencv_klt"], out.get("nsflow"), out["classical"]["solver"]["median_ms"]
+    out["ratios"] = {"classical_solver_vs_klt": classical_ms / klt["klt"]["median_ms"]}
     if nsflow is not None:
         out["ratios"]["nsflow_solver_vs_klt"] = nsflow["solver"]["median_ms"] / klt["klt"]["median_ms"]
-        out["ratios"]["nsflow_total_vs_klt_total"] = (
-            nsflow["total"]["median_ms"] / klt["total"]["median_ms"]
-        )
+        out["ratios"]["nsflow_total_vs_klt_total"] = nsflow["total"]["median_ms"] / klt["total"]["median_ms"]
     return out
 
 
