@@ -20,6 +20,7 @@ import functools
 import json
 import os
 import platform
+import shlex
 import sys
 import tempfile
 import time
@@ -40,6 +41,7 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.timing import make_frames, time_encoder, timing_stats
 from nsflow_ros.evaluation.timing import timed as _timed
 from nsflow_ros.optional import require
+from nsflow_ros.results import run_header, table, write_tables
 from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
 from nsflow_ros.vins.settings import setting
 
@@ -214,16 +216,9 @@ def solver_cost_model(
         raise NSFlowError("the solver cost model found no corners to track in its frames")
     a, b = _fit_pass_costs(np.asarray(rows, np.float64), np.asarray(times))
     p, e, measured = (float(v) for v in np.median(np.asarray(full), axis=0))
-    return {
-        "passes": p,
-        "point_evaluations": e,
-        "measured_ms": measured,
-        "fixed_us_per_pass": a * 1e3,
-        "us_per_point_evaluation": b * 1e3,
-        "fixed_ms": a * p,
-        "per_point_ms": b * e,
-        "modelled_ms": a * p + b * e,
-    }
+    return {"passes": p, "point_evaluations": e, "measured_ms": measured, "fixed_us_per_pass": a * 1e3,
+            "us_per_point_evaluation": b * 1e3, "fixed_ms": a * p, "per_point_ms": b * e,
+            "modelled_ms": a * p + b * e}
 
 
 def run_benchmark(
@@ -272,16 +267,9 @@ def run_benchmark(
         methods["opencv_klt"] = _OpenCVKLT(points)
         out: dict[str, Any] = {
             "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "threads": threads},
-            "setup": {
-                "frames": frames,
-                "points": points,
-                "size": [WIDTH, HEIGHT],
-                "model": model_desc,
-                "descriptor_channels": encoder.channels,
-                "encoder_provider": encoder.provider,
-                "solver": classical.spec.lm.as_dict(),  # type: ignore[union-attr]
-                "interleaved": True,
-            },
+            "setup": {"frames": frames, "points": points, "size": [WIDTH, HEIGHT], "model": model_desc,
+                      "descriptor_channels": encoder.channels, "encoder_provider": encoder.provider,
+                      "solver": classical.spec.lm.as_dict(), "interleaved": True},  # type: ignore[union-attr]
         }
         # Frame by frame, every method in turn: on a shared machine the load drifts over seconds, and
         # interleaving exposes all methods to the same drift, so their ratios hold even when it is noisy.
@@ -307,16 +295,11 @@ def run_benchmark(
     finally:
         if tmp is not None:
             tmp.cleanup()
-    klt = out["opencv_klt"]
-    out["ratios"] = {
-        "classical_solver_vs_klt": out["classical"]["solver"]["median_ms"] / klt["klt"]["median_ms"]
-    }
-    nsflow = out.get("nsflow")
+    klt, nsflow, classical_ms = out["opencv_klt"], out.get("nsflow"), out["classical"]["solver"]["median_ms"]
+    out["ratios"] = {"classical_solver_vs_klt": classical_ms / klt["klt"]["median_ms"]}
     if nsflow is not None:
         out["ratios"]["nsflow_solver_vs_klt"] = nsflow["solver"]["median_ms"] / klt["klt"]["median_ms"]
-        out["ratios"]["nsflow_total_vs_klt_total"] = (
-            nsflow["total"]["median_ms"] / klt["total"]["median_ms"]
-        )
+        out["ratios"]["nsflow_total_vs_klt_total"] = nsflow["total"]["median_ms"] / klt["total"]["median_ms"]
     return out
 
 
@@ -371,177 +354,197 @@ def _size(text: str) -> tuple[int, int]:
     return int(w), int(h)
 
 
-def main(args: list[str] | None = None) -> int:
-    """Entry point of ``nsflow-bench`` / ``ros2 run nsflow_ros bench``."""
+def _parser() -> argparse.ArgumentParser:
+    """``nsflow-bench``'s options."""
     parser = argparse.ArgumentParser(prog=program_name("nsflow-bench"), description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=positive_int, default=60,
-                        help="frames of the 752x480 sequence of the stage benchmark (default 60)")
-    parser.add_argument("--points", type=positive_int, default=150,
-                        help="GFTT points per frame (default 150)")
-    parser.add_argument(
-        "--model", default=None,
-        help="ONNX encoder: a file, or a shipped model by name (default, fast; default: default)",
-    )
-    parser.add_argument("--threads", type=positive_int, default=None,
-                        help="encoder (onnxruntime) threads: 2 by default in the tracker and stage runs; "
-                        "given, also the node runs' num_threads (default there: the node's, all cores)")
-    parser.add_argument("--providers", default="cpu", help="onnxruntime execution providers of the encoder, "
-                        "best first, e.g. tensorrt,cuda,cpu (default cpu; as the node's providers parameter)")
-    parser.add_argument("--json", action="store_true", help="print the figures as one JSON object")
-    parser.add_argument(
-        "--tracker-seconds", type=non_negative_float, default=10.0,
-        help="seconds of the 20 Hz sample sequence for the whole-tracker benchmark, mono and stereo, every "
-        "method interleaved with klt (default 10 = 200 frames; 0 = skip it)",
-    )
-    parser.add_argument(
-        "--methods", default="nsflow,nsflow_lk,classical,klt",
-        help="comma-separated tracking methods of the whole-tracker benchmark (default "
-        "nsflow,nsflow_lk,classical,klt; klt is always run as the baseline)",
-    )
-    parser.add_argument(
-        "--modes", default="mono,stereo",
-        help="comma-separated modes of the whole-tracker benchmark: mono, stereo (default both)",
-    )
-    parser.add_argument(
-        "--large", type=_size, default=None, metavar="WxH",
-        help="also run the whole-tracker benchmark on the sample up-sampled to WxH (e.g. 1280x800, a larger "
-        "camera; its exact flow scaled alike) with the trackers' downsample set to --downsample, each "
-        "method's CPU time there over its own at 752x480 (default: not)",
-    )
-    parser.add_argument(
-        "--downsample", type=positive_int, default=2, metavar="N",
-        help="the trackers' downsample in the --large runs (1, 2 or 4; default 2)",
-    )
-    parser.add_argument(
-        "--perturb", choices=tuple(PERTURBATIONS), default="none",
-        help="perturb the whole-tracker benchmark's frames: the illumination levels small / large or dark "
-        "(low light with sensor noise; default none)",
-    )
-    parser.add_argument(
-        "--node-seconds", type=non_negative_float, default=20.0,
-        help="seconds of the stereo sample replayed at camera rate (20 Hz) into a tracker node process over "
-        "DDS, for nsflow and klt: pairs received / processed / dropped and latency (default 20; 0 = skip)",
-    )
-    parser.add_argument(
-        "--compress", default="none",
-        help="comma-separated image transports of the node benchmark, one run each: none (raw), jpeg "
-        "(quality 90), png; none,jpeg,png compares the compressed runs' features with the raw run's "
-        "(default none)",
-    )
-    parser.add_argument(
-        "--opencv-threads", type=non_negative_int, default=None,
-        help="OpenCV's threads in the whole-tracker benchmark and the node runs (0 = OpenCV's default "
-        f"pool; default: the node's opencv_threads default, {setting('opencv_threads').default})",
-    )
-    parser.add_argument(
-        "--background-load", type=non_negative_float, default=0.0, metavar="CORES",
-        help="run a synthetic CPU load of this many cores (a process busy that share of every 20 ms) during "
-        "each node run, standing in for the VINS estimator on the same cores (default 0)",
-    )
-    parser.add_argument(
-        "--load-nice", type=non_negative_int, default=0, metavar="N",
-        help="niceness of the background load (0-19; > 0 runs it below the tracker's priority, as an "
-        "estimator started with nice -n N; default 0)",
-    )
-    parser.add_argument(
-        "--queue-size", type=positive_int, default=None,
-        help="the node runs' queue_size (frames waiting for the tracker at most; default: the node's, "
-        f"{setting('queue_size').default})",
-    )
-    parser.add_argument(
-        "--late-frame-ms", type=non_negative_float, default=None, metavar="MS",
-        help="the node runs' late_frame_ms (a frame that waited longer for the tracker skips its reverse "
-        f"checks; 0 = always check; default: the node's, {setting('late_frame_ms').default:g})",
-    )
-    parser.add_argument(
-        "--covariance", action="store_true",
-        help="the whole-tracker benchmark also runs every method with publish_covariance on (as "
-        "<method>+cov, interleaved): what the per-feature covariance costs",
-    )
-    parser.add_argument("--no-stages", action="store_true",
-                        help="skip the stage benchmark (encoder / solver / detection, solver cost model)")
-    parser.add_argument(
-        "--system-malloc",
-        action="store_true",
-        help="leave glibc's malloc settings alone (default: keep large buffers on the heap, as the tracker "
-        "node does; see nsflow_ros.allocator)",
-    )
-    parser.add_argument(
-        "--node-frames",
-        type=non_negative_int,
-        default=0,
-        help="also run the ROS 2 node benchmark (latency, memory after 1,000 / 10,000 frames) on this many "
-        "320x240 frames, mono and stereo; 10000 takes several minutes (default 0 = skip)",
-    )
-    opts = parser.parse_args(args)
-    node_threads, opts.threads = opts.threads, opts.threads or 2
-    heap = False if opts.system_malloc else keep_large_buffers()
-    try:
-        res: dict[str, Any] = {}
-        if opts.tracker_seconds > 0:
-            methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
-            cv_threads = opts.opencv_threads
-            if cv_threads is None:
-                cv_threads = setting("opencv_threads").default
-            res["tracker"] = run_tracker_benchmark(
-                opts.tracker_seconds, methods, [m.strip() for m in opts.modes.split(",") if m.strip()],
-                model=opts.model, threads=opts.threads, progress=not opts.json,
-                providers=opts.providers,
-                opencv_threads=int(cv_threads), covariance=opts.covariance,
-                large=opts.large, downsample=opts.downsample, perturb=opts.perturb,
-            )
-        if opts.node_seconds > 0:
-            from nsflow_ros.ros.bench_live import run_live_benchmark
+    add = parser.add_argument
+    add("--frames", type=positive_int, default=60, help="frames of the 752x480 sequence of the stage "
+        "benchmark (default 60)")
+    add("--points", type=positive_int, default=150, help="GFTT points per frame (default 150)")
+    add("--model", help="ONNX encoder: a file, or a shipped model by name (default, fast; default: default)")
+    add("--threads", type=positive_int, help="encoder (onnxruntime) threads: 2 by default in the tracker and "
+        "stage runs; given, also the node runs' num_threads (default there: the node's, all cores)")
+    add("--providers", default="cpu", help="onnxruntime execution providers of the encoder, best first, e.g. "
+        "tensorrt,cuda,cpu (default cpu; as the node's providers parameter)")
+    add("--json", action="store_true", help="print the figures as one JSON object")
+    add("--tables", type=Path, metavar="DIR", help="also write the tables the docs paste: DIR/bench.json and "
+        "DIR/bench.md (date, machine, command and versions in the header; docs/benchmarks.md)")
+    add("--tracker-seconds", type=non_negative_float, default=10.0, help="seconds of the 20 Hz sample "
+        "sequence for the whole-tracker benchmark, mono and stereo, every method interleaved with klt "
+        "(default 10 = 200 frames; 0 = skip it)")
+    add("--methods", default="nsflow,nsflow_lk,classical,klt", help="comma-separated tracking methods of the "
+        "whole-tracker benchmark (default nsflow,nsflow_lk,classical,klt; klt is always run as the baseline)")
+    add("--modes", default="mono,stereo", help="comma-separated modes of the whole-tracker benchmark: mono, "
+        "stereo (default both)")
+    add("--large", type=_size, metavar="WxH", help="also run the whole-tracker benchmark on the sample "
+        "up-sampled to WxH (e.g. 1280x800, a larger camera; its exact flow scaled alike) with the trackers' "
+        "downsample set to --downsample, each method's CPU time there over its own at 752x480 (default: not)")
+    add("--downsample", type=positive_int, default=2, metavar="N", help="the trackers' downsample in the "
+        "--large runs (1, 2 or 4; default 2)")
+    add("--perturb", default="none", choices=tuple(PERTURBATIONS), help="perturb the whole-tracker "
+        "benchmark's frames: the illumination levels small / large or dark (low light with sensor noise; "
+        "default none)")
+    add("--node-seconds", type=non_negative_float, default=20.0, help="seconds of the stereo sample replayed "
+        "at camera rate (20 Hz) into a tracker node process over DDS, for nsflow and klt: pairs received / "
+        "processed / dropped and latency (default 20; 0 = skip)")
+    add("--compress", default="none", help="comma-separated image transports of the node benchmark, one run "
+        "each: none (raw), jpeg (quality 90), png; none,jpeg,png compares the compressed runs' features "
+        "with the raw run's (default none)")
+    add("--opencv-threads", type=non_negative_int, help="OpenCV's threads in the whole-tracker benchmark and "
+        "the node runs (0 = OpenCV's default pool; default: the node's opencv_threads default, "
+        f"{setting('opencv_threads').default})")
+    add("--background-load", type=non_negative_float, default=0.0, metavar="CORES", help="run a synthetic "
+        "CPU load of this many cores (a process busy that share of every 20 ms) during each node run, "
+        "standing in for the VINS estimator on the same cores (default 0)")
+    add("--load-nice", type=non_negative_int, default=0, metavar="N", help="niceness of the background load "
+        "(0-19; > 0 runs it below the tracker's priority, as an estimator started with nice -n N; default 0)")
+    add("--queue-size", type=positive_int, help="the node runs' queue_size (frames waiting for the tracker "
+        f"at most; default: the node's, {setting('queue_size').default})")
+    add("--late-frame-ms", type=non_negative_float, metavar="MS", help="the node runs' late_frame_ms (a "
+        "frame that waited longer for the tracker skips its reverse checks; 0 = always check; default: the "
+        f"node's, {setting('late_frame_ms').default:g})")
+    add("--covariance", action="store_true", help="the whole-tracker benchmark also runs every method with "
+        "publish_covariance on (as <method>+cov, interleaved): what the per-feature covariance costs")
+    add("--no-stages", action="store_true", help="skip the stage benchmark (encoder / solver / detection, "
+        "solver cost model)")
+    add("--system-malloc", action="store_true", help="leave glibc's malloc settings alone (default: keep "
+        "large buffers on the heap, as the tracker node does; see nsflow_ros.allocator)")
+    add("--node-frames", type=non_negative_int, default=0, help="also run the ROS 2 node benchmark (latency, "
+        "memory after 1,000 / 10,000 frames) on this many 320x240 frames, mono and stereo; 10000 takes "
+        "several minutes (default 0 = skip)")
+    return parser
 
-            node_params = {k: v for k, v in (("opencv_threads", opts.opencv_threads),
-                                             ("queue_size", opts.queue_size),
-                                             ("late_frame_ms", opts.late_frame_ms),
-                                             ("model_path", opts.model),
-                                             ("num_threads", node_threads)) if v is not None}
-            res["node_live"] = run_live_benchmark(
-                opts.node_seconds, ("nsflow", "klt"), progress=not opts.json,
-                compress=opts.compress.split(","),
-                background_load=opts.background_load, load_nice=opts.load_nice, params=node_params,
-            )
-        if not opts.no_stages:
-            res.update(
-                run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json,
-                              providers=opts.providers)
-            )
-        res.setdefault("machine", {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                                   "threads": opts.threads})
-        if opts.node_frames > 0:
-            from nsflow_ros.ros.bench_node import run_node_benchmark
 
-            res["node"] = {
-                mode: run_node_benchmark(opts.node_frames, mode == "stereo", progress=not opts.json,
-                                         providers=opts.providers)
-                for mode in ("mono", "stereo")
-            }
-    except NSFlowError as err:
-        print(f"nsflow-bench: {err}", file=sys.stderr)
-        return 1
-    res["machine"]["keep_large_buffers"] = heap
-    if opts.json:
-        print(json.dumps(res, indent=2))
-        return 0
+def _measure(opts: argparse.Namespace, node_threads: int | None) -> dict[str, Any]:
+    """Run the parts the options ask for: whole tracker, node at camera rate, stages, node over frames."""
+    res: dict[str, Any] = {}
+    if opts.tracker_seconds > 0:
+        cv_threads = setting("opencv_threads").default if opts.opencv_threads is None else opts.opencv_threads
+        res["tracker"] = run_tracker_benchmark(
+            opts.tracker_seconds, _names(opts.methods), _names(opts.modes), model=opts.model,
+            threads=opts.threads, progress=not opts.json, providers=opts.providers,
+            opencv_threads=int(cv_threads), covariance=opts.covariance, large=opts.large,
+            downsample=opts.downsample, perturb=opts.perturb,
+        )
+    if opts.node_seconds > 0:
+        from nsflow_ros.ros.bench_live import run_live_benchmark
+
+        params = {"opencv_threads": opts.opencv_threads, "queue_size": opts.queue_size,
+                  "late_frame_ms": opts.late_frame_ms, "model_path": opts.model, "num_threads": node_threads}
+        res["node_live"] = run_live_benchmark(
+            opts.node_seconds, ("nsflow", "klt"), progress=not opts.json, compress=opts.compress.split(","),
+            background_load=opts.background_load, load_nice=opts.load_nice,
+            params={k: v for k, v in params.items() if v is not None},
+        )
+    if not opts.no_stages:
+        res.update(run_benchmark(opts.frames, opts.points, opts.model, opts.threads, progress=not opts.json,
+                                 providers=opts.providers))
+    res.setdefault("machine", {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                               "threads": opts.threads})
+    if opts.node_frames > 0:
+        from nsflow_ros.ros.bench_node import run_node_benchmark
+
+        res["node"] = {mode: run_node_benchmark(opts.node_frames, mode == "stereo", progress=not opts.json,
+                                                providers=opts.providers) for mode in ("mono", "stereo")}
+    return res
+
+
+def _names(text: str) -> list[str]:
+    """A comma-separated option as a list of names."""
+    return [m.strip() for m in text.split(",") if m.strip()]
+
+
+def _print_text(res: dict[str, Any]) -> None:
+    """The human-readable tables of every part that ran."""
     if "tracker" in res:
-        print(format_tracker_table(res["tracker"]))
-        print()
+        print(format_tracker_table(res["tracker"]), end="\n\n")
     if "node_live" in res:
         from nsflow_ros.ros.bench_live import format_live_table
 
-        print(format_live_table(res["node_live"]))
-        print()
+        print(format_live_table(res["node_live"]), end="\n\n")
     if "setup" in res:
         print(format_table(res))
     for mode, node in res.get("node", {}).items():
         lat = node["latency_ms"]
         rss = ", ".join(f"{v:.1f} MB after {k} frames" for k, v in node["rss_mb"].items()) or "n/a"
-        print(
-            f"node {mode:6s} latency median {lat['median']:.2f} ms, p90 {lat['p90']:.2f} ms; "
-            f"RSS {rss}; growth {node['rss_growth_mb']} MB"
-        )
+        print(f"node {mode:6s} latency median {lat['median']:.2f} ms, p90 {lat['p90']:.2f} ms; "
+              f"RSS {rss}; growth {node['rss_growth_mb']} MB")
+
+
+def bench_tables(res: dict[str, Any]) -> list[dict[str, Any]]:
+    """The Markdown tables of a run (:mod:`nsflow_ros.results`): one per part that ran."""
+    tables, tr = [], res.get("tracker")
+    if tr:
+        rows: dict[bool, list[list[str]]] = {False: [], True: []}
+        for mode in tr["setup"]["modes"]:
+            for m, f in tr[mode].items():
+                cells = [(f["cpu"]["median_ms"], ".2f"), (tr["cpu_ratios"][mode].get(m, 1.0), ".2f"),
+                         (f["total"]["median_ms"], ".2f"), (tr["ratios"][mode].get(m, 1.0), ".2f"),
+                         (f["carried_share"], ".3f"), (f["error_median_px"], ".3f"),
+                         (f["error_over_1px_share"], ".1%"), (f.get("stereo_matched_share"), ".3f"),
+                         (f.get("stereo_error_over_1px_share"), ".1%")]
+                rows[" " in mode].append([mode, m, *("-" if v is None else format(v, k) for v, k in cells)])
+        s = tr["setup"]
+        cols = ["mode", "method", "CPU ms", "CPU x klt", "wall ms", "wall x klt", "carried", "err px",
+                "> 1 px", "stereo", "stereo > 1 px"]
+        tables.append(table("Whole tracker per frame", cols, rows[False], (
+            f"{s['frames']} frames {s['size'][0]}x{s['size'][1]} of the sample sequence, perturbation "
+            f"{s['perturb']}, methods interleaved frame by frame; encoder on {s['encoder_provider']} with "
+            f"{s['encoder_threads']} threads, OpenCV threads {s['opencv_threads']}. CPU ms: the process's "
+            "CPU time per frame over all its threads; carried: features kept from one frame to the next; err "
+            "px, > 1 px: their median error against the exact flow, share over 1 px; stereo: right matches "
+            "per left feature.")))
+        if rows[True]:
+            native = "; ".join(f"{key}: CPU per frame over the same method's at 752x480: " + ", ".join(
+                f"{m} {r:.2f}x" for m, r in by.items()) for key, by in tr["native_cpu_ratios"].items())
+            tables.append(table("Large cameras: the sample up-sampled, tracked with downsample", cols,
+                                rows[True], native))
+    if "node_live" in res:
+        s, keys = res["node_live"]["setup"], ("frames_sent", "tracker_received", "tracker_processed",
+                                              "tracker_unchecked", "tracker_superseded")
+        rows_ = [[m, *(str(f.get(k, "?")) for k in keys), "{:.1f} / {:.1f}".format(
+            f.get("tracker_latency_ms_p50", 0), f.get("tracker_latency_ms_p90", 0)),
+            f"{f.get('tracker_cpu_ms_per_frame', 0):.1f}"] for m, f in res["node_live"].items()
+            if m != "setup"]
+        tables.append(table(
+            f"Tracker node at 20 Hz stereo over DDS, background load {s.get('background_load_cores', 0):g} "
+            "core",
+            ["method", "sent", "received", "processed", "late", "superseded", "latency p50 / p90 ms",
+             "CPU ms per pair"], rows_,
+            f"{s['seconds']:g} s of the stereo sample replayed; late: tracked without the reverse checks "
+            "(late_frame_ms); superseded: given up for a newer pair while the tracker was busy."))
+    if "setup" in res:
+        stages = [(f"{mode} {st}", res[mode][st]) for mode in ("nsflow", "classical") if mode in res
+                  for st in ("encoder", "solver", "detection", "total")]
+        stages += [("opencv KLT", res["opencv_klt"]["klt"]), ("opencv GFTT", res["opencv_klt"]["detection"]),
+                   ("encoder alone 320x240", res["encoder_320x240"]),
+                   ("encoder alone 752x480", res["encoder_752x480"])]
+        notes = "; ".join(" ".join(x.split()) for x in format_table(res).split("\n\n")[-1].splitlines())
+        tables.append(table("Stages per frame (752x480, fresh GFTT points)", ["stage", "median ms", "p90 ms"],
+                            [[n, f"{v['median_ms']:.2f}", f"{v['p90_ms']:.2f}"] for n, v in stages], notes))
+    return tables
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``nsflow-bench`` / ``ros2 run nsflow_ros bench``."""
+    opts = _parser().parse_args(args)
+    node_threads, opts.threads = opts.threads, opts.threads or 2
+    heap = False if opts.system_malloc else keep_large_buffers()
+    try:
+        res = _measure(opts, node_threads)
+    except NSFlowError as err:
+        print(f"nsflow-bench: {err}", file=sys.stderr)
+        return 1
+    res["machine"]["keep_large_buffers"] = heap
+    if opts.tables is not None:
+        command = shlex.join(["nsflow-bench", *(sys.argv[1:] if args is None else args)])
+        opts.tables.mkdir(parents=True, exist_ok=True)
+        doc = {"header": run_header(command), "tables": bench_tables(res)}
+        write_tables(doc, opts.tables / "bench.json", opts.tables / "bench.md")
+    if opts.json:
+        print(json.dumps(res, indent=2))
+    else:
+        _print_text(res)
     return 0
 
 

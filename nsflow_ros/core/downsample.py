@@ -7,7 +7,7 @@ d - 1 of the large one, so ``x_small = (x_full + 0.5) / d - 0.5`` and ``x_full =
 
 Images are decimated by ``cv2.resize`` with ``INTER_AREA``, which for an integer factor is the mean of each
 d x d block: exactly that convention, anti-aliased, and about as cheap as ``cv2.pyrDown`` (whose 5x5
-Gaussian puts pixel i at 2 i, half a pixel off this convention; measured in docs/benchmarks.md).
+Gaussian puts pixel i at 2 i, half a pixel off this convention; measured in docs/design.md).
 """
 
 from __future__ import annotations

@@ -101,7 +101,7 @@ DEPLOYED_LM = LMConfig(
     coarse_window=21, coarse_from=2,
 )
 """The LM solver settings the tracker deploys; each difference from :data:`PAPER_LM` has a measured reason
-(docs/benchmarks.md, "Why the settings are what they are"):
+(docs/design.md has the measurement behind each):
 
 * ``levels`` 4: VINS's maxLevel 3, the capture range stereo disparity and fast motion need;
 * ``margin`` 1: a point is kept until its window reaches past the edge, as OpenCV's LK allows;
@@ -632,7 +632,7 @@ class DescriptorKLTMethod(KLTMethod):
     """The learned descriptors as uint8, tracked by OpenCV's pyramidal LK with VINS's calls (``nsflow_lk``).
 
     The encoder (1-4 channels in [0, 1]) must not smooth: smoothing chosen for the LM solver's 11x11
-    window costs more than it gives on OpenCV's 21x21 one (models/README.md).
+    window costs more than it gives on OpenCV's 21x21 one (docs/design.md).
 
     Raises:
         CoreError: an encoder that smooths its maps.

@@ -4,8 +4,8 @@ Each level holds the descriptor map as float32 (H, W, K) chunks of at most 4 cha
 is fast only on contiguous maps and exact only up to 4 channels. A chunk of 1 or 4 channels is C-contiguous;
 one of 2 or 3 is the leading channels of a padded C-contiguous 4-channel buffer
 (:func:`sampling_source`): OpenCV 5's remap has exact fast paths for 1 and 4 interleaved channels, samples 2
-channels at 1/32 px (as OpenCV 4 does all float maps) and 2 or 3 more slowly than 4 (docs/benchmarks.md,
-"Cost per channel"). No derivative maps are stored (the
+channels at 1/32 px (as OpenCV 4 does all float maps) and 2 or 3 more slowly than 4 (docs/design.md,
+"One channel"). No derivative maps are stored (the
 solver differentiates sampled patches). Coarser levels are ``cv2.pyrDown`` of the map, far
 cheaper than encoding a smaller image. Optional Gaussian smoothing (:class:`Smoothing`) widens the
 solver's basin on a learned map, whose narrow autocorrelation leaves it a narrow one.

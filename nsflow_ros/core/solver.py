@@ -45,8 +45,8 @@ class Jacobian(enum.Enum):
 
 @dataclass(frozen=True)
 class LMConfig:
-    """Settings of the LM solver; the defaults are the paper's Algorithm 1 (docs/benchmarks.md, "Why the
-    settings are what they are", has the measurement behind each).
+    """Settings of the LM solver; the defaults are the paper's Algorithm 1 (docs/design.md has the
+    measurement behind each departure).
 
     Attributes:
         window: side of the square window in pixels (odd).

@@ -448,7 +448,7 @@ class FeatureTracker:
     def warm_up(self) -> None:
         """Prepare a black frame of camera 0's size and discard it, so the method's first-run costs
         (onnxruntime's buffers) do not land on the first real frame, which a live node's queue of one would
-        pay with a superseded frame (docs/benchmarks.md, "The node at camera rate")."""
+        pay with a superseded frame (docs/design.md, "The node")."""
         cam = self.cameras[0]
         black = np.zeros((cam.height, cam.width), np.uint8)
         self.method.prepare(black, black)

@@ -24,11 +24,13 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.context import EvalContext, atomic_write
 from nsflow_ros.evaluation.methods import METHOD_ORDER
 from nsflow_ros.evaluation.registry import Analysis
-from nsflow_ros.evaluation.section import Section
+from nsflow_ros.evaluation.section import HeadlineRow, Section
+from nsflow_ros.results import cpu_model, run_header, table, table_lines, write_tables
 
 __all__ = [
     "RunResult",
     "command_line",
+    "headline",
     "headline_table",
     "machine_info",
     "now",
@@ -88,20 +90,10 @@ def _git_commit() -> str:
 def machine_info(model: Path | None = None) -> dict[str, Any]:
     """Where the figures were measured, as JSON data: CPUs, load, Python and library versions, git commit,
     the NSFlow encoder file (None: the shipped one)."""
-    import cv2
-    import numpy as np
-    import onnxruntime
-
     load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
     return {
-        "cpu_count": os.cpu_count(),
-        "load_average_1_5_15": [round(v, 2) for v in load],
-        "processor": platform.processor() or platform.machine(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "opencv": cv2.__version__,
-        "onnxruntime": onnxruntime.__version__,
+        "cpu_count": os.cpu_count(), "load_average_1_5_15": [round(v, 2) for v in load],
+        "processor": cpu_model(), "platform": platform.platform(), **run_header("")["versions"],
         "git_commit": _git_commit(),
         "model": str(model) if model is not None else (
             "each method's shipped default (nsflow: models/nsflow_encoder_fast.onnx, "
@@ -116,14 +108,16 @@ def headline_table(sections: Sequence[Section]) -> str:
     rows = [row for s in sections for row in s.headline]
     if not rows:
         return "_No headline figures in this run._"
+    return "\n".join(table_lines(headline(rows)))
+
+
+def headline(rows: Sequence[HeadlineRow]) -> dict[str, Any]:
+    """The headline rows as a :func:`nsflow_ros.results.table`."""
     extra = sorted({m for r in rows for m in r.values} - set(METHOD_ORDER))
     cols = [*METHOD_ORDER, *extra]
-    lines = ["| metric | " + " | ".join(cols) + " | target | met |", "|---|" + "---|" * (len(cols) + 2)]
-    for r in rows:
-        met = "-" if r.met is None else ("yes" if r.met else "**no**")
-        cells = " | ".join(r.values.get(c, "-") for c in cols)
-        lines.append(f"| {r.metric} | {cells} | {r.target or '-'} | {met} |")
-    return "\n".join(lines)
+    met = {None: "-", True: "yes", False: "**no**"}
+    cells = [[r.metric, *(r.values.get(c, "-") for c in cols), r.target or "-", met[r.met]] for r in rows]
+    return table("Headline", ["metric", *cols, "target", "met"], cells)
 
 
 def render_report(
@@ -218,6 +212,9 @@ def write_report(
         },
     }
     report = atomic_write(out_dir / "report.md", lambda p: p.write_text(text, encoding="utf-8"))
+    if rows := [row for s in result.sections for row in s.headline]:  # the table the docs paste
+        write_tables({"header": run_header(command), "tables": [headline(rows)]}, out_dir / "tables.json",
+                     out_dir / "tables.md")
     payload = json.dumps(_jsonable(results), indent=2, allow_nan=False)
     res = atomic_write(out_dir / "results.json", lambda p: p.write_text(payload + "\n", encoding="utf-8"))
     return report, res
