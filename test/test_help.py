@@ -44,7 +44,7 @@ def _help(target: str, argv0: str, monkeypatch, capsys) -> str:
 def test_every_tool_is_listed():
     assert sorted(t[0] for t in TOOLS) == sorted(
         ["nsflow-tracker", "nsflow-replay", "nsflow-demo", "nsflow-ate", "nsflow-bench", "nsflow-make-sample",
-         "nsflow-train", "nsflow-evaluate", "nsflow-config"]
+         "nsflow-train", "nsflow-evaluate", "nsflow-config", "nsflow-scenes"]
     )
 
 

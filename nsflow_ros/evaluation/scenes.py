@@ -26,7 +26,7 @@ from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.errors import EvaluationError
 
-__all__ = ["CellResult", "FeatureErrors", "evaluate_cell", "format_table", "main", "summary"]
+__all__ = ["CellResult", "FeatureErrors", "evaluate_cell", "main", "summary", "tables"]
 
 DEFAULT_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
 
@@ -115,6 +115,7 @@ def evaluate_cell(
     runs: int = 2,
     timeout_s: float = 300.0,
     progress: bool = False,
+    resume: bool = False,
 ) -> CellResult:
     """Track one sample into a feature bag (as ``nsflow-replay --features-bag``), score it, and with a
     VINS-Fusion build run the estimator ``runs`` times on it.
@@ -126,6 +127,7 @@ def evaluate_cell(
         config: the VINS-Fusion config tracked with and given to the estimator.
         model: the learned methods' model (None: each method's shipped default).
         vins: a :class:`~nsflow_ros.evaluation.estimator.VinsBuild`, or None for no estimator.
+        resume: return the cell's stored result (``cell.json``) when a run before measured it.
 
     Raises:
         NSFlowError: a source, config or model that cannot be used.
@@ -134,6 +136,9 @@ def evaluate_cell(
     from nsflow_ros.vins.config import load_vins_config
     from nsflow_ros.vins.feature_bag import feature_bag_topics, write_feature_bag
 
+    record = out_dir / "cell.json"
+    if resume and record.is_file():
+        return CellResult(**json.loads(record.read_text(encoding="utf-8")))
     seed = int(sample.params["seed"])
     cfg = load_vins_config(config)
     bag = out_dir / "features.bag"
@@ -145,16 +150,16 @@ def evaluate_cell(
     write_feature_bag(records, bag, cfg, method=method, overrides={"model_path": model} if model else None,
                       progress=progress, observe=errors)
     cell = CellResult(seed, float(sample.params["rate_hz"]), perturb, method, errors.figures())
-    if vins is None:
-        return cell
-    from nsflow_ros.evaluation.estimator import run_vins, score_vio
+    if vins is not None:
+        from nsflow_ros.evaluation.estimator import run_vins, score_vio
 
-    for r in range(runs):
-        try:
-            vio = run_vins(bag, config, vins, out_dir / f"run{r}", timeout_s=timeout_s)
-            cell.ate_runs.append(float(score_vio(vio, sample.root / "groundtruth.csv").stats.rmse))
-        except NSFlowError as err:  # a diverged or dead estimator is a result of the cell, not the end
-            cell.failures.append(str(err).splitlines()[0])
+        for r in range(runs):
+            try:
+                vio = run_vins(bag, config, vins, out_dir / f"run{r}", timeout_s=timeout_s)
+                cell.ate_runs.append(float(score_vio(vio, sample.root / "groundtruth.csv").stats.rmse))
+            except NSFlowError as err:  # a diverged or dead estimator is a result of the cell, not the end
+                cell.failures.append(str(err).splitlines()[0])
+    record.write_text(json.dumps(asdict(cell), indent=2) + "\n", encoding="utf-8")
     return cell
 
 
@@ -189,30 +194,32 @@ def _mm(v: float) -> str:
     return "-" if np.isnan(v) else ("failed" if not np.isfinite(v) else f"{v * 1e3:.1f}")
 
 
-def format_table(cells: Sequence[CellResult], header: str) -> str:
-    """The cells as one Markdown table (a row per cell and method) and the summary against the baseline."""
-    lines = [header, "",
-             "| scene | rate Hz | perturbation | method | ATE mm (runs) | temporal median px "
-             "| temporal > 1 px | stereo median px | stereo > 1 px | features/frame |", "|---" * 10 + "|"]
+def tables(cells: Sequence[CellResult]) -> list[dict[str, Any]]:
+    """The cells as the tables the docs paste (:mod:`nsflow_ros.results`): a row per cell and method, then
+    the summary against the baseline."""
+    from nsflow_ros.results import table
+
+    rows = []
     for c in cells:
         e = c.errors
         runs = ", ".join(_mm(a) for a in c.ate_runs) + (f"; {len(c.failures)} failed" if c.failures else "")
-        lines.append(
-            f"| {c.seed} | {c.rate:g} | {c.perturb} | {c.method} | {_mm(c.ate)} ({runs or '-'}) "
-            f"| {e['temporal_median_px']:.4f} | {100 * e['temporal_over_1px']:.2f} % "
-            f"| {e['stereo_median_px']:.4f} | {100 * e['stereo_over_1px']:.2f} % "
-            f"| {e['features_per_frame']:.1f} |"
-        )
-    lines += ["", f"Against `{BASELINE}` in the same cells:", "",
-              "| method | cells | ATE ratio, max | ATE ratio, median | cells <= 1.15x "
-              "| temporal median ratio, max | stereo median ratio, max |", "|---" * 7 + "|"]
-    for method, s in summary(cells).items():
-        lines.append(
-            f"| {method} | {s['cells']:.0f} | {s['ate_ratio_max']:.2f} | {s['ate_ratio_median']:.2f} "
-            f"| {100 * s['ate_cells_within_1.15']:.0f} % | {s['temporal_median_ratio_max']:.2f} "
-            f"| {s['stereo_median_ratio_max']:.2f} |"
-        )
-    return "\n".join(lines) + "\n"
+        rows.append([str(c.seed), f"{c.rate:g}", c.perturb, c.method, f"{_mm(c.ate)} ({runs or '-'})",
+                     f"{e['temporal_median_px']:.4f}", f"{100 * e['temporal_over_1px']:.2f} %",
+                     f"{e['stereo_median_px']:.4f}", f"{100 * e['stereo_over_1px']:.2f} %",
+                     f"{e['features_per_frame']:.1f}"])
+    per_cell = table("Per scene, rate and method", ["scene", "rate Hz", "perturbation", "method",
+                     "ATE mm (runs)", "temporal median px", "temporal > 1 px", "stereo median px",
+                     "stereo > 1 px", "features/frame"], rows,
+                     "ATE: RMSE after SE3 alignment, the mean of the estimator's runs (failed: the estimator "
+                     "died or diverged); errors: every published feature against the exact flow.")
+    sums = [[m, f"{s['cells']:.0f}", f"{s['ate_ratio_max']:.2f}", f"{s['ate_ratio_median']:.2f}",
+             f"{100 * s['ate_cells_within_1.15']:.0f} %", f"{s['temporal_median_ratio_max']:.2f}",
+             f"{s['stereo_median_ratio_max']:.2f}"] for m, s in summary(cells).items()]
+    against = table(f"Against `{BASELINE}` in the same cells", ["method", "cells", "ATE ratio, max",
+                    "ATE ratio, median", "cells <= 1.15x", "temporal median ratio, max",
+                    "stereo median ratio, max"], sums,
+                    f"A cell where `{BASELINE}`'s estimator failed counts as a win (ratio 0).")
+    return [per_cell, against]
 
 
 def _floats(text: str) -> list[float]:
@@ -242,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Track sample scenes at several camera rates with every method into feature bags (as "
         "nsflow-replay --features-bag), score each feature against the exact optical flow, and with "
         "--vins play each bag into a stock VINS-Fusion estimator and score its trajectory (ATE, SE3). "
-        "Writes scenes.json and scenes.md.",
+        "Writes scenes.json / scenes.md (the tables) and cells.json (every cell's figures).",
     )
     p.add_argument("--seeds", type=_seeds, default=[1, 2], help="scene seeds, e.g. 1-8 (default 1,2)")
     p.add_argument("--rates", type=_floats, default=[20.0, 10.0, 20.0 / 3.0],
@@ -257,6 +264,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=int, default=2, help="estimator runs per bag (default 2)")
     p.add_argument("--out", default="out/scenes", help="output folder (default out/scenes)")
     p.add_argument("--cache", default="data/scenes", help="where scenes are rendered (default data/scenes)")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the cells a run before measured into --out (their cell.json)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
@@ -276,7 +285,8 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
                 for method in methods:
                     where = Path(opts.out) / f"seed{seed}" / f"{rate:g}hz" / level / method
                     cell = evaluate_cell(sample, where, method, level, config=config, model=opts.model,
-                                         vins=vins, runs=opts.runs, progress=not opts.no_progress)
+                                         vins=vins, runs=opts.runs, progress=not opts.no_progress,
+                                         resume=opts.resume)
                     e = cell.errors
                     print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {method}: ATE {_mm(cell.ate)} mm, "
                           f"median {e['temporal_median_px']:.4f} / {e['stereo_median_px']:.4f} px",
@@ -284,9 +294,16 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
                     yield cell
 
 
+def command_line(args: Sequence[str] | None) -> str:
+    """The command as typed (``args`` None: ``sys.argv``), under its console-script name."""
+    import shlex
+
+    return shlex.join(["nsflow-scenes", *(sys.argv[1:] if args is None else args)])
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point; 0 when every cell was measured, 1 on a known error."""
-    from nsflow_ros.evaluation.report import command_line, machine_info, now
+    from nsflow_ros.results import markdown, run_header, write_tables
 
     opts = build_parser().parse_args(args)
     try:
@@ -301,23 +318,16 @@ def main(args: list[str] | None = None) -> int:
 
             vins = VinsBuild.locate(opts.vins)
         out = Path(opts.out)
-        started = now()
         cells = list(_cells(opts, config, vins))
-        info = machine_info(Path(opts.model) if opts.model else None)
-        header = (f"Measured {started:%Y-%m-%d %H:%M %Z} on {info['cpu_count']} x {info['processor']} (load "
-                  f"{info['load_average_1_5_15'][0]} at the end); command: "
-                  f"`{command_line(args).replace('nsflow-evaluate', 'nsflow-scenes', 1)}`")
-        table = format_table(cells, header)
+        doc = {"header": run_header(command_line(args)), "tables": tables(cells)}
         out.mkdir(parents=True, exist_ok=True)
-        (out / "scenes.md").write_text(table, encoding="utf-8")
-        payload = {"machine": info, "started": started.isoformat(), "cells": [asdict(c) | {"ate": c.ate}
-                                                                              for c in cells],
-                   "summary": summary(cells)}
-        (out / "scenes.json").write_text(json.dumps(payload, indent=2, default=str) + "\n", encoding="utf-8")
+        write_tables(doc, out / "scenes.json", out / "scenes.md")
+        (out / "cells.json").write_text(json.dumps([asdict(c) for c in cells], indent=2) + "\n",
+                                        encoding="utf-8")
     except NSFlowError as err:
         print(f"nsflow-scenes: {err}", file=sys.stderr)
         return 1
-    print(table)
+    print(markdown(doc), end="")
     return 0
 
 

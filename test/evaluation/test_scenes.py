@@ -10,8 +10,9 @@ import pytest
 
 from nsflow_ros.core.tracker import CameraFeatures, FrameFeatures
 from nsflow_ros.data.sample import make_sample_sequence
-from nsflow_ros.evaluation.scenes import CellResult, FeatureErrors, evaluate_cell, format_table, main, summary
+from nsflow_ros.evaluation.scenes import CellResult, FeatureErrors, evaluate_cell, main, summary, tables
 from nsflow_ros.resources import STEREO_CONFIG, share_file
+from nsflow_ros.results import markdown
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +67,8 @@ def test_summary_ratios_and_a_failed_baseline() -> None:
     full = {k: 0.0 for k in ("temporal_over_1px", "stereo_over_1px", "features_per_frame")}
     for c in cells:
         c.errors.update(full)
-    table = format_table(cells, "header")
+    header = {"date": "d", "machine": "m", "command": "nsflow-scenes", "versions": {}}
+    table = markdown({"header": header, "tables": tables(cells)})
     assert "| 2 | 20 | none | klt | failed (; 1 failed) |" in table
     assert "| nsflow | 2 | 1.20 | 0.60 | 50 % | 1.25 | 1.00 |" in table
 
@@ -75,6 +77,9 @@ def test_a_cell_without_estimator(tiny: object, tmp_path: Path) -> None:
     cell = evaluate_cell(tiny, tmp_path / "cell", "klt", "none", config=Path(share_file(STEREO_CONFIG)))
     assert (tmp_path / "cell" / "features.bag").is_file()
     assert cell.ate_runs == [] and np.isnan(cell.ate)
+    again = evaluate_cell(tiny, tmp_path / "cell", "klt", "none", config=Path(share_file(STEREO_CONFIG)),
+                          resume=True)  # the stored cell.json, not a new measurement
+    assert again == cell
     assert cell.errors["features_per_frame"] > 50
     assert 0 < cell.errors["temporal_median_px"] < 0.5 and 0 < cell.errors["stereo_median_px"] < 0.5
 
@@ -83,9 +88,11 @@ def test_command_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFix
     rc = main(["--seeds", "4", "--rates", "20", "--duration", "0.3", "--methods", "klt", "--no-progress",
                "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache")])
     assert rc == 0
-    data = json.loads((tmp_path / "out" / "scenes.json").read_text())
-    assert [c["method"] for c in data["cells"]] == ["klt"]
-    assert "nsflow-scenes" in (tmp_path / "out" / "scenes.md").read_text()
+    cells = json.loads((tmp_path / "out" / "cells.json").read_text())
+    assert [c["method"] for c in cells] == ["klt"]
+    doc = json.loads((tmp_path / "out" / "scenes.json").read_text())
+    assert doc["header"]["command"].startswith("nsflow-scenes --seeds 4")
+    assert markdown(doc) == (tmp_path / "out" / "scenes.md").read_text()
     assert "| 4 | 20 | none | klt |" in capsys.readouterr().out
 
 
