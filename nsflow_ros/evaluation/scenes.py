@@ -194,31 +194,51 @@ def _mm(v: float) -> str:
     return "-" if np.isnan(v) else ("failed" if not np.isfinite(v) else f"{v * 1e3:.1f}")
 
 
-def tables(cells: Sequence[CellResult]) -> list[dict[str, Any]]:
-    """The cells as the tables the docs paste (:mod:`nsflow_ros.results`): a row per cell and method, then
-    the summary against the baseline."""
+def tables(cells: Sequence[CellResult], baseline: str = BASELINE) -> list[dict[str, Any]]:
+    """The cells as the tables the docs paste (:mod:`nsflow_ros.results`): a row per scene, rate and
+    perturbation with the methods side by side (``baseline`` first, "a / b" in one column), then the
+    summary against the baseline."""
     from nsflow_ros.results import table
 
-    rows = []
+    methods = list(dict.fromkeys([baseline, *(c.method for c in cells)]))
+    methods = [m for m in methods if any(c.method == m for c in cells)]
+    by_key: dict[tuple[int, float, str], dict[str, CellResult]] = {}
     for c in cells:
-        e = c.errors
-        runs = ", ".join(_mm(a) for a in c.ate_runs) + (f"; {len(c.failures)} failed" if c.failures else "")
-        rows.append([str(c.seed), f"{c.rate:g}", c.perturb, c.method, f"{_mm(c.ate)} ({runs or '-'})",
-                     f"{e['temporal_median_px']:.4f}", f"{100 * e['temporal_over_1px']:.2f} %",
-                     f"{e['stereo_median_px']:.4f}", f"{100 * e['stereo_over_1px']:.2f} %",
-                     f"{e['features_per_frame']:.1f}"])
-    per_cell = table("Per scene, rate and method", ["scene", "rate Hz", "perturbation", "method",
-                     "ATE mm (runs)", "temporal median px", "temporal > 1 px", "stereo median px",
-                     "stereo > 1 px", "features/frame"], rows,
-                     "ATE: RMSE after SE3 alignment, the mean of the estimator's runs (failed: the estimator "
-                     "died or diverged); errors: every published feature against the exact flow.")
+        by_key.setdefault((c.seed, c.rate, c.perturb), {})[c.method] = c
+    names = " / ".join(methods)
+
+    def joined(row: dict[str, CellResult], fmt: Any) -> str:
+        return " / ".join(fmt(row[m]) if m in row else "-" for m in methods)
+
+    rows = []
+    for (seed, rate, perturb), row in by_key.items():
+        base = row.get(baseline)
+        ratios = [f"{row[m].ate / base.ate:.2f}" if base is not None and m in row and np.isfinite(base.ate)
+                  and base.ate > 0 else "-" for m in methods if m != baseline]
+        rows.append([
+            str(seed), f"{rate:g}", perturb,
+            joined(row, lambda c: _mm(c.ate) + (f" ({len(c.failures)} failed)" if c.failures else "")),
+            " / ".join(ratios),
+            joined(row, lambda c: f"{c.errors['temporal_median_px']:.4f}"),
+            joined(row, lambda c: f"{100 * c.errors['temporal_over_1px']:.2f}"),
+            joined(row, lambda c: f"{c.errors['stereo_median_px']:.4f}"),
+            joined(row, lambda c: f"{100 * c.errors['stereo_over_1px']:.2f}"),
+        ])
+    others = " / ".join(m for m in methods if m != baseline)
+    columns = ["scene", "rate Hz", "perturbation", f"ATE mm ({names})", f"ATE / {baseline}'s ({others})",
+               f"temporal median px ({names})", f"temporal % > 1 px ({names})", f"stereo median px ({names})",
+               f"stereo % > 1 px ({names})"]
+    per_cell = table(
+        "Per scene, rate and perturbation", columns, rows,
+        "ATE: RMSE after SE3 alignment, the mean of the estimator's runs (each run in cells.json); failed: "
+        "the estimator died or diverged. Errors: every published feature against the exact flow.")
     sums = [[m, f"{s['cells']:.0f}", f"{s['ate_ratio_max']:.2f}", f"{s['ate_ratio_median']:.2f}",
              f"{100 * s['ate_cells_within_1.15']:.0f} %", f"{s['temporal_median_ratio_max']:.2f}",
-             f"{s['stereo_median_ratio_max']:.2f}"] for m, s in summary(cells).items()]
-    against = table(f"Against `{BASELINE}` in the same cells", ["method", "cells", "ATE ratio, max",
+             f"{s['stereo_median_ratio_max']:.2f}"] for m, s in summary(cells, baseline).items()]
+    against = table(f"Against `{baseline}` in the same cells", ["method", "cells", "ATE ratio, max",
                     "ATE ratio, median", "cells <= 1.15x", "temporal median ratio, max",
                     "stereo median ratio, max"], sums,
-                    f"A cell where `{BASELINE}`'s estimator failed counts as a win (ratio 0).")
+                    f"A cell where `{baseline}`'s estimator failed counts as a win (ratio 0).")
     return [per_cell, against]
 
 

@@ -69,7 +69,8 @@ def test_summary_ratios_and_a_failed_baseline() -> None:
         c.errors.update(full)
     header = {"date": "d", "machine": "m", "command": "nsflow-scenes", "versions": {}}
     table = markdown({"header": header, "tables": tables(cells)})
-    assert "| 2 | 20 | none | klt | failed (; 1 failed) |" in table
+    assert "| 2 | 20 | none | failed (1 failed) / 20.0 | - | 0.0400 / 0.0400 |" in table
+    assert "| 1 | 20 | none | 10.0 / 12.0 | 1.20 | 0.0400 / 0.0500 |" in table
     assert "| nsflow | 2 | 1.20 | 0.60 | 50 % | 1.25 | 1.00 |" in table
 
 
@@ -93,7 +94,7 @@ def test_command_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFix
     doc = json.loads((tmp_path / "out" / "scenes.json").read_text())
     assert doc["header"]["command"].startswith("nsflow-scenes --seeds 4")
     assert markdown(doc) == (tmp_path / "out" / "scenes.md").read_text()
-    assert "| 4 | 20 | none | klt |" in capsys.readouterr().out
+    assert "| 4 | 20 | none | - |" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("argv, message", [
