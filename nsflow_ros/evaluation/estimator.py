@@ -2,7 +2,7 @@
 
 This module only starts subprocesses (no ROS import): a private ``rosmaster`` on a free port, then
 ``vins_node`` with a copy of the VINS config whose image topics are idle (its own tracker must see no
-image; the features come from the bag), then ``rosbag play -d 1`` of the bag (Debian's python3-rosbag,
+image; the features come from the bag), then ``rosbag play -q -d 1`` of the bag (Debian's python3-rosbag,
 run by the system Python through the workspace's ``devel/setup.bash``, never the caller's venv). When the
 play has ended and the estimator has stopped writing, everything is stopped with SIGINT, then SIGKILL.
 Each run has its own ``ROS_MASTER_URI``, so runs in parallel cannot collide. Typical use::
@@ -335,7 +335,7 @@ def run_vins(
     *,
     timeout_s: float,
     settle_s: float = 2.0,
-    play_args: Sequence[str] = ("-d", "1"),
+    play_args: Sequence[str] = ("-q", "-d", "1"),
     startup_timeout_s: float = 30.0,
     stop_timeout_s: float = 10.0,
 ) -> Path:
@@ -350,7 +350,7 @@ def run_vins(
         timeout_s: the whole run's limit in seconds (start, play, settle).
         settle_s: after the play, wait until ``vio.csv`` has not changed for this long.
         play_args: options of ``rosbag play`` before the bag (``-d 1``: a second for subscribers to
-            connect after each advertise).
+            connect after each advertise; ``-q``: no progress line, which fills the log by 17 kB/s).
         startup_timeout_s: limit for the master to answer and ``vins_node`` to subscribe.
         stop_timeout_s: grace after SIGINT before SIGKILL, per process.
 

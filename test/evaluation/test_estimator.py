@@ -212,7 +212,7 @@ def test_a_run_starts_master_node_and_play_then_stops_them_and_returns_vio(tmp_p
     assert node["values"]["image0_topic"] == IDLE_IMAGE_TOPICS[0]
     assert node["master"].startswith("http://127.0.0.1:") and node["master"] != "http://127.0.0.1:11311/"
     assert node["path_has_fakes"].endswith("fake_bin")  # the workspace's setup.bash was sourced
-    assert json.loads((out / "rosbag.json").read_text()) == ["play", "-d", "1", str(bag.resolve())]
+    assert json.loads((out / "rosbag.json").read_text()) == ["play", "-q", "-d", "1", str(bag.resolve())]
     record = json.loads((out / RUN_RECORD).read_text())
     assert record["master_uri"] == node["master"] and record["poses"] >= 1 and record["wall_s"] > 0
     assert _gone(node["pid"])
