@@ -54,7 +54,8 @@ FEATURE_TOPIC = "/feature_tracker/feature"
 """The topic ``vins_node`` takes features from; a run starts the play once it has subscribed."""
 
 RUN_RECORD = "estimator_run.json"
-"""Written into the run folder beside ``vio.csv``: wall times, the master's port, exit codes. The stock
+"""Written into the run folder beside ``vio.csv``: the master's URI, the wall time of the run and of its
+phases (start until the play, the play, the settle, the stop), the pose count, exit codes. The stock
 ``vins_node`` aborts on SIGINT (``terminate called without an active exception``: upstream leaves its
 sync thread joinable at exit), so its status after the stop is -6; the trajectory is complete by then."""
 
@@ -395,6 +396,7 @@ def run_vins(
                 )
             time.sleep(_POLL_S)
         t_play = time.monotonic()
+        record["start_s"] = round(t_play - t0, 3)
         play = _start("rosbag_play", ["rosbag", "play", *play_args, str(bag)], vins, env, out_dir)
         procs["rosbag_play"] = play
         while play.poll() is None:
@@ -407,12 +409,16 @@ def run_vins(
             time.sleep(_POLL_S)
         if play.returncode != 0:
             raise _died(out_dir, "rosbag_play", play, f"playing {bag}")
-        record["play_s"] = round(time.monotonic() - t_play, 3)
+        t_quiet = time.monotonic()
+        record["play_s"] = round(t_quiet - t_play, 3)
         _wait_quiet(vio, node, settle_s, deadline)
+        record["settle_s"] = round(time.monotonic() - t_quiet, 3)
         if node.poll() is not None:
             raise _died(out_dir, "vins_node", node, "after the play")
     finally:
+        t_stop = time.monotonic()
         codes = {name: _stop(proc, stop_timeout_s) for name, proc in reversed(procs.items())}
+    record["stop_s"] = round(time.monotonic() - t_stop, 3)
     record["exit_status_after_stop"] = codes
     record["wall_s"] = round(time.monotonic() - t0, 3)
     try:
