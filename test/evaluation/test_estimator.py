@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -282,3 +283,12 @@ def test_score_vio_is_what_nsflow_ate_align_se3_prints(tmp_path: Path, capsys: p
     assert 0.002 < result.stats.rmse < 0.005
     assert ate_main([str(gt), str(vio), "--align", "se3", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rmse"] == pytest.approx(result.stats.rmse, rel=1e-12)
+
+
+def test_the_runner_imports_no_ros():
+    code = (
+        "import sys, nsflow_ros.evaluation.estimator; "
+        "print(sorted(m for m in ('rclpy', 'rospy', 'rosbag', 'rosbags') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
