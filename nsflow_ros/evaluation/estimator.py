@@ -210,15 +210,20 @@ class _Transport(xmlrpc.client.Transport):
         return conn
 
 
+def _master_call(master_uri: str, method: str) -> object | None:
+    """The value of a master API call (``getPid``, ``getSystemState``); ``None`` if it does not answer."""
+    try:
+        proxy = xmlrpc.client.ServerProxy(master_uri, transport=_Transport())
+        code, _msg, value = getattr(proxy, method)("/nsflow_estimator")
+    except (OSError, ValueError, xmlrpc.client.Error, http.client.HTTPException):
+        return None
+    return value if code == 1 else None
+
+
 def _subscribed_topics(master_uri: str) -> set[str] | None:
     """Topics with a subscriber, from the master's ``getSystemState``; ``None`` if it does not answer."""
-    try:
-        code, _msg, state = xmlrpc.client.ServerProxy(master_uri, transport=_Transport()).getSystemState(
-            "/nsflow_estimator"
-        )
-    except (OSError, xmlrpc.client.Error, http.client.HTTPException):
-        return None
-    if code != 1:
+    state = _master_call(master_uri, "getSystemState")
+    if not isinstance(state, list) or len(state) < 2:
         return None
     return {str(entry[0]) for entry in state[1]}
 
@@ -298,8 +303,12 @@ def _start_master(
         while time.monotonic() < deadline:
             if proc.poll() is not None:
                 break
-            if _subscribed_topics(uri) is not None:
+            pid = _master_call(uri, "getPid")
+            if pid == proc.pid:
                 return proc, uri, env
+            if pid is not None:  # another run's master took the port first; ours will exit
+                _stop(proc, 2.0)
+                break
             time.sleep(_POLL_S)
         else:
             _stop(proc, 2.0)
@@ -310,9 +319,9 @@ def _start_master(
     raise _died(out_dir, "rosmaster", proc, f"at start ({tries} ports tried)")
 
 
-def _wait_quiet(vio: Path, node: subprocess.Popen, settle_s: float, deadline: float) -> None:
-    """Wait until ``vio`` has not changed for ``settle_s`` (the estimator has caught up), the node has
-    exited, or the deadline passes."""
+def _wait_quiet(vio: Path, node: subprocess.Popen, settle_s: float, deadline: float) -> bool:
+    """Wait until ``vio`` has not changed for ``settle_s`` (the estimator has caught up: True), the node
+    has exited or the deadline passes (False)."""
     last, since = None, time.monotonic()
     while time.monotonic() < deadline and node.poll() is None:
         try:
@@ -324,8 +333,9 @@ def _wait_quiet(vio: Path, node: subprocess.Popen, settle_s: float, deadline: fl
         if sig != last:
             last, since = sig, now
         elif now - since >= settle_s:
-            return
+            return True
         time.sleep(_POLL_S)
+    return False
 
 
 def run_vins(
@@ -411,10 +421,15 @@ def run_vins(
             raise _died(out_dir, "rosbag_play", play, f"playing {bag}")
         t_quiet = time.monotonic()
         record["play_s"] = round(t_quiet - t_play, 3)
-        _wait_quiet(vio, node, settle_s, deadline)
+        quiet = _wait_quiet(vio, node, settle_s, deadline)
         record["settle_s"] = round(time.monotonic() - t_quiet, 3)
         if node.poll() is not None:
             raise _died(out_dir, "vins_node", node, "after the play")
+        if not quiet:
+            raise EstimatorError(
+                f"the run took longer than timeout_s={timeout_s:g} s (vins_node was still writing {vio} "
+                f"{record['settle_s']:g} s after the play ended: the trajectory would be cut short)"
+            )
     finally:
         t_stop = time.monotonic()
         codes = {name: _stop(proc, stop_timeout_s) for name, proc in reversed(procs.items())}

@@ -31,7 +31,7 @@ STEREO = REPO / "config" / "euroc" / "euroc_stereo_imu_config.yaml"
 # ---- the fakes ----
 
 FAKE_MASTER = """
-import signal, sys
+import os, signal, sys
 from xmlrpc.server import SimpleXMLRPCServer
 port = int(sys.argv[sys.argv.index("-p") + 1])
 subs = {}
@@ -41,13 +41,16 @@ def registerSubscriber(caller, topic, msgtype, api):
     return [1, "", []]
 def getSystemState(caller):
     return [1, "", [[], [[t, n] for t, n in subs.items()], []]]
+def getPid(caller):
+    return [1, "", os.getpid()]
+server.register_function(getPid)
 server.register_function(registerSubscriber)
 server.register_function(getSystemState)
 signal.signal(signal.SIGINT, lambda *a: sys.exit(0))
 server.serve_forever()
 """
 
-# MODE: ok | die | crash_at_start | no_output | ignore_sigint
+# MODE: ok | die | crash_at_start | no_output | ignore_sigint | endless
 FAKE_NODE = """
 import json, os, signal, sys, time, xmlrpc.client
 from pathlib import Path
@@ -75,7 +78,7 @@ elif MODE == "die":
     sys.exit(3)
 t = 1.0
 while True:
-    if MODE != "no_output" and not (out / "play_done").exists():
+    if MODE == "endless" or (MODE != "no_output" and not (out / "play_done").exists()):
         with open(out / "vio.csv", "a") as f:
             f.write(f"{{int(t * 1e9)}},{{t}},0,0,1,0,0,0,0,0,0,\\n")
         t += 0.05
@@ -88,7 +91,7 @@ import json, sys, time
 from pathlib import Path
 MODE = {mode!r}
 Path("rosbag.json").write_text(json.dumps(sys.argv[1:]))
-time.sleep(10 if MODE == "slow" else 0.15)
+time.sleep(10 if MODE == "slow" else 0.1)
 Path("play_done").touch()
 if MODE == "fail":
     print("ROSBAG ERROR: bag unindexed", file=sys.stderr)
@@ -249,10 +252,16 @@ def test_failures_name_the_process_and_quote_its_log(
         assert _gone(json.loads((out / "node.json").read_text())["pid"])
 
 
-def test_a_run_over_its_time_limit_is_stopped_and_cleaned_up(tmp_path: Path, bag: Path):
-    vins = fake_build(tmp_path, bag="slow")
+@pytest.mark.parametrize(
+    ("node", "bag_mode", "message"),
+    [("ok", "slow", "the play had not ended"), ("endless", "ok", "still writing .*vio.csv")],
+)
+def test_a_run_over_its_time_limit_is_stopped_and_cleaned_up(
+    tmp_path: Path, bag: Path, node: str, bag_mode: str, message: str
+):
+    vins = fake_build(tmp_path, node=node, bag=bag_mode)
     out = tmp_path / "run"
-    with pytest.raises(EstimatorError, match="longer than timeout_s=1"):
+    with pytest.raises(EstimatorError, match="longer than timeout_s=1 s .*" + message):
         run_vins(bag, STEREO, vins, out, timeout_s=1, settle_s=0.1)
     assert _gone(json.loads((out / "node.json").read_text())["pid"])
 
