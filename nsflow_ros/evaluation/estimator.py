@@ -60,7 +60,7 @@ phases (start until the play, the play, the settle, the stop), the pose count, e
 sync thread joinable at exit), so its status after the stop is -6; the trajectory is complete by then."""
 
 _SYSTEM_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
-_POLL_S = 0.05
+_POLL_S = 0.02
 _LOG_TAIL = 1500
 
 
