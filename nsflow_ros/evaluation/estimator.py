@@ -2,7 +2,7 @@
 
 This module only starts subprocesses (no ROS import): a private ``rosmaster`` on a free port, then
 ``vins_node`` with a copy of the VINS config whose image topics are idle (its own tracker must see no
-image; the features come from the bag), then ``rosbag play -d 1`` of the bag (Debian's python3-rosbag,
+image; the features come from the bag), then ``rosbag play -q -d 1`` of the bag (Debian's python3-rosbag,
 run by the system Python through the workspace's ``devel/setup.bash``, never the caller's venv). When the
 play has ended and the estimator has stopped writing, everything is stopped with SIGINT, then SIGKILL.
 Each run has its own ``ROS_MASTER_URI``, so runs in parallel cannot collide. Typical use::
@@ -54,12 +54,13 @@ FEATURE_TOPIC = "/feature_tracker/feature"
 """The topic ``vins_node`` takes features from; a run starts the play once it has subscribed."""
 
 RUN_RECORD = "estimator_run.json"
-"""Written into the run folder beside ``vio.csv``: wall times, the master's port, exit codes. The stock
+"""Written into the run folder beside ``vio.csv``: the master's URI, the wall time of the run and of its
+phases (start until the play, the play, the settle, the stop), the pose count, exit codes. The stock
 ``vins_node`` aborts on SIGINT (``terminate called without an active exception``: upstream leaves its
 sync thread joinable at exit), so its status after the stop is -6; the trajectory is complete by then."""
 
 _SYSTEM_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
-_POLL_S = 0.05
+_POLL_S = 0.02
 _LOG_TAIL = 1500
 
 
@@ -209,15 +210,20 @@ class _Transport(xmlrpc.client.Transport):
         return conn
 
 
+def _master_call(master_uri: str, method: str) -> object | None:
+    """The value of a master API call (``getPid``, ``getSystemState``); ``None`` if it does not answer."""
+    try:
+        proxy = xmlrpc.client.ServerProxy(master_uri, transport=_Transport())
+        code, _msg, value = getattr(proxy, method)("/nsflow_estimator")
+    except (OSError, ValueError, xmlrpc.client.Error, http.client.HTTPException):
+        return None
+    return value if code == 1 else None
+
+
 def _subscribed_topics(master_uri: str) -> set[str] | None:
     """Topics with a subscriber, from the master's ``getSystemState``; ``None`` if it does not answer."""
-    try:
-        code, _msg, state = xmlrpc.client.ServerProxy(master_uri, transport=_Transport()).getSystemState(
-            "/nsflow_estimator"
-        )
-    except (OSError, xmlrpc.client.Error, http.client.HTTPException):
-        return None
-    if code != 1:
+    state = _master_call(master_uri, "getSystemState")
+    if not isinstance(state, list) or len(state) < 2:
         return None
     return {str(entry[0]) for entry in state[1]}
 
@@ -297,8 +303,12 @@ def _start_master(
         while time.monotonic() < deadline:
             if proc.poll() is not None:
                 break
-            if _subscribed_topics(uri) is not None:
+            pid = _master_call(uri, "getPid")
+            if pid == proc.pid:
                 return proc, uri, env
+            if pid is not None:  # another run's master took the port first; ours will exit
+                _stop(proc, 2.0)
+                break
             time.sleep(_POLL_S)
         else:
             _stop(proc, 2.0)
@@ -309,9 +319,9 @@ def _start_master(
     raise _died(out_dir, "rosmaster", proc, f"at start ({tries} ports tried)")
 
 
-def _wait_quiet(vio: Path, node: subprocess.Popen, settle_s: float, deadline: float) -> None:
-    """Wait until ``vio`` has not changed for ``settle_s`` (the estimator has caught up), the node has
-    exited, or the deadline passes."""
+def _wait_quiet(vio: Path, node: subprocess.Popen, settle_s: float, deadline: float) -> bool:
+    """Wait until ``vio`` has not changed for ``settle_s`` (the estimator has caught up: True), the node
+    has exited or the deadline passes (False)."""
     last, since = None, time.monotonic()
     while time.monotonic() < deadline and node.poll() is None:
         try:
@@ -323,8 +333,9 @@ def _wait_quiet(vio: Path, node: subprocess.Popen, settle_s: float, deadline: fl
         if sig != last:
             last, since = sig, now
         elif now - since >= settle_s:
-            return
+            return True
         time.sleep(_POLL_S)
+    return False
 
 
 def run_vins(
@@ -335,7 +346,7 @@ def run_vins(
     *,
     timeout_s: float,
     settle_s: float = 2.0,
-    play_args: Sequence[str] = ("-d", "1"),
+    play_args: Sequence[str] = ("-q", "-d", "1"),
     startup_timeout_s: float = 30.0,
     stop_timeout_s: float = 10.0,
 ) -> Path:
@@ -350,7 +361,7 @@ def run_vins(
         timeout_s: the whole run's limit in seconds (start, play, settle).
         settle_s: after the play, wait until ``vio.csv`` has not changed for this long.
         play_args: options of ``rosbag play`` before the bag (``-d 1``: a second for subscribers to
-            connect after each advertise).
+            connect after each advertise; ``-q``: no progress line, which fills the log by 17 kB/s).
         startup_timeout_s: limit for the master to answer and ``vins_node`` to subscribe.
         stop_timeout_s: grace after SIGINT before SIGKILL, per process.
 
@@ -395,6 +406,7 @@ def run_vins(
                 )
             time.sleep(_POLL_S)
         t_play = time.monotonic()
+        record["start_s"] = round(t_play - t0, 3)
         play = _start("rosbag_play", ["rosbag", "play", *play_args, str(bag)], vins, env, out_dir)
         procs["rosbag_play"] = play
         while play.poll() is None:
@@ -407,12 +419,21 @@ def run_vins(
             time.sleep(_POLL_S)
         if play.returncode != 0:
             raise _died(out_dir, "rosbag_play", play, f"playing {bag}")
-        record["play_s"] = round(time.monotonic() - t_play, 3)
-        _wait_quiet(vio, node, settle_s, deadline)
+        t_quiet = time.monotonic()
+        record["play_s"] = round(t_quiet - t_play, 3)
+        quiet = _wait_quiet(vio, node, settle_s, deadline)
+        record["settle_s"] = round(time.monotonic() - t_quiet, 3)
         if node.poll() is not None:
             raise _died(out_dir, "vins_node", node, "after the play")
+        if not quiet:
+            raise EstimatorError(
+                f"the run took longer than timeout_s={timeout_s:g} s (vins_node was still writing {vio} "
+                f"{record['settle_s']:g} s after the play ended: the trajectory would be cut short)"
+            )
     finally:
+        t_stop = time.monotonic()
         codes = {name: _stop(proc, stop_timeout_s) for name, proc in reversed(procs.items())}
+    record["stop_s"] = round(time.monotonic() - t_stop, 3)
     record["exit_status_after_stop"] = codes
     record["wall_s"] = round(time.monotonic() - t0, 3)
     try:

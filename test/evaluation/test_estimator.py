@@ -4,9 +4,11 @@ orchestration (private master, node, play, settle, stop, errors) against fake ``
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,7 @@ import pytest
 
 from nsflow_ros.ate import Trajectory, write_trajectory
 from nsflow_ros.ate.cli import main as ate_main
+from nsflow_ros.evaluation import estimator
 from nsflow_ros.evaluation.errors import EstimatorError, EvaluationError
 from nsflow_ros.evaluation.estimator import (
     IDLE_IMAGE_TOPICS,
@@ -30,7 +33,7 @@ STEREO = REPO / "config" / "euroc" / "euroc_stereo_imu_config.yaml"
 # ---- the fakes ----
 
 FAKE_MASTER = """
-import signal, sys
+import os, signal, sys
 from xmlrpc.server import SimpleXMLRPCServer
 port = int(sys.argv[sys.argv.index("-p") + 1])
 subs = {}
@@ -40,13 +43,16 @@ def registerSubscriber(caller, topic, msgtype, api):
     return [1, "", []]
 def getSystemState(caller):
     return [1, "", [[], [[t, n] for t, n in subs.items()], []]]
+def getPid(caller):
+    return [1, "", os.getpid()]
+server.register_function(getPid)
 server.register_function(registerSubscriber)
 server.register_function(getSystemState)
 signal.signal(signal.SIGINT, lambda *a: sys.exit(0))
 server.serve_forever()
 """
 
-# MODE: ok | die | crash_at_start | no_output | ignore_sigint
+# MODE: ok | die | crash_at_start | no_output | ignore_sigint | endless
 FAKE_NODE = """
 import json, os, signal, sys, time, xmlrpc.client
 from pathlib import Path
@@ -74,7 +80,7 @@ elif MODE == "die":
     sys.exit(3)
 t = 1.0
 while True:
-    if MODE != "no_output" and not (out / "play_done").exists():
+    if MODE == "endless" or (MODE != "no_output" and not (out / "play_done").exists()):
         with open(out / "vio.csv", "a") as f:
             f.write(f"{{int(t * 1e9)}},{{t}},0,0,1,0,0,0,0,0,0,\\n")
         t += 0.05
@@ -87,7 +93,7 @@ import json, sys, time
 from pathlib import Path
 MODE = {mode!r}
 Path("rosbag.json").write_text(json.dumps(sys.argv[1:]))
-time.sleep(10 if MODE == "slow" else 0.15)
+time.sleep(10 if MODE == "slow" else 0.1)
 Path("play_done").touch()
 if MODE == "fail":
     print("ROSBAG ERROR: bag unindexed", file=sys.stderr)
@@ -212,10 +218,20 @@ def test_a_run_starts_master_node_and_play_then_stops_them_and_returns_vio(tmp_p
     assert node["values"]["image0_topic"] == IDLE_IMAGE_TOPICS[0]
     assert node["master"].startswith("http://127.0.0.1:") and node["master"] != "http://127.0.0.1:11311/"
     assert node["path_has_fakes"].endswith("fake_bin")  # the workspace's setup.bash was sourced
-    assert json.loads((out / "rosbag.json").read_text()) == ["play", "-d", "1", str(bag.resolve())]
+    assert json.loads((out / "rosbag.json").read_text()) == ["play", "-q", "-d", "1", str(bag.resolve())]
     record = json.loads((out / RUN_RECORD).read_text())
     assert record["master_uri"] == node["master"] and record["poses"] >= 1 and record["wall_s"] > 0
     assert _gone(node["pid"])
+
+
+def test_two_runs_at_once_each_have_their_own_master(tmp_path: Path, bag: Path):
+    vins = fake_build(tmp_path)
+    outs = [tmp_path / "run_a", tmp_path / "run_b"]
+    with ThreadPoolExecutor(2) as pool:
+        vios = list(pool.map(lambda out: run_vins(bag, STEREO, vins, out, timeout_s=20, settle_s=0.1), outs))
+    assert [v.parent for v in vios] == [o.resolve() for o in outs]
+    masters = {json.loads((out / "node.json").read_text())["master"] for out in outs}
+    assert len(masters) == 2
 
 
 def test_a_node_that_ignores_sigint_is_killed(tmp_path: Path, bag: Path):
@@ -248,10 +264,16 @@ def test_failures_name_the_process_and_quote_its_log(
         assert _gone(json.loads((out / "node.json").read_text())["pid"])
 
 
-def test_a_run_over_its_time_limit_is_stopped_and_cleaned_up(tmp_path: Path, bag: Path):
-    vins = fake_build(tmp_path, bag="slow")
+@pytest.mark.parametrize(
+    ("node", "bag_mode", "message"),
+    [("ok", "slow", "the play had not ended"), ("endless", "ok", "still writing .*vio.csv")],
+)
+def test_a_run_over_its_time_limit_is_stopped_and_cleaned_up(
+    tmp_path: Path, bag: Path, node: str, bag_mode: str, message: str
+):
+    vins = fake_build(tmp_path, node=node, bag=bag_mode)
     out = tmp_path / "run"
-    with pytest.raises(EstimatorError, match="longer than timeout_s=1"):
+    with pytest.raises(EstimatorError, match="longer than timeout_s=1 s .*" + message):
         run_vins(bag, STEREO, vins, out, timeout_s=1, settle_s=0.1)
     assert _gone(json.loads((out / "node.json").read_text())["pid"])
 
@@ -282,3 +304,13 @@ def test_score_vio_is_what_nsflow_ate_align_se3_prints(tmp_path: Path, capsys: p
     assert 0.002 < result.stats.rmse < 0.005
     assert ate_main([str(gt), str(vio), "--align", "se3", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rmse"] == pytest.approx(result.stats.rmse, rel=1e-12)
+
+
+def test_the_runner_imports_no_ros():
+    """Its own imports: the standard library and the project's pure ATE code (checked without importing)."""
+    tree = ast.parse(Path(estimator.__file__).read_text())
+    mods = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    mods |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    project = {m for m in mods if m.startswith("nsflow_ros")}
+    assert project == {"nsflow_ros.ate", "nsflow_ros.evaluation.errors"}
+    assert {m.split(".")[0] for m in mods - project} <= set(sys.stdlib_module_names)
