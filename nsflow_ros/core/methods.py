@@ -489,33 +489,38 @@ class LMMethod(TrackingMethod):
         step's J^T J and its cost rescaled to the descriptor window's degrees of freedom, so that
         :meth:`result_covariance` is the step's covariance there.
         """
-        step_applies = (self.refinement is not None and not kind.is_check and frame1.image is not None
+        step = self.refinement
+        step_applies = (step is not None and (step.checks or not kind.is_check) and frame1.image is not None
                         and frame2.image is not None)
         if not step_applies:
             return self._descriptor_solve(kind, frame1, frame2, pts, start, prior)
-        assert self.refinement is not None
+        assert step is not None
         # From the IMU prediction the descriptor solve has one level only: the step follows it whole.
-        finest = 0 if start is not None else 1
-        eps = self.refinement.coarse_eps if finest else None
+        finest = 0 if start is not None and not kind.is_check else 1
+        # A check keeps its own tolerance: it starts at its answer, where a loose test would stop it.
+        eps = step.coarse_eps if finest and not kind.is_check else None
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
-        step = refine(frame1.image, frame2.image, pts, new, status, self.refinement)
-        new, kept = step.positions, step.kept
+        done = refine(frame1.image, frame2.image, pts, new, status, step)
+        new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
         contrast = res.contrast.copy()
         rest = np.flatnonzero(status & ~kept) if finest else np.zeros(0, np.int64)
         status = status.copy()
         if rest.size:  # the descriptors' own last level, from where the coarse levels left them
-            fine_new, fine_status, fine = self._track_pair(frame1, frame2, pts[rest], new[rest], 1,
-                                                           residual_test=True)
+            p = self.policy
+            fine_new, fine_status, fine = (
+                self._track_pair(frame1, frame2, pts[rest], new[rest], 1, jacobian=p.check_jacobian,
+                                 eps=p.check_eps) if kind.is_check
+                else self._track_pair(frame1, frame2, pts[rest], new[rest], 1, residual_test=True))
             new[rest], status[rest] = fine_new, fine_status
             flow[rest], hessian[rest], cost[rest] = fine.flow, fine.hessian, fine.cost
             contrast[rest] = fine.contrast
         dof = self.lm.window * self.lm.window * frame2.channels - 2
-        win = self.refinement.window
+        win = step.window
         flow[kept] = new[kept] - pts[kept]
-        hessian[kept] = step.hessian[kept]
-        cost[kept] = step.cost[kept] * dof / (win * win - 2)
-        contrast[kept] = step.contrast[kept]
+        hessian[kept] = done.hessian[kept]
+        cost[kept] = done.cost[kept] * dof / (win * win - 2)
+        contrast[kept] = done.contrast[kept]
         merged = TrackResult(flow, status, cost, res.iterations, contrast, res.history, hessian)
         return new, status, merged
 
@@ -529,7 +534,7 @@ class LMMethod(TrackingMethod):
         p = self.policy
         if kind.is_check:
             return self._track_pair(frame1, frame2, pts, start, CHECK_LEVELS, jacobian=p.check_jacobian,
-                                    eps=p.check_eps)
+                                    eps=p.check_eps, finest_level=finest)
         if start is not None:  # the IMU prediction, trusted as VINS trusts it
             usable = np.isfinite(start).all(axis=1)
             return self._track_pair(
