@@ -483,10 +483,11 @@ class LMMethod(TrackingMethod):
     ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
         """:meth:`solve` with the solver's full result (cost, J^T J, ...), e.g. for the evaluation.
 
-        With an intensity step (:attr:`refinement`), a forward or stereo solve from the pyramid stops one
-        level short of full resolution and the step on the images finishes it; the points it does not keep
-        get the descriptor solve's last level as before. A kept point's row of the result holds the
-        step's J^T J and its cost rescaled to the descriptor window's degrees of freedom, so that
+        With an intensity step (:attr:`refinement`), the pyramid solve stops one level short of full
+        resolution and the step on the images finishes it (the checks' too, unless ``checks`` is off; from
+        the IMU prediction the step follows the one-level solve); the points it does not keep get the
+        descriptors' last level as before. A kept point's row of the result holds the step's J^T J and
+        its cost rescaled to the descriptor window's degrees of freedom, so that
         :meth:`result_covariance` is the step's covariance there.
         """
         step = self.refinement
