@@ -122,7 +122,8 @@ def _scalar(rest: str) -> str:
 
 
 def estimator_config(
-    config: Path, out_dir: Path, *, idle_topics: tuple[str, str] = IDLE_IMAGE_TOPICS
+    config: Path, out_dir: Path, *, idle_topics: tuple[str, str] = IDLE_IMAGE_TOPICS,
+    solver_time: float | None = None,
 ) -> Path:
     """Write the estimator's copy of a VINS-Fusion config into ``out_dir``.
 
@@ -135,6 +136,9 @@ def estimator_config(
         config: the VINS-Fusion config the features were tracked with (OpenCV YAML).
         out_dir: the run folder (created if needed).
         idle_topics: the two image topics to name instead.
+        solver_time: ``max_solver_time`` (s) of the copy; None = the config's. The solver stops at this
+            wall-clock budget or at ``max_num_iterations``: a budget no solve reaches makes the runs of one
+            bag agree on a loaded machine as they do on an idle one.
 
     Returns:
         The path of the copy, ``out_dir/<config stem>_estimator.yaml``.
@@ -168,6 +172,12 @@ def estimator_config(
         "image1_topic": f'"{idle_topics[1]}"',
         "output_path": f'"{out_dir}/"',
     }
+    if solver_time is not None:
+        if not solver_time > 0:
+            raise EstimatorError(f"solver_time must be > 0 s, got {solver_time}")
+        if "max_solver_time" not in values:
+            raise EstimatorError(f"{config}: no max_solver_time to set")
+        replace["max_solver_time"] = f"{solver_time:g}"
     out: list[str] = []
     for line in lines:
         m = _KEY_LINE.match(line)
@@ -349,6 +359,7 @@ def run_vins(
     play_args: Sequence[str] = ("-q", "-d", "1"),
     startup_timeout_s: float = 30.0,
     stop_timeout_s: float = 10.0,
+    solver_time: float | None = None,
 ) -> Path:
     """Play a feature bag into the stock estimator and return the trajectory it wrote.
 
@@ -364,6 +375,7 @@ def run_vins(
             connect after each advertise; ``-q``: no progress line, which fills the log by 17 kB/s).
         startup_timeout_s: limit for the master to answer and ``vins_node`` to subscribe.
         stop_timeout_s: grace after SIGINT before SIGKILL, per process.
+        solver_time: the copy's ``max_solver_time`` (:func:`estimator_config`); None = the config's.
 
     Returns:
         ``out_dir/vio.csv``, holding at least one pose.
@@ -377,7 +389,7 @@ def run_vins(
     if not bag.is_file():
         raise EstimatorError(f"feature bag {bag} does not exist")
     out_dir = Path(out_dir).resolve()
-    cfg = estimator_config(Path(config), out_dir)
+    cfg = estimator_config(Path(config), out_dir, solver_time=solver_time)
     vio = out_dir / "vio.csv"
     vio.unlink(missing_ok=True)
     (out_dir / RUN_RECORD).unlink(missing_ok=True)

@@ -116,6 +116,7 @@ def evaluate_cell(
     timeout_s: float = 300.0,
     progress: bool = False,
     resume: bool = False,
+    solver_time: float | None = None,
 ) -> CellResult:
     """Track one sample into a feature bag (as ``nsflow-replay --features-bag``), score it, and with a
     VINS-Fusion build run the estimator ``runs`` times on it.
@@ -128,6 +129,8 @@ def evaluate_cell(
         model: the learned methods' model (None: each method's shipped default).
         vins: a :class:`~nsflow_ros.evaluation.estimator.VinsBuild`, or None for no estimator.
         resume: return the cell's stored result (``cell.json``) when a run before measured it.
+        solver_time: the estimator's ``max_solver_time`` (s); None = the config's
+            (:func:`~nsflow_ros.evaluation.estimator.estimator_config`).
 
     Raises:
         NSFlowError: a source, config or model that cannot be used.
@@ -155,7 +158,8 @@ def evaluate_cell(
 
         for r in range(runs):
             try:
-                vio = run_vins(bag, config, vins, out_dir / f"run{r}", timeout_s=timeout_s)
+                vio = run_vins(bag, config, vins, out_dir / f"run{r}", timeout_s=timeout_s,
+                               solver_time=solver_time)
                 cell.ate_runs.append(float(score_vio(vio, sample.root / "groundtruth.csv").stats.rmse))
             except NSFlowError as err:  # a diverged or dead estimator is a result of the cell, not the end
                 cell.failures.append(str(err).splitlines()[0])
@@ -282,6 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vins", default=None,
                    help="a VINS-Fusion catkin workspace (scripts/build_vins_fusion.sh): run the estimator")
     p.add_argument("--runs", type=int, default=2, help="estimator runs per bag (default 2)")
+    p.add_argument("--solver-time", type=float, default=None,
+                   help="the estimator's max_solver_time in s (default the config's 0.04); e.g. 1 on a busy "
+                   "machine: the solver then stops at its iteration limit and the runs agree")
     p.add_argument("--out", default="out/scenes", help="output folder (default out/scenes)")
     p.add_argument("--cache", default="data/scenes", help="where scenes are rendered (default data/scenes)")
     p.add_argument("--resume", action="store_true",
@@ -306,7 +313,7 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
                     where = Path(opts.out) / f"seed{seed}" / f"{rate:g}hz" / level / method
                     cell = evaluate_cell(sample, where, method, level, config=config, model=opts.model,
                                          vins=vins, runs=opts.runs, progress=not opts.no_progress,
-                                         resume=opts.resume)
+                                         resume=opts.resume, solver_time=opts.solver_time)
                     e = cell.errors
                     print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {method}: ATE {_mm(cell.ate)} mm, "
                           f"median {e['temporal_median_px']:.4f} / {e['stereo_median_px']:.4f} px",

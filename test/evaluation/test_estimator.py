@@ -175,6 +175,21 @@ def test_config_copy_names_a_missing_key_or_camera_file(tmp_path: Path):
         estimator_config(tmp_path / "nope.yaml", tmp_path / "out")
 
 
+def test_config_copy_can_lift_the_solver_budget(tmp_path: Path):
+    copy = estimator_config(STEREO, tmp_path / "run", solver_time=1.0)
+    changed = [n for o, n in zip(STEREO.read_text().splitlines(), copy.read_text().splitlines(), strict=True)
+               if o != n]
+    assert [c.split(":")[0] for c in changed] == ["image0_topic", "image1_topic", "output_path",
+                                                  "max_solver_time"]
+    assert "max_solver_time: 1   #" in copy.read_text()
+    with pytest.raises(EstimatorError, match="solver_time must be > 0"):
+        estimator_config(STEREO, tmp_path / "run2", solver_time=0.0)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text('%YAML:1.0\nnum_of_cam: 1\nimage0_topic: "/a"\noutput_path: "/x/"\ncam0_calib: c0.yaml\n')
+    with pytest.raises(EstimatorError, match="no max_solver_time"):
+        estimator_config(cfg, tmp_path / "run3", solver_time=1.0)
+
+
 # ---- locating the build ----
 
 
