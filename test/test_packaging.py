@@ -13,7 +13,9 @@ import pytest
 from nsflow_ros.data.sample import make_sample_sequence
 
 ROOT = Path(__file__).resolve().parent.parent
-SHORT_NAMES = ("tracker", "replay", "demo", "ate", "bench", "make_sample", "train", "evaluate", "config")
+SHORT_NAMES = (
+    "tracker", "replay", "demo", "ate", "bench", "make_sample", "train", "evaluate", "config", "scenes",
+)
 PACKAGE_FILES = (
     "package.xml", "setup.py", "setup.cfg", "resource", "nsflow_ros", "config", "models", "launch", "rviz"
 )

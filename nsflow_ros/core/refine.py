@@ -39,9 +39,9 @@ class IntensityRefinement:
             does not pin the point down (a flat or edge-only window): the descriptors' answer stands.
         coarse_eps: the stop tolerance of the descriptor levels before the step (the LM solver's ``eps``):
             they need only bring the point within the step's reach.
-        checks: the reverse checks end with the step too, so that a track is judged by the same optimum
-            it was placed at (else a point the image moved away from the descriptors' optimum fails its
-            descriptor check).
+        checks: the reverse checks end with the step too, so that a track is judged at the optimum it was
+            placed at (off: a point the image moved from the descriptors' optimum may fail its descriptor
+            check; on costs about a sixth more CPU per frame, docs/design.md).
 
     Raises:
         CoreError: a value out of range (named in the message).
@@ -53,7 +53,7 @@ class IntensityRefinement:
     max_residual: float = 0.2
     min_eigen: float = 1e-5
     coarse_eps: float = 0.2
-    checks: bool = True
+    checks: bool = False
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:

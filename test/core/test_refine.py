@@ -125,7 +125,7 @@ def test_gray_level_needs_uint8_gray() -> None:
     assert level[0].shape == (4, 4, 1) and level[0].dtype == np.float32 and level[0].max() == 1.0
 
 
-def test_method_refines_every_solve(pair: tuple[np.ndarray, ...]) -> None:
+def test_method_refines_forward_and_stereo(pair: tuple[np.ndarray, ...]) -> None:
     g1, g2, pts = pair
     method = make_method("nsflow")
     assert method.refinement == IntensityRefinement()  # the default finishes on the image
@@ -134,24 +134,29 @@ def test_method_refines_every_solve(pair: tuple[np.ndarray, ...]) -> None:
         new, status = method.solve(kind, f1, f2, pts)
         assert status.all()
         assert np.abs(new - pts - SHIFT).max() < 0.05
-    # the check returns to the image's optimum too, so a track is judged where it was placed
+
+
+def test_checks_stay_on_the_descriptors_by_default(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, pts = pair
+    method = make_method("nsflow")
+    plain = make_method(replace(METHODS["nsflow"], refine=None))
+    f1, f2 = method.prepare(g1, g1), method.prepare(g2, g2)
+    back, ok = method.solve(SolveKind.FLOW_BACK, f2, f1, pts + SHIFT, pts)
+    p1, p2 = plain.prepare(g1, g1), plain.prepare(g2, g2)
+    back0, ok0 = plain.solve(SolveKind.FLOW_BACK, p2, p1, pts + SHIFT, pts)
+    np.testing.assert_array_equal(back, back0)
+    np.testing.assert_array_equal(ok, ok0)
+
+
+def test_checks_can_end_on_the_image_too(pair: tuple[np.ndarray, ...]) -> None:
+    g1, g2, pts = pair
+    method = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(checks=True)))
+    f1, f2 = method.prepare(g1, g1), method.prepare(g2, g2)
     back, ok = method.solve(SolveKind.FLOW_BACK, f2, f1, pts + SHIFT, pts)
     assert ok.all() and np.abs(back - pts).max() < 0.05
     # a planted wrong match (3 px off) does not come back to where it started: the tracker drops it
     back, ok = method.solve(SolveKind.FLOW_BACK, f2, f1, pts + SHIFT + np.array([3.0, 0.0]), pts)
     assert (~ok | (np.hypot(*(back - pts).T) > 0.5)).all()
-
-
-def test_checks_can_stay_on_the_descriptors(pair: tuple[np.ndarray, ...]) -> None:
-    g1, g2, pts = pair
-    forward_only = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(checks=False)))
-    plain = make_method(replace(METHODS["nsflow"], refine=None))
-    f1, f2 = forward_only.prepare(g1, g1), forward_only.prepare(g2, g2)
-    back, ok = forward_only.solve(SolveKind.FLOW_BACK, f2, f1, pts + SHIFT, pts)
-    p1, p2 = plain.prepare(g1, g1), plain.prepare(g2, g2)
-    back0, ok0 = plain.solve(SolveKind.FLOW_BACK, p2, p1, pts + SHIFT, pts)
-    np.testing.assert_array_equal(back, back0)
-    np.testing.assert_array_equal(ok, ok0)
 
 
 def test_points_the_step_rejects_get_the_descriptors_last_level(pair: tuple[np.ndarray, ...]) -> None:
