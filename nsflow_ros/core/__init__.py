@@ -27,6 +27,7 @@ from nsflow_ros.core.methods import (
     make_method,
 )
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
+from nsflow_ros.core.refine import IntensityRefinement, refine
 from nsflow_ros.core.solver import IterationRecord, Jacobian, LMConfig, TrackResult, sample_windows, track
 
 __all__ = [
@@ -38,6 +39,7 @@ __all__ = [
     "Encoder",
     "EncoderError",
     "IntensityEncoder",
+    "IntensityRefinement",
     "IterationRecord",
     "Jacobian",
     "LMConfig",
@@ -55,6 +57,7 @@ __all__ = [
     "klt_track",
     "load_encoder",
     "make_method",
+    "refine",
     "sample_windows",
     "to_gray",
     "track",
