@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 
 from nsflow_ros.core.errors import CoreError
-from nsflow_ros.core.solver import sample_windows, window_centres
 
-_GAIN_LO, _GAIN_HI = 0.25, 4.0
+# The gain's clip is the descriptor solver's bias-and-gain residual's, so both steps accept the same lights.
+from nsflow_ros.core.solver import _GAIN_HI, _GAIN_LO, sample_windows, window_centres
 
 __all__ = ["IntensityRefinement", "RefineResult", "gray_level", "refine"]
 
