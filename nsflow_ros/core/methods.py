@@ -22,6 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from nsflow_ros.core.checks import CovarianceCheck
 from nsflow_ros.core.covariance import (
     CovarianceScale,
     err_covariance,
@@ -683,6 +684,10 @@ class MethodSpec:
             model's).
         default_model: the shipped model (a name in :data:`~nsflow_ros.core.encoder.SHIPPED_MODELS`) a
             learned method loads when none is given: OpenCV's LK needs descriptors in [0, 1].
+        refine: the intensity step that finishes forward and stereo solves on the image (LM methods).
+        check: how the tracker checks this method's tracks when ``flow_back`` is on: by each point's
+            covariance and epipolar distance (LM methods, whose covariance comes with the solve), or
+            None: VINS's reverse solves.
 
     Raises:
         CoreError: neither or both of (lm, policy) and klt.
@@ -700,6 +705,7 @@ class MethodSpec:
     covariance_scale: CovarianceScale | None = None
     default_model: str = "default"
     refine: IntensityRefinement | None = None
+    check: CovarianceCheck | None = None
 
     def __post_init__(self) -> None:
         is_lm = self.lm is not None and self.policy is not None
@@ -707,6 +713,8 @@ class MethodSpec:
             raise CoreError(
                 f"method {self.name!r}: give lm and policy (LM solver) or klt (OpenCV LK), not both"
             )
+        if self.check is not None and not is_lm:
+            raise CoreError(f"method {self.name!r}: only an LM method's covariance comes with its solve")
 
     @property
     def learned(self) -> bool:
@@ -746,6 +754,7 @@ METHODS: Mapping[str, MethodSpec] = MappingProxyType({
     "nsflow": MethodSpec(
         "nsflow", "NSFlow", "learned encoder + the LM solver (NumPy), finished on the image",
         EncoderSource.LEARNED, lm=DEPLOYED_LM, policy=SolvePolicy(), refine=IntensityRefinement(),
+        check=CovarianceCheck(),
     ),
     "nsflow_lk": MethodSpec(
         "nsflow_lk", "NSFlow + OpenCV LK", "learned encoder as uint8 + OpenCV's pyramidal LK (VINS's calls)",

@@ -95,16 +95,18 @@ def gray_level(gray: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def _template(image: tuple[np.ndarray, ...], centres: np.ndarray, window: int) -> np.ndarray:
-    """The zero-mean template windows and their zero-mean Scharr gradients (/32) as (M, w^2, 3) columns
+    """The zero-mean template windows and their zero-mean Scharr gradients (/32) as (M, 3, w^2) rows
     [t, gx, gy]."""
     m, size = len(centres), window + 2
     patches = sample_windows(image, centres, size)[..., 0]
-    # Stacked patches: the inner rows' and columns' 3x3 neighbourhoods stay inside their own patch.
-    flat = patches.reshape(m * size, size)
-    gx, gy = (cv2.Scharr(flat, cv2.CV_32F, dx, 1 - dx, scale=1.0 / 32.0).reshape(m, size, size)[:, 1:-1, 1:-1]
-              for dx in (1, 0))
-    cols = np.stack([patches[:, 1:-1, 1:-1], gx, gy], axis=3).reshape(m, window * window, 3)
-    return cols - cols.mean(axis=1, keepdims=True)
+    # The patches side by side in one row: each inner pixel's 3x3 neighbourhood stays inside its own
+    # patch, and one wide filter call is faster than one over the patches stacked in a tall column.
+    wide = np.ascontiguousarray(patches.transpose(1, 0, 2)).reshape(size, m * size)
+    grads = [cv2.Scharr(wide, cv2.CV_32F, dx, 1 - dx, scale=1.0 / 32.0).reshape(size, m, size)
+             for dx in (1, 0)]
+    rows = np.stack([patches.transpose(1, 0, 2), *grads], axis=2)[1:-1, :, :, 1:-1]  # (w, M, 3, w)
+    rows = np.ascontiguousarray(rows.transpose(1, 2, 0, 3)).reshape(m, 3, window * window)
+    return rows - rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
 
 
 def refine(
@@ -145,9 +147,10 @@ def refine(
     # image pixels rather than replicated ones.
     centres = window_centres(p, (h, w), win)
     flow = positions[idx] - p
-    cols = _template(image1, centres, win)
+    rows = _template(image1, centres, win)
+    cols = rows.transpose(0, 2, 1)
     # float32 products (225 terms of order 1e-2 each), float64 from here on
-    gram = np.matmul(cols.transpose(0, 2, 1), cols).astype(np.float64)  # [t, gx, gy] against each other
+    gram = np.matmul(rows, cols).astype(np.float64)  # [t, gx, gy] against each other
     contrast, (sxx, sxy, syy) = gram[:, 0, 0], (gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2])
     det = sxx * syy - sxy * sxy
     cost = np.zeros(len(idx))

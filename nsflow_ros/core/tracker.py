@@ -6,14 +6,17 @@ same code for every method, so that differences between methods come from the fl
 
 1. track the previous frame's points into this one (from the gyro prediction when there is one, again
    without it when fewer than 10 points survive);
-2. flow-back check: track the result back from the previous position; keep points returning within 0.5 px;
+2. flow-back check: track the result back from the previous position; keep points returning within 0.5 px
+   (a method with a :class:`~nsflow_ros.core.checks.CovarianceCheck` keeps the points its covariance pins
+   down instead, unless ``reverse_checks``);
 3. border check: the rounded position must lie at least 1 px inside the image;
 4. optional fundamental-matrix RANSAC on a virtual 460 px pinhole (VINS-Mono's ``rejectWithF``);
 5. track counts grow by 1; the mask (camera 0's static mask and this frame's mask, if any) keeps the
    longest tracks first, each blocking a disc of radius ``min_dist``; GFTT tops the set up to ``max_cnt``
    with fresh ids;
 6. undistorted points from the camera model; velocities against the previous frame, 0 for new ids;
-7. stereo: left -> right, the border check and a right -> left back-check; right points reuse the left ids;
+7. stereo: left -> right, the border check and a right -> left back-check (or the covariance check and
+   the epipolar distance); right points reuse the left ids;
    a right point on a zero of camera 1's mask (static or this frame's) is dropped.
 
 Masks (:mod:`nsflow_ros.core.masks`) are 0 / 255 images: no corner is detected and no track kept on a 0.
@@ -39,6 +42,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.core.camera import CameraModel
+from nsflow_ros.core.checks import StereoGeometry
 from nsflow_ros.core.covariance import DETECTION_VARIANCE, max_sigma
 from nsflow_ros.core.detector import detect_corners
 from nsflow_ros.core.downsample import (
@@ -99,7 +103,10 @@ class TrackerSettings:
         min_dist: VINS ``min_dist``, the minimum distance between features in pixels.
         F_threshold: VINS ``F_threshold``, RANSAC threshold in pixels of the virtual 460 px pinhole.
         reject_with_f: run the fundamental-matrix RANSAC (VINS-Mono does, VINS-Fusion does not).
-        flow_back: VINS ``flow_back``, the reverse-tracking check.
+        flow_back: VINS ``flow_back``: check every track (the method's check: its registry entry's
+            covariance check, else the reverse solve).
+        reverse_checks: check by VINS's reverse solves even a method whose registry entry checks by
+            covariance (about a fifth of a learned frame's CPU, docs/benchmarks.md).
         equalize: apply the method's CLAHE before tracking and detection.
         stereo: track camera 0 into camera 1.
         use_imu_prediction: predict the flow from the gyro samples given to :meth:`FeatureTracker.process`.
@@ -125,6 +132,7 @@ class TrackerSettings:
     F_threshold: float = 1.0
     reject_with_f: bool = False
     flow_back: bool = True
+    reverse_checks: bool = False
     equalize: bool = False
     stereo: bool = False
     use_imu_prediction: bool = False
@@ -369,6 +377,8 @@ class FeatureTracker:
             corner is detected there (VINS-Mono ``setMask``). None = everywhere.
         mask1: camera 1's static mask at full resolution (stereo only): right points on its zeros are
             dropped. None = everywhere.
+        cam1_T_cam0: (4, 4) camera 0's pose in camera 1's frame (VINS ``body_T_cam1^-1 body_T_cam0``), for
+            the covariance check's epipolar test of stereo matches; None = no epipolar test.
 
     Masks (static and per frame) are given at full resolution and decimated here with ``downsample``
     (:func:`~nsflow_ros.core.downsample.downsample_mask`, the one place a mask follows the images).
@@ -392,6 +402,7 @@ class FeatureTracker:
         mask: np.ndarray | None = None,
         mask1: np.ndarray | None = None,
         method: TrackingMethod | None = None,
+        cam1_T_cam0: np.ndarray | None = None,
     ) -> None:
         self.settings = settings or TrackerSettings()
         self.full_cameras = tuple(cameras)
@@ -434,6 +445,8 @@ class FeatureTracker:
         if mask1 is not None and not s.stereo:
             raise CoreError("mask1 given but the tracker is mono (settings.stereo is False)")
         self.mask1 = None if mask1 is None else self._tracking_mask(mask1, 1, "mask1")
+        self.stereo_geometry = (StereoGeometry(self.cameras[0], self.cameras[1], cam1_T_cam0)
+                                if cam1_T_cam0 is not None and s.stereo else None)
         self._next_id = 0
         self._gated = 0  # points the max_sigma gate dropped in the current frame
         self.reset()
@@ -508,19 +521,27 @@ class FeatureTracker:
         start: np.ndarray | None = None,
         prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A solve, the border check, its reverse check (none when ``check`` is None) and the ``max_sigma``
-        gate: (positions in frame 2, status, covariances: NaN unless ``settings.covariance``).
+        """A solve, the border check, the track check and the ``max_sigma`` gate: (positions in frame 2,
+        status, covariances: NaN unless ``settings.covariance`` or the covariance check computed them).
 
-        A ``start`` (the IMU prediction) that leaves fewer than :data:`PREDICTION_MIN_TRACKED` points is
-        dropped and the solve repeated without it, as VINS does.
+        The track check (``flow_back``) is the method's :class:`~nsflow_ros.core.checks.CovarianceCheck`
+        (with the epipolar test for stereo) or else the reverse solve ``check`` (none when None: a late
+        frame). A ``start`` (the IMU prediction) that leaves fewer than :data:`PREDICTION_MIN_TRACKED`
+        points is dropped and the solve repeated without it, as VINS does.
         """
-        m = self.method
-        solve = m.solve_with_covariance if self.settings.covariance else m.solve
+        m, s = self.method, self.settings
+        gate = m.spec.check if s.flow_back and not s.reverse_checks else None
+        solve = m.solve_with_covariance if s.covariance or gate is not None else m.solve
         new, status, *cov = solve(kind, frame1, frame2, pts, start, prior)
         if start is not None and int(status.sum()) < PREDICTION_MIN_TRACKED:
             new, status, *cov = solve(kind, frame1, frame2, pts, None, prior)
         status &= _in_border(new, size, BORDER_PX)
-        if check is not None and self.settings.flow_back and status.any():
+        if gate is not None:
+            status &= gate.keep(cov[0])
+            if kind is SolveKind.STEREO and self.stereo_geometry is not None and status.any():
+                idx = np.flatnonzero(status)
+                status[idx] = self.stereo_geometry.distance(pts[idx], new[idx]) <= gate.max_epipolar
+        elif check is not None and s.flow_back and status.any():
             # Only live points are checked: the others are dropped anyway.
             idx = np.flatnonzero(status)
             back, ok = m.solve(check, frame2, frame1, new[idx], pts[idx])
@@ -743,7 +764,8 @@ class FeatureTracker:
             gyro: (M, 4) gyro samples (t, wx, wy, wz) in the IMU frame since the previous frame.
             detect: top the features up with new corners (VINS-Mono skips this on throttled frames).
             checks: run the reverse checks that ``settings.flow_back`` asks for; False skips them on this
-                frame only (a live node catching up on a frame that waited).
+                frame only (a live node catching up on a frame that waited). A covariance check costs
+                nothing and always runs.
             frame_masks: this frame's masks (moving objects), camera 0 first, each uint8 (H, W) 255 where
                 features may be or None; they apply with the static masks. Camera 0's applies where new
                 corners are detected (``detect``), camera 1's to the right points.

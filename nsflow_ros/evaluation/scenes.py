@@ -117,6 +117,7 @@ def evaluate_cell(
     progress: bool = False,
     resume: bool = False,
     solver_time: float | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> CellResult:
     """Track one sample into a feature bag (as ``nsflow-replay --features-bag``), score it, and with a
     VINS-Fusion build run the estimator ``runs`` times on it.
@@ -131,6 +132,7 @@ def evaluate_cell(
         resume: return the cell's stored result (``cell.json``) when a run before measured it.
         solver_time: the estimator's ``max_solver_time`` (s); None = the config's
             (:func:`~nsflow_ros.evaluation.estimator.estimator_config`).
+        overrides: tracker settings of this cell's method (e.g. ``{"reverse_checks": True}``).
 
     Raises:
         NSFlowError: a source, config or model that cannot be used.
@@ -150,8 +152,9 @@ def evaluate_cell(
     errors = FeatureErrors(sample)
     records = replay_records(ReplayOptions(sample.root / "asl", topics=feature_bag_topics(cfg), rate=0.0,
                                            perturb=perturb, seed=seed))
-    write_feature_bag(records, bag, cfg, method=method, overrides={"model_path": model} if model else None,
-                      progress=progress, observe=errors)
+    fixed = {**({"model_path": model} if model else {}), **(overrides or {})}
+    write_feature_bag(records, bag, cfg, method=method, overrides=fixed or None, progress=progress,
+                      observe=errors)
     cell = CellResult(seed, float(sample.params["rate_hz"]), perturb, method, errors.figures())
     if vins is not None:
         from nsflow_ros.evaluation.estimator import run_vins, score_vio
@@ -279,7 +282,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rates", type=_floats, default=[20.0, 10.0, 20.0 / 3.0],
                    help="camera rates in Hz (default 20,10,6.67)")
     p.add_argument("--perturb", default="none", help="perturbations, comma-separated (default none)")
-    p.add_argument("--methods", default="nsflow,klt", help="methods, comma-separated (default nsflow,klt)")
+    p.add_argument("--methods", default="nsflow,klt",
+                   help="methods, comma-separated, each optionally with tracker settings after colons, e.g. "
+                   "nsflow:reverse_checks=1 (default nsflow,klt)")
     p.add_argument("--model", default=None, help="the learned methods' model (default: each one's own)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per scene (default 20)")
     p.add_argument("--config", default=None, help=f"VINS-Fusion config (default {DEFAULT_CONFIG})")
@@ -297,23 +302,45 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def method_variant(text: str) -> tuple[str, dict[str, Any]]:
+    """A ``--methods`` entry, ``name[:key=value...]``, as (method, tracker settings); values are YAML
+    scalars (``1``, ``0.3``, ``true``).
+
+    Raises:
+        EvaluationError: an entry whose settings are not ``key=value``.
+    """
+    import yaml
+
+    name, *pairs = text.split(":")
+    overrides: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise EvaluationError(f"method {text!r}: settings go as name:key=value, got {pair!r}")
+        overrides[key] = yaml.safe_load(value)
+    return name, overrides
+
+
 def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellResult]:
     """Every cell of the command line's grid, scene by scene, printing a line for each."""
     from nsflow_ros.data.sample import make_sample_sequence
 
     levels = [p.strip() for p in opts.perturb.split(",") if p.strip()]
-    methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
+    methods = {m.strip(): method_variant(m.strip()) for m in opts.methods.split(",") if m.strip()}
     for seed in opts.seeds:
         for rate in opts.rates:
             sample = make_sample_sequence(Path(opts.cache) / f"seed{seed}-{rate:g}hz-{opts.duration:g}s",
                                           seed=seed, duration=opts.duration, rate_hz=rate, stereo=True,
                                           formats=("asl",), progress=not opts.no_progress)
             for level in levels:
-                for method in methods:
-                    where = Path(opts.out) / f"seed{seed}" / f"{rate:g}hz" / level / method
+                for label, (method, overrides) in methods.items():
+                    folder = label.replace(":", "_").replace("=", "-")
+                    where = Path(opts.out) / f"seed{seed}" / f"{rate:g}hz" / level / folder
                     cell = evaluate_cell(sample, where, method, level, config=config, model=opts.model,
                                          vins=vins, runs=opts.runs, progress=not opts.no_progress,
-                                         resume=opts.resume, solver_time=opts.solver_time)
+                                         resume=opts.resume, solver_time=opts.solver_time,
+                                         overrides=overrides)
+                    cell.method = label
                     e = cell.errors
                     print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {method}: ATE {_mm(cell.ate)} mm, "
                           f"median {e['temporal_median_px']:.4f} / {e['stereo_median_px']:.4f} px",

@@ -242,8 +242,15 @@ SETTINGS: tuple[Setting, ...] = (
         unit="px", vins_key="F_threshold", tracker=True, session=True, minimum=0, positive=True, example=1.0),
     Setting(
         "flow_back", KEEP, Mode.LIVE,
-        "Track back and drop points that do not return within 0.5 px (VINS flow_back), 0/1.",
+        "Check every track and drop the bad ones (VINS flow_back), 0/1: VINS's reverse solve (back within "
+        "0.5 px), or for an LM method its covariance check (see reverse_checks).",
         vins_key="flow_back", tracker=True, session=True, switch=True, example=1),
+    Setting(
+        "reverse_checks", 0, Mode.LIVE,
+        "With flow_back, check an LM method's tracks by VINS's reverse solves (back within 0.5 px) instead "
+        "of its covariance check (sigma and, for stereo, the epipolar distance; docs/benchmarks.md has the "
+        "cost and catch of each), 0/1. 'klt' and 'nsflow_lk' always solve in reverse.",
+        tracker=True, session=True, switch=True),
     Setting(
         "show_track", KEEP, Mode.LIVE, "Publish the image_track debug image (VINS show_track), 0/1.",
         vins_key="show_track", session=True, switch=True),

@@ -138,4 +138,9 @@ def tracker_from_config(
     # full-resolution masks: the tracker takes them to its tracking resolution with ``downsample``
     mask = combine(fisheye, static[0])
     mask1 = static[1] if settings.stereo else None
-    return FeatureTracker(cams, settings, encoder=encoder, body_R_cam0=body_r, mask=mask, mask1=mask1)
+    stereo_pose = None
+    if settings.stereo and len(config.body_T_cam) >= 2:  # camera 0 in camera 1's frame
+        body = [np.asarray(t, dtype=np.float64) for t in config.body_T_cam[:2]]
+        stereo_pose = np.linalg.solve(body[1], body[0])
+    return FeatureTracker(cams, settings, encoder=encoder, body_R_cam0=body_r, mask=mask, mask1=mask1,
+                          cam1_T_cam0=stereo_pose)

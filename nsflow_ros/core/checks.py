@@ -1,0 +1,100 @@
+"""The track check that replaces VINS's reverse solves: each point's own covariance, and for a stereo match
+its distance from the epipolar line.
+
+VINS tracks every point back and keeps it when it returns within 0.5 px: a second solve per point, about a
+fifth of a learned frame's CPU. An LM solve already gives each point a calibrated covariance (its final
+J^T J and residual, :mod:`~nsflow_ros.core.covariance`), which ranks the bad tracks better than the return
+distance does, and a right point of a calibrated stereo pair must lie on the epipolar line of its left
+point. :class:`CovarianceCheck` keeps a point when both say it is pinned down where it is.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from nsflow_ros.core.camera import CameraModel
+from nsflow_ros.core.covariance import max_sigma
+from nsflow_ros.core.errors import CoreError
+
+__all__ = ["CovarianceCheck", "StereoGeometry"]
+
+
+@dataclass(frozen=True)
+class CovarianceCheck:
+    """A method's check of its tracks by their covariance, in place of the reverse solves.
+
+    Attributes:
+        max_sigma: a point is dropped when the standard deviation along its covariance's major axis
+            exceeds this (px of the tracking resolution, where the reverse check's 0.5 px is measured):
+            the window does not pin it down, or its residual says it matched something else.
+        max_epipolar: a stereo match is dropped when it lies farther than this (px of camera 1) from the
+            epipolar line of its left point; large enough for a real calibration's error, small enough
+            to catch a match on another row. Only with the pair's extrinsics known.
+
+    Raises:
+        CoreError: a bound that is not finite and > 0.
+    """
+
+    max_sigma: float = 0.3
+    max_epipolar: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("max_sigma", "max_epipolar"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise CoreError(f"CovarianceCheck.{name} must be finite and > 0, got {value}")
+
+    def keep(self, cov: np.ndarray) -> np.ndarray:
+        """Where the covariance pins the point down (NaN or a singular J^T J: not).
+
+        Shape:
+            cov: (N, 3) [uu, uv, vv] px^2. Returns (N,) bool.
+        """
+        return max_sigma(cov) <= self.max_sigma
+
+
+class StereoGeometry:
+    """A calibrated stereo pair's epipolar constraint, in pixels of camera 1.
+
+    Args:
+        cam0, cam1: the two cameras (the tracking resolution's).
+        cam1_T_cam0: (4, 4) the pose of camera 0 in camera 1's frame (a point X0 of camera 0 is
+            ``R X0 + t`` in camera 1).
+
+    Raises:
+        CoreError: a transform that is not a finite (4, 4) rigid motion with a baseline.
+    """
+
+    def __init__(self, cam0: CameraModel, cam1: CameraModel, cam1_T_cam0: np.ndarray) -> None:
+        tf = np.asarray(cam1_T_cam0, dtype=np.float64)
+        if tf.shape != (4, 4) or not np.isfinite(tf).all():
+            raise CoreError(f"cam1_T_cam0 must be a finite (4, 4) matrix, got shape {tf.shape}")
+        rot, t = tf[:3, :3], tf[:3, 3]
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.norm(t) < 1e-9:
+            raise CoreError("cam1_T_cam0 must be a rigid motion (orthonormal rotation) with a baseline")
+        skew = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        self.essential = skew @ rot
+        self.cam0, self.cam1 = cam0, cam1
+        # pixels per radian at camera 1's centre: any model (pinhole, fisheye) alike
+        centre = cam1.project(np.array([[0.0, 0.0, 1.0], [1e-3, 0.0, 1.0]]))
+        self.focal = float(np.hypot(*(centre[1] - centre[0]))) / 1e-3
+
+    def distance(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Each right pixel's distance from the epipolar plane of its left pixel: the angle between its
+        ray and the plane, in pixels of camera 1's centre (the distance to the epipolar line there).
+
+        Shape:
+            left, right: (N, 2) distorted pixels of camera 0 and camera 1. Returns (N,); NaN where a
+            pixel has no ray.
+        """
+        if len(left) == 0:
+            return np.zeros(0)
+        normal = self.cam0.lift_rays(left) @ self.essential.T  # the epipolar plane's normal in camera 1
+        ray = self.cam1.lift_rays(right)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sine = np.abs(np.einsum("ij,ij->i", ray, normal)) / (
+                np.linalg.norm(ray, axis=1) * np.linalg.norm(normal, axis=1))
+        return np.arcsin(np.minimum(sine, 1.0)) * self.focal
