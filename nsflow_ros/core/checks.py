@@ -5,7 +5,9 @@ VINS tracks every point back and keeps it when it returns within 0.5 px: a secon
 fifth of a learned frame's CPU. An LM solve already gives each point a calibrated covariance (its final
 J^T J and residual, :mod:`~nsflow_ros.core.covariance`), which ranks the bad tracks better than the return
 distance does, and a right point of a calibrated stereo pair must lie on the epipolar line of its left
-point. :class:`CovarianceCheck` keeps a point when both say it is pinned down where it is.
+point. :class:`CovarianceCheck` keeps a point when both say it is pinned down where it is. What neither
+sees is a confident match on the wrong thing (a window sliding onto an occluder's edge): such a point lands
+far from where its track's motion predicted, and those few points are still solved in reverse.
 """
 
 from __future__ import annotations
@@ -33,6 +35,9 @@ class CovarianceCheck:
         max_epipolar: a stereo match is dropped when it lies farther than this (px of camera 1) from the
             epipolar line of its left point; large enough for a real calibration's error, small enough
             to catch a match on another row. Only with the pair's extrinsics known.
+        max_departure: a point that lands farther than this (px) from its prior (its track's previous
+            motion or disparity) is also tracked back as VINS does (a few in a thousand; a reverse
+            solve of every new point, which has no prior, would cost nearly what checking all does).
 
     Raises:
         CoreError: a bound that is not finite and > 0.
@@ -40,9 +45,10 @@ class CovarianceCheck:
 
     max_sigma: float = 0.3
     max_epipolar: float = 2.0
+    max_departure: float = 3.0
 
     def __post_init__(self) -> None:
-        for name in ("max_sigma", "max_epipolar"):
+        for name in ("max_sigma", "max_epipolar", "max_departure"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise CoreError(f"CovarianceCheck.{name} must be finite and > 0, got {value}")
@@ -54,6 +60,17 @@ class CovarianceCheck:
             cov: (N, 3) [uu, uv, vv] px^2. Returns (N,) bool.
         """
         return max_sigma(cov) <= self.max_sigma
+
+    def unsure(self, positions: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
+        """Where a solution needs the reverse solve: farther than ``max_departure`` from its prior.
+
+        Shape:
+            positions: (N, 2). prior: (N, 2), NaN where none, or None (no point has one). Returns (N,).
+        """
+        if prior is None:
+            return np.zeros(len(positions), bool)
+        with np.errstate(invalid="ignore"):
+            return np.hypot(*(positions - prior).T) > self.max_departure  # NaN: no prior, not unsure
 
 
 class StereoGeometry:
@@ -84,7 +101,8 @@ class StereoGeometry:
 
     def distance(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """Each right pixel's distance from the epipolar plane of its left pixel: the angle between its
-        ray and the plane, in pixels of camera 1's centre (the distance to the epipolar line there).
+        ray and the plane, in pixels of camera 1's centre (the distance to the epipolar line there; a
+        little less towards a pinhole's corners, where a pixel spans a smaller angle).
 
         Shape:
             left, right: (N, 2) distorted pixels of camera 0 and camera 1. Returns (N,); NaN where a

@@ -524,10 +524,11 @@ class FeatureTracker:
         """A solve, the border check, the track check and the ``max_sigma`` gate: (positions in frame 2,
         status, covariances: NaN unless ``settings.covariance`` or the covariance check computed them).
 
-        The track check (``flow_back``) is the method's :class:`~nsflow_ros.core.checks.CovarianceCheck`
-        (with the epipolar test for stereo) or else the reverse solve ``check`` (none when None: a late
-        frame). A ``start`` (the IMU prediction) that leaves fewer than :data:`PREDICTION_MIN_TRACKED`
-        points is dropped and the solve repeated without it, as VINS does.
+        The track check (``flow_back``) is the reverse solve ``check`` of every point, or with the method's
+        :class:`~nsflow_ros.core.checks.CovarianceCheck` the covariance (and for stereo the epipolar) test
+        and the reverse solve of its unsure points only (``check`` None: a late frame, no reverse solve).
+        A ``start`` (the IMU prediction) that leaves fewer than :data:`PREDICTION_MIN_TRACKED` points is
+        dropped and the solve repeated without it, as VINS does.
         """
         m, s = self.method, self.settings
         gate = m.spec.check if s.flow_back and not s.reverse_checks else None
@@ -536,14 +537,16 @@ class FeatureTracker:
         if start is not None and int(status.sum()) < PREDICTION_MIN_TRACKED:
             new, status, *cov = solve(kind, frame1, frame2, pts, None, prior)
         status &= _in_border(new, size, BORDER_PX)
+        reverse = status.copy() if s.flow_back else np.zeros_like(status)
         if gate is not None:
             status &= gate.keep(cov[0])
             if kind is SolveKind.STEREO and self.stereo_geometry is not None and status.any():
                 idx = np.flatnonzero(status)
                 status[idx] = self.stereo_geometry.distance(pts[idx], new[idx]) <= gate.max_epipolar
-        elif check is not None and s.flow_back and status.any():
+            reverse = status & gate.unsure(new, prior)
+        if check is not None and reverse.any():
             # Only live points are checked: the others are dropped anyway.
-            idx = np.flatnonzero(status)
+            idx = np.flatnonzero(reverse)
             back, ok = m.solve(check, frame2, frame1, new[idx], pts[idx])
             status[idx] = ok & (np.hypot(*(back - pts[idx]).T) <= FLOW_BACK_THRESHOLD_PX)
         if not cov:

@@ -342,7 +342,7 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
                                          overrides=overrides)
                     cell.method = label
                     e = cell.errors
-                    print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {method}: ATE {_mm(cell.ate)} mm, "
+                    print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {label}: ATE {_mm(cell.ate)} mm, "
                           f"median {e['temporal_median_px']:.4f} / {e['stereo_median_px']:.4f} px",
                           flush=True)
                     yield cell

@@ -593,3 +593,83 @@ def test_max_sigma_drops_and_counts_wide_points(pan):
     assert tracker.settings.covariance is False
     with pytest.raises(CoreError, match="max_sigma"):
         _classical(max_sigma=-1.0)
+
+
+def _checked(stereo: bool = False, **kw) -> tuple[TrackerSettings, object]:
+    """The classical method with the covariance check (as ``nsflow`` has it), and its settings."""
+    from nsflow_ros.core.checks import CovarianceCheck
+
+    settings = _classical(stereo=stereo, **kw)
+    return settings, make_method(replace(METHODS["classical"], check=CovarianceCheck()))
+
+
+def test_the_covariance_check_drops_points_under_an_occluder_and_keeps_the_rest():
+    seq = syn.translating(6)
+    other = syn.base_texture("astronaut")[:80, :90]
+    seq.frames[3] = seq.frames[3].copy()
+    seq.frames[3][60:140, 100:190] = other
+    settings, method = _checked()
+    res = _run(FeatureTracker([syn.camera()], settings, method=method), seq)
+    prev, cur = res[2].cameras[0], res[3].cameras[0]
+    truth = seq.truth(2, 3, prev.pixels)
+    x, y = truth.T
+    under = (x > 96) & (x < 194) & (y > 56) & (y < 144)
+    assert under.sum() >= 3, "the occluder should cover some tracked points"
+    pi, ci = _matches(prev, cur)
+    err = np.hypot(*(cur.pixels[ci] - truth[pi]).T)
+    assert err.max() < 1.0, f"a wrong track survived: {err.max():.2f} px"
+    assert np.isin(prev.ids[under], cur.ids).sum() <= 0.2 * under.sum()
+    # away from the occluder about as many tracks carry on as the reverse solves keep
+    reverse = _run(FeatureTracker([syn.camera()], _classical()), seq)
+    kept, kept_reverse = (np.array([np.isin(r[k - 1].cameras[0].ids, r[k].cameras[0].ids).sum()
+                                    for k in (1, 2, 4, 5)]) for r in (res, reverse))
+    assert (kept >= 0.85 * kept_reverse).all(), (kept, kept_reverse)
+    assert kept.sum() >= 0.92 * kept_reverse.sum(), (kept, kept_reverse)
+
+
+def test_the_covariance_check_solves_in_reverse_only_unsure_points_unless_reverse_checks(monkeypatch):
+    from nsflow_ros.core.methods import SolveKind
+
+    seq = syn.translating(5, stereo_disparity=-6)
+    counts = {}
+    for reverse in (False, True):
+        settings, method = _checked(stereo=True, reverse_checks=reverse)
+        tracker = FeatureTracker([syn.camera(), syn.camera()], settings, method=method)
+        points = dict.fromkeys(SolveKind, 0)
+        for name in ("solve", "solve_with_covariance"):
+            solve = getattr(tracker.method, name)
+
+            def counting(kind, frame1, frame2, pts, *a, _s=solve, _n=points, **k):
+                _n[kind] += len(pts)
+                return _s(kind, frame1, frame2, pts, *a, **k)
+
+            monkeypatch.setattr(tracker.method, name, counting)
+        _run(tracker, seq)
+        counts[reverse] = points
+    # VINS's checks track every live point back; the covariance check only those far from their prior
+    full, unsure = counts[True], counts[False]
+    assert full[SolveKind.FLOW_BACK] >= 0.9 * full[SolveKind.FORWARD]
+    assert full[SolveKind.STEREO_BACK] >= 0.8 * full[SolveKind.STEREO]
+    assert unsure[SolveKind.FLOW_BACK] <= 0.05 * unsure[SolveKind.FORWARD]
+    assert unsure[SolveKind.STEREO_BACK] <= 0.05 * unsure[SolveKind.STEREO]
+
+
+def test_the_epipolar_test_drops_right_points_off_their_row():
+    pose = np.eye(4)
+    pose[0, 3] = -0.11  # camera 1 to the right of camera 0: matches lie on the same row
+    for dy, kept in ((0.0, True), (4.0, False)):
+        seq = syn.translating(3, stereo_disparity=-6)
+        seq.right = [syn.render(syn.base_texture("coffee"), syn.translation(-6, dy) @ m)
+                     for m in seq.homographies]
+        settings, method = _checked(stereo=True)
+        tracker = FeatureTracker([syn.camera(), syn.camera()], settings, method=method, cam1_T_cam0=pose)
+        res = _run(tracker, seq)
+        left, right = res[-1].cameras
+        if kept:
+            assert len(right) >= 0.7 * len(left)
+        else:  # every match is 4 px off its epipolar line
+            assert len(right) == 0, f"{len(right)} of {len(left)} right points off their row survived"
+        # without the pair's pose the same matches all pass
+        settings, method = _checked(stereo=True)
+        free = _run(FeatureTracker([syn.camera(), syn.camera()], settings, method=method), seq)
+        assert len(free[-1].cameras[1]) >= 0.7 * len(free[-1].cameras[0])
