@@ -29,8 +29,10 @@ test: $(VENV)/.installed-test
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
+# The command docs/benchmarks.md documents: it measures for minutes and rewrites the tables under docs/results.
 bench: $(VENV)/.installed-eval
-	$(BIN)/nsflow-bench
+	$(BIN)/nsflow-bench --tracker-seconds 10 --node-seconds 20 --background-load 0.7 --methods nsflow,klt \
+		--large 1280x800 --tables docs/results
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info

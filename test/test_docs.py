@@ -96,3 +96,12 @@ def test_the_readme_pastes_the_whole_tracker_table_whole():
     head = markdown({"header": doc["header"], "tables": doc["tables"][:1]})
     assert doc["tables"][0]["title"] == "Whole tracker per frame"
     assert head in (ROOT / "README.md").read_text(encoding="utf-8")
+
+
+def test_make_bench_runs_the_documented_command():
+    make = (ROOT / "Makefile").read_text(encoding="utf-8").replace("\\\n", " ")
+    recipe = re.search(r"^bench:.*\n\t\$\(BIN\)/(.+)$", make, re.M)
+    page = (ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8")
+    documented = re.search(r"## The command that regenerates the tables\n\n```bash\n(.+)\n```", page)
+    assert recipe and documented
+    assert " ".join(recipe[1].split()) == documented[1]
