@@ -1,66 +1,64 @@
-"""The model card (models/README.md) written by ``nsflow-train --install``."""
+"""The card of a model ``nsflow-train --install`` installs: a Markdown file of its own beside the model.
+
+The card goes to ``<models>/nsflow_encoder.md`` (:data:`CARD_NAME`), never to ``models/README.md``, the
+hand-written card of every shipped model, so an install leaves the other models' documentation as it was.
+"""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from nsflow_ros.train.model import EncoderSpec
+if TYPE_CHECKING:
+    from nsflow_ros.train.trainer import TrainConfig
 
-__all__ = ["write_model_card"]
+__all__ = ["CARD_NAME", "write_model_card"]
+
+CARD_NAME = "nsflow_encoder.md"
+"""The installed model's card, beside ``nsflow_encoder.onnx``; the next install rewrites it."""
 
 
 def write_model_card(
     path: str | os.PathLike[str],
+    config: TrainConfig | None = None,
     *,
-    spec: EncoderSpec,
     parameters: int,
     flops: int,
-    command: str,
     steps: int,
     seconds: float,
     tables: str,
     figures: dict[str, str],
     notes: str = "",
-    loss: str = "cauchy",
-    levels: int = 1,
-    coarse_weight: float = 0.0,
-    init: str = "ground truth + N(0, 2.5^2) px",
-    scene_share: float = 0.0,
-    basin_weight: float = 0.0,
-    basin_radius: float = 4.0,
-    lr: float = 1e-3,
-    teacher: str | None = None,
     data: list[dict[str, object]] | None = None,
     recipe: tuple[str, tuple[tuple[str, str], ...]] | None = None,
 ) -> Path:
     """Write the Markdown model card.
 
     Args:
-        path: the README to write.
-        spec: encoder shape.
+        path: the card to write (:data:`CARD_NAME` in the models folder).
+        config: the training run's settings (the encoder's shape, the command, the solver, the losses, the
+            initial flow, the teacher as a path relative to the card where it lies beside it); None = the
+            defaults.
         parameters: trainable parameter count.
         flops: FLOPs of one forward at 320x240.
-        command: the training command line.
         steps: training steps run.
         seconds: training wall time.
         tables: the held-out comparison, Markdown.
         figures: caption -> PNG path relative to the card.
         notes: extra Markdown (design measurements, caveats).
-        loss: the robust loss used (``--rho``).
-        levels: pyramid levels of the training solve (``--levels``).
-        coarse_weight: weight of each coarse level's loss (``--coarse-loss``).
-        init: the training points' initial flow in words (``--init-error``).
-        scene_share: share of pairs rendered from the sample scenes (``--scene-share``).
-        basin_weight: weight of the basin loss (``--basin-loss``).
-        basin_radius: its largest start offset per level (``--basin-radius``).
-        lr: Adam learning rate (``--lr``).
-        teacher: the encoder this one was distilled from (``--teacher``), as a path relative to the
-            card; None = trained end to end through the LK layer.
         data: the training data sources with their shares (``--data``; each a
             ``PairSource.describe()`` with ``share``); None = the bundled photos (and scene share).
         recipe: (name, what the source leaves open and the choice made) of a ``--recipe`` preset.
     """
+    if config is None:
+        from nsflow_ros.train.trainer import TrainConfig
+
+        config = TrainConfig()
+    spec, lm, levels = config.spec, config.lm, config.lm.levels
+    coarse_weight, basin_weight, scene_share = config.coarse_weight, config.basin_weight, config.scene_share
+    init = _init_text(config.pair.init_mode, config.pair.init_sigma)
+    teacher = _teacher_text(config.teacher, Path(path).parent)
     head = {"sigmoid": "sigmoid (descriptors in (0, 1))", "relu": "ReLU", "none": "none (linear)"}[spec.head]
     w = spec.width
     c_in = "gray (1 channel)" if spec.in_channels == 1 else "RGB (3 channels)"
@@ -76,7 +74,7 @@ def write_model_card(
     if basin_weight > 0:
         coarse += (
             f"; plus {basin_weight:g} x the basin loss (landing error of the solver's first step from a start"
-            f" up to {basin_radius:g} px away, per level; `nsflow_ros/train/basin.py`)"
+            f" up to {config.basin_radius:g} px away, per level; `nsflow_ros/train/basin.py`)"
         )
     scenes = (
         f" A share of {scene_share:.0%} of the pairs are instead crops of stereo (EuRoC baseline) and\n"
@@ -88,16 +86,18 @@ def write_model_card(
     if teacher is None:
         origin = """trained end to end through this project's differentiable LM Lucas-Kanade layer
 (`nsflow_ros.train`, implicit-function-theorem backward)"""
-        method = f"""* Layer: {layer} (window 11, up to 30 iterations per level, eps 1e-3), implicit backward.
-* Loss: mean {loss} penalty of the endpoint error (scale 1 px) over points that stay in the image{coarse};
-  Adam, lr {lr:g}, one pair per step."""
+        method = f"""* Layer: {layer} (window {lm.window}, up to {lm.max_iterations} iterations per level, \
+eps 1e-3), {config.mode.value} backward.
+* Loss: mean {config.rho} penalty of the endpoint error (scale {config.huber_delta:g} px) over points that \
+stay in the image{coarse};
+  Adam, lr {config.lr:g}, one pair per step."""
     else:
         origin = f"""distilled from the wider encoder `{teacher}`, which was trained end to end through
 this project's differentiable LM Lucas-Kanade layer (`nsflow_ros.train`)"""
         method = f"""* Distilled from `{teacher}` (`nsflow_ros/train/distill.py`): per step both frames of a
   pair are encoded by the teacher (onnxruntime, as deployed) and by this encoder; loss = mean squared
   difference of the descriptor maps plus that of their x and y forward differences (what the solver
-  reads: residuals and Jacobians). No solver in the loop. Adam, lr {lr:g}, one pair per step."""
+  reads: residuals and Jacobians). No solver in the loop. Adam, lr {config.lr:g}, one pair per step."""
     data_md = ""
     if data:
         lines = "\n".join(f"  * {_source_text(s)}" for s in data)
@@ -114,8 +114,9 @@ this project's differentiable LM Lucas-Kanade layer (`nsflow_ros.train`)"""
     text = f"""# NSFlow encoder: `nsflow_encoder.onnx`
 
 The learned descriptor CNN of NSFlow ("End-to-End Differentiable Neuro-Symbolic Optical Flow for Visual
-Odometry"), {origin}. `nsflow_ros.load_encoder()` loads it by default;
-the tracker runs its descriptors through the same NumPy LM solver as the classical (intensity) mode.
+Odometry"), {origin}. It replaces the shipped `d4` model (`--model d4`, the node's `model_path:=d4`,
+the default of `nsflow_lk`); the tracker runs its descriptors through the same NumPy LM solver as the
+classical (intensity) mode.
 
 ## Model
 
@@ -140,7 +141,7 @@ the tracker runs its descriptors through the same NumPy LM solver as the classic
   initial flow = {init}. Held out (never trained on): coffee, chelsea,
   grace_hopper. See `nsflow_ros/train/data.py`.{scenes}
 {method}
-* Command: `{command}`
+* Command: `{config.command}`
 * Run: {steps:,} steps in {seconds / 60:.1f} min wall time on a 2-core CPU (shared with other jobs).
 
 ## Held-out comparison (NumPy solver through onnxruntime, as deployed)
@@ -159,6 +160,25 @@ ALL points: a point the solver reports lost counts as a failure (infinite error)
     out = Path(path)
     out.write_text(text)
     return out
+
+
+def _init_text(mode: str, size: float) -> str:
+    """The training points' initial flow in words."""
+    if mode == "normal":
+        return f"ground truth + N(0, {size:g}^2) px"
+    if mode == "uniform":
+        return f"ground truth + an error of length uniform in [0, {size:g}] px in a random direction"
+    return "zero (displacement = the pair's own motion)"
+
+
+def _teacher_text(teacher: Path | None, models: Path) -> str | None:
+    """The teacher as the card names it: its path relative to the card when it lies beside it."""
+    if teacher is None:
+        return None
+    try:
+        return teacher.resolve().relative_to(models.resolve()).as_posix()
+    except ValueError:
+        return teacher.as_posix()
 
 
 def _source_text(source: dict[str, object]) -> str:

@@ -6,7 +6,8 @@ Example (the shipped model)::
 
 Writes under ``--out``: checkpoint, log, loss curve, one validation figure per epoch, the ONNX model, the
 held-out comparison (``eval.md``). ``--install`` also copies the model to ``models/nsflow_encoder.onnx``
-and writes the model card ``models/README.md`` with its figures.
+(the ``d4`` model) with its figures and writes its card ``models/nsflow_encoder.md``; the hand-written
+card of the shipped models, ``models/README.md``, is left alone.
 """
 
 from __future__ import annotations
@@ -45,25 +46,6 @@ def _smoothing(text: str) -> tuple[float, float]:
     if not (0 <= fine < math.inf and 0 <= coarse < math.inf):
         raise argparse.ArgumentTypeError(f"expected FINE,COARSE (two sigmas >= 0 in px), got {text!r}")
     return fine, coarse
-
-
-def _init_text(mode: str, size: float) -> str:
-    """The training points' initial flow in words, for the model card."""
-    if mode == "normal":
-        return f"ground truth + N(0, {size:g}^2) px"
-    if mode == "uniform":
-        return f"ground truth + an error of length uniform in [0, {size:g}] px in a random direction"
-    return "zero (displacement = the pair's own motion)"
-
-
-def _teacher_text(teacher: Path | None, models: Path) -> str | None:
-    """The teacher as the card names it: its path relative to the card when it lies beside it."""
-    if teacher is None:
-        return None
-    try:
-        return teacher.resolve().relative_to(models.resolve()).as_posix()
-    except ValueError:
-        return teacher.as_posix()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -179,7 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--eval-per-image", type=int, default=20, help="held-out pairs per photo in the final comparison"
     )
     p.add_argument(
-        "--install", action="store_true", help="copy the model to models/ and write the model card"
+        "--install", action="store_true",
+        help="copy the model to models/ and write its card there (nsflow_encoder.md)",
     )
     p.add_argument(
         "--models-dir", type=Path, default=Path("models"),
@@ -296,7 +279,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
 
     from nsflow_ros import Jacobian, Smoothing, load_encoder
     from nsflow_ros.core.methods import PAPER_LM
-    from nsflow_ros.train.card import write_model_card
+    from nsflow_ros.train.card import CARD_NAME, write_model_card
     from nsflow_ros.train.data import PairConfig
     from nsflow_ros.train.errors import TrainError
     from nsflow_ros.train.evaluate import compare, format_table, heldout_pairs
@@ -319,15 +302,14 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
         val_envs = () if opts.tartanair_val == "none" else tuple(opts.tartanair_val.split(","))
     spec = EncoderSpec(d=opts.d, in_channels=3 if opts.rgb else 1, head=opts.head, width=opts.width)
     command = "nsflow-train " + shlex.join(argv)
+    # the options named as their TrainConfig fields, then the others
+    same = ("out", "minutes", "steps", "seed", "lr", "rho", "scene_share", "basin_radius", "val_every",
+            "threads", "val_per_image", "teacher", "distill_weight", "init", "footage_holdout", "batch",
+            "device", "dtype", "checkpoint_every", "resume")
     cfg = TrainConfig(
+        **{name: getattr(opts, name) for name in same},
         spec=spec,
-        out=opts.out,
-        minutes=opts.minutes,
-        steps=opts.steps,
-        seed=opts.seed,
-        lr=opts.lr,
         mode=BackwardMode(opts.mode),
-        rho=opts.rho,
         huber_delta=opts.delta,
         lm=replace(
             TrainConfig().lm,
@@ -338,9 +320,7 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             window=opts.window,
         ),
         coarse_weight=opts.coarse_loss,
-        scene_share=opts.scene_share,
         basin_weight=opts.basin_loss,
-        basin_radius=opts.basin_radius,
         pair=PairConfig(
             width=opts.size[0],
             height=opts.size[1],
@@ -351,23 +331,11 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             translation=opts.translation,
             light_min=opts.light_min,
         ),
-        val_every=opts.val_every,
-        threads=opts.threads,
-        val_per_image=opts.val_per_image,
-        teacher=opts.teacher,
-        distill_weight=opts.distill_weight,
-        init=opts.init,
         smoothing=None if opts.smoothing is None else Smoothing(*opts.smoothing),
         data=data,
         tartanair_val=val_envs,
         footage_topics=tuple(opts.footage_topic) if opts.footage_topic else None,
-        footage_holdout=opts.footage_holdout,
-        batch=opts.batch,
-        device=opts.device,
-        dtype=opts.dtype,
         workers=opts.dataloader_workers,
-        checkpoint_every=opts.checkpoint_every,
-        resume=opts.resume,
         command=command,
     )
     train_data = make_data(cfg)
@@ -440,30 +408,20 @@ def _run(opts: argparse.Namespace, argv: list[str]) -> int:
             last_epoch = "Held-out validation, last epoch (torch layer, levels=1, 5 px start)"
             figures[last_epoch] = "train_validation.png"
         notes = opts.card_notes.read_text() if opts.card_notes else ""
-        write_model_card(
-            models / "README.md",
-            spec=spec,
+        card = write_model_card(
+            models / CARD_NAME,
+            cfg,
             parameters=count_parameters(result.model),
             flops=count_flops(spec),
-            command=command,
             steps=result.steps,
             seconds=result.seconds,
             tables=table,
             figures=figures,
             notes=notes,
-            loss=opts.rho,
-            levels=opts.levels,
-            coarse_weight=opts.coarse_loss,
-            init=_init_text(*opts.init_error),
-            scene_share=opts.scene_share,
-            basin_weight=opts.basin_loss,
-            basin_radius=opts.basin_radius,
-            lr=opts.lr,
-            teacher=_teacher_text(opts.teacher, models),
             data=train_data.source.describe()["sources"] if cfg.data else None,  # type: ignore[arg-type]
             recipe=("paper", PAPER_OPEN) if opts.recipe == "paper" else None,
         )
-        print(f"installed {models / 'nsflow_encoder.onnx'} and {models / 'README.md'}")
+        print(f"installed {models / 'nsflow_encoder.onnx'} and its card {card}")
     return 0
 
 

@@ -8,6 +8,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from nsflow_ros import load_encoder  # noqa: E402
+from nsflow_ros.train.card import CARD_NAME  # noqa: E402
 from nsflow_ros.train.cli import main  # noqa: E402
 from nsflow_ros.train.data import PairConfig, load_image, make_pair  # noqa: E402
 from nsflow_ros.train.distill import Teacher, distill_loss, principal_components  # noqa: E402
@@ -110,7 +111,7 @@ def test_cli_distils_and_writes_the_card(tmp_path, teacher_path):
     args += f" --teacher {teacher_path} --out {out} --models-dir {models}"
     assert main(args.split()) == 0
     assert load_encoder(out / "nsflow_encoder.onnx").channels == 2
-    card = (models / "README.md").read_text()
+    card = (models / CARD_NAME).read_text()
     assert f"Distilled from `{teacher_path.as_posix()}`" in card and "lr 0.003" in card
     assert "3x3 conv 1->2, ReLU; 3x3 conv 2->2, ReLU; 1x1 conv 2->4, ReLU; 1x1 conv 4->2" in card
 

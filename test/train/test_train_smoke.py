@@ -12,6 +12,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from nsflow_ros import Smoothing, load_encoder  # noqa: E402
+from nsflow_ros.train.card import CARD_NAME, write_model_card  # noqa: E402
 from nsflow_ros.train.cli import main  # noqa: E402
 from nsflow_ros.train.data import PairConfig, load_image, make_pair  # noqa: E402
 from nsflow_ros.train.export import export_onnx  # noqa: E402
@@ -99,9 +100,14 @@ def test_parameter_count_matches_the_paper():
 
 def test_cli_runs_end_to_end(tmp_path, capsys):
     out, models = tmp_path / "run", tmp_path / "models"
+    models.mkdir()
+    # the hand-written card of the other models (no markers of any kind): the install leaves it alone
+    shipped = "# Model card\n\n## `default`\n\nhand-written\n\n## `d4`: `nsflow_encoder.onnx`\n\nfigures\n"
+    (models / "README.md").write_text(shipped)
     args = "--steps 3 --d 2 --val-every 3 --eval-per-image 1 --val-per-image 1 --no-progress --install"
     code = main([*args.split(), "--out", str(out), "--models-dir", str(models)])
     assert code == 0
+    assert (models / "README.md").read_text() == shipped
     for name in (
         "nsflow_encoder.onnx",
         "loss.png",
@@ -112,9 +118,9 @@ def test_cli_runs_end_to_end(tmp_path, capsys):
     ):
         assert (out / name).is_file(), name
     assert "ONNX vs torch" in capsys.readouterr().out
-    card = (models / "README.md").read_text()
+    card = (models / CARD_NAME).read_text()
     assert "| perturbed | levels=3 | NSFlow |" in card and "| clean | levels=1 | classical |" in card
-    assert "--steps 3" in card
+    assert "--steps 3" in card and len(card.splitlines()) <= 150
     assert load_encoder(models / "nsflow_encoder.onnx").channels == 2
     for png in ("train_loss.png", "train_validation.png", "eval_heldout.png"):
         assert (models / png).stat().st_size < 200_000
@@ -126,7 +132,7 @@ def test_cli_without_validation_installs_without_its_figure(tmp_path):
     assert main([*args.split(), "--out", str(out), "--models-dir", str(models)]) == 0
     assert not list(out.glob("val_epoch*.png"))
     assert (models / "train_loss.png").is_file() and not (models / "train_validation.png").exists()
-    assert "train_validation.png" not in (models / "README.md").read_text()
+    assert "train_validation.png" not in (models / CARD_NAME).read_text()
 
 
 def test_cli_reports_known_errors(tmp_path, capsys):
@@ -163,7 +169,7 @@ def test_cli_trains_coarse_to_fine(tmp_path):
     assert "Jacobian.ESM" in config["lm"] and "'zero_mean': True" in config["lm"]
     assert config["basin_weight"] == "1.0"
     assert "'init_mode': 'uniform'" in config["pair"] and "'init_sigma': 20.0" in config["pair"]
-    card = (models / "README.md").read_text()
+    card = (models / CARD_NAME).read_text()
     assert "3-level coarse-to-fine LM" in card and "0.5 x the same penalty of each coarse level" in card
     assert "uniform in [0, 20] px" in card and "1 x the basin loss" in card
 
@@ -209,7 +215,7 @@ def test_cli_trains_on_tartanair_and_footage_and_compares_on_held_out_footage(tm
     for row in ("lighting change | this run", "lighting change | shipped", "same lighting | classical"):
         assert f"| {row} |" in table
     assert (out / "eval_footage.png").is_file()
-    card = (models / "README.md").read_text()
+    card = (models / CARD_NAME).read_text()
     assert "60%: TartanAir" in card and "environments abandonedfactory" in card
     assert "40%: footage" in card and "1 later frames held out" in card
     record = json.loads((out / "run.json").read_text())
@@ -235,13 +241,13 @@ def test_recipe_paper_sets_the_papers_values_and_explicit_options_win(tmp_path, 
 
 
 def test_the_card_states_what_the_paper_leaves_open(tmp_path):
-    from nsflow_ros.train.card import write_model_card
     from nsflow_ros.train.recipes import PAPER_OPEN
 
     sources = [{"kind": "tartanair", "path": "/d/ta", "environments": ["a", "b"], "pairs": 10, "share": 1.0}]
+    spec = EncoderSpec(d=3, in_channels=3, head="relu")
+    cfg = TrainConfig(spec=spec, command="nsflow-train --recipe paper")
     card = write_model_card(
-        tmp_path / "README.md", spec=EncoderSpec(d=3, in_channels=3, head="relu"), parameters=1003,
-        flops=1, command="nsflow-train --recipe paper", steps=1, seconds=1.0, tables="", figures={},
+        tmp_path / CARD_NAME, cfg, parameters=1003, flops=1, steps=1, seconds=1.0, tables="", figures={},
         data=sources, recipe=("paper", PAPER_OPEN),
     ).read_text()
     assert "100%: TartanAir `/d/ta`, environments a, b (10 pairs)" in card
