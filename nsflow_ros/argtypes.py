@@ -14,6 +14,7 @@ import sys
 
 __all__ = [
     "finite_float",
+    "names",
     "non_negative_float",
     "non_negative_int",
     "positive_float",
@@ -67,6 +68,11 @@ def non_negative_float(text: str) -> float:
     if value < 0:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
     return value
+
+
+def names(text: str) -> list[str]:
+    """A comma-separated list, spaces and empty items dropped: ``"a, b,"`` -> ``["a", "b"]``."""
+    return [n.strip() for n in text.split(",") if n.strip()]
 
 
 def program_name(name: str) -> str:

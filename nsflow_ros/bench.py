@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros.allocator import keep_large_buffers
-from nsflow_ros.argtypes import non_negative_float, non_negative_int, positive_int, program_name
+from nsflow_ros.argtypes import names, non_negative_float, non_negative_int, positive_int, program_name
 from nsflow_ros.core import detect_corners, load_encoder, to_gray
 from nsflow_ros.core.methods import LMMethod, SolveKind, make_method
 from nsflow_ros.core.tracker import GFTT_QUALITY
@@ -421,7 +421,7 @@ def _measure(opts: argparse.Namespace, node_threads: int | None) -> dict[str, An
     if opts.tracker_seconds > 0:
         cv_threads = setting("opencv_threads").default if opts.opencv_threads is None else opts.opencv_threads
         res["tracker"] = run_tracker_benchmark(
-            opts.tracker_seconds, _names(opts.methods), _names(opts.modes), model=opts.model,
+            opts.tracker_seconds, names(opts.methods), names(opts.modes), model=opts.model,
             threads=opts.threads, progress=not opts.json, providers=opts.providers,
             opencv_threads=int(cv_threads), covariance=opts.covariance, large=opts.large,
             downsample=opts.downsample, perturb=opts.perturb,
@@ -447,11 +447,6 @@ def _measure(opts: argparse.Namespace, node_threads: int | None) -> dict[str, An
         res["node"] = {mode: run_node_benchmark(opts.node_frames, mode == "stereo", progress=not opts.json,
                                                 providers=opts.providers) for mode in ("mono", "stereo")}
     return res
-
-
-def _names(text: str) -> list[str]:
-    """A comma-separated option as a list of names."""
-    return [m.strip() for m in text.split(",") if m.strip()]
 
 
 def _print_text(res: dict[str, Any]) -> None:

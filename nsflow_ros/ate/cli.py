@@ -19,7 +19,7 @@ import json
 import sys
 from pathlib import Path
 
-from nsflow_ros.argtypes import finite_float, positive_int, program_name
+from nsflow_ros.argtypes import finite_float, names, positive_int, program_name
 from nsflow_ros.ate.align import ALIGN_METHODS
 from nsflow_ros.ate.batch import (
     FAIL_POLICIES,
@@ -55,10 +55,6 @@ failed run ("F"): empty (no estimate file or no poses), unreadable (malformed ro
 cell: mean/median of the per-run ATE RMSE over successful repetitions; F per --fail-if
 writes <out>/ate_table.md, ate_table.csv (same layout) and ate_table_runs.csv (one row per run)
 """
-
-
-def _names(text: str) -> list[str]:
-    return [t.strip() for t in text.split(",") if t.strip()]
 
 
 def _add_common(p: argparse.ArgumentParser, aligns: tuple[str, ...], default_align: str = "se3") -> None:
@@ -155,8 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--gt-root", type=Path, help="folder with the ground truth of each sequence (default ROOT)"
     )
     batch.add_argument("--out", type=Path, help="folder for the tables (default ROOT)")
-    batch.add_argument("--methods", type=_names, help="comma-separated columns in order (default: all found)")
-    batch.add_argument("--levels", type=_names, help="comma-separated column groups in order (default: all)")
+    batch.add_argument("--methods", type=names, help="comma-separated columns in order (default: all found)")
+    batch.add_argument("--levels", type=names, help="comma-separated column groups in order (default: all)")
     batch.add_argument(
         "--n-align", type=positive_int, metavar="N", help="fit the alignment on the first N matched poses"
     )

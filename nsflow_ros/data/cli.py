@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from nsflow_ros.argtypes import positive_float, program_name
+from nsflow_ros.argtypes import names, positive_float, program_name
 from nsflow_ros.data.sample import FORMATS, make_sample_sequence
 from nsflow_ros.errors import NSFlowError
 
@@ -14,7 +14,7 @@ __all__ = ["build_parser", "main"]
 
 
 def _formats(text: str) -> tuple[str, ...]:
-    items = tuple(f.strip() for f in text.split(",") if f.strip())
+    items = tuple(names(text))
     bad = [f for f in items if f not in FORMATS]
     if bad or not items:
         raise argparse.ArgumentTypeError(

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from nsflow_ros.allocator import keep_large_buffers
-from nsflow_ros.argtypes import program_name
+from nsflow_ros.argtypes import names, program_name
 from nsflow_ros.core.encoder import model_file
 from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.context import EvalContext
@@ -26,10 +26,6 @@ from nsflow_ros.evaluation.report import command_line, machine_info, now, run_an
 from nsflow_ros.optional import require_extra
 
 __all__ = ["build_parser", "main"]
-
-
-def _keys(text: str) -> list[str]:
-    return [k.strip() for k in text.split(",") if k.strip()]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,9 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--model", default=None,
         help="NSFlow ONNX encoder: a file, or a shipped model by name (default, fast; default: default)",
     )
-    parser.add_argument("--only", type=_keys, default=[], metavar="KEY[,KEY]", help="run only these analyses")
+    parser.add_argument("--only", type=names, default=[], metavar="KEY[,KEY]", help="run only these analyses")
     parser.add_argument(
-        "--skip", type=_keys, default=[], metavar="KEY[,KEY]", help="leave these analyses out"
+        "--skip", type=names, default=[], metavar="KEY[,KEY]", help="leave these analyses out"
     )
     parser.add_argument("--seed", type=int, default=0, help="base seed of every random choice (default 0)")
     parser.add_argument("--threads", type=int, default=None, help="encoder threads (default: all cores)")

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from nsflow_ros.argtypes import names, program_name
 from nsflow_ros.core.methods import BASELINE
 from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.errors import NSFlowError
@@ -269,8 +270,6 @@ def _seeds(text: str) -> list[int]:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command's argument parser."""
-    from nsflow_ros.argtypes import program_name
-
     p = argparse.ArgumentParser(
         prog=program_name("nsflow-scenes"),
         description="Track sample scenes at several camera rates with every method into feature bags (as "
@@ -325,8 +324,8 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
     """Every cell of the command line's grid, scene by scene, printing a line for each."""
     from nsflow_ros.data.sample import make_sample_sequence
 
-    levels = [p.strip() for p in opts.perturb.split(",") if p.strip()]
-    methods = {m.strip(): method_variant(m.strip()) for m in opts.methods.split(",") if m.strip()}
+    levels = names(opts.perturb)
+    methods = {m: method_variant(m) for m in names(opts.methods)}
     for seed in opts.seeds:
         for rate in opts.rates:
             sample = make_sample_sequence(Path(opts.cache) / f"seed{seed}-{rate:g}hz-{opts.duration:g}s",
