@@ -20,7 +20,6 @@ import functools
 import json
 import os
 import platform
-import shlex
 import sys
 import tempfile
 import time
@@ -41,7 +40,7 @@ from nsflow_ros.errors import NSFlowError
 from nsflow_ros.evaluation.timing import make_frames, time_encoder, timing_stats
 from nsflow_ros.evaluation.timing import timed as _timed
 from nsflow_ros.optional import require
-from nsflow_ros.results import run_header, table, write_tables
+from nsflow_ros.results import command_line, run_header, table, write_tables
 from nsflow_ros.tracker_bench import format_tracker_table, run_tracker_benchmark
 from nsflow_ros.vins.settings import setting
 
@@ -532,9 +531,8 @@ def main(args: list[str] | None = None) -> int:
         return 1
     res["machine"]["keep_large_buffers"] = heap
     if opts.tables is not None:
-        command = shlex.join(["nsflow-bench", *(sys.argv[1:] if args is None else args)])
         opts.tables.mkdir(parents=True, exist_ok=True)
-        doc = {"header": run_header(command), "tables": bench_tables(res)}
+        doc = {"header": run_header(command_line("nsflow-bench", args)), "tables": bench_tables(res)}
         write_tables(doc, opts.tables / "bench.json", opts.tables / "bench.md")
     if opts.json:
         print(json.dumps(res, indent=2))

@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
+import sys
 from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
@@ -17,7 +19,7 @@ from typing import Any
 
 from nsflow_ros.files import atomic_write
 
-__all__ = ["cpu_model", "markdown", "run_header", "table", "table_lines", "write_tables"]
+__all__ = ["command_line", "cpu_model", "markdown", "run_header", "table", "table_lines", "write_tables"]
 
 
 def cpu_model() -> str:
@@ -29,6 +31,11 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def command_line(program: str, args: Sequence[str] | None = None) -> str:
+    """The command as typed, shell-quoted, under its console-script name; ``args`` None = ``sys.argv[1:]``."""
+    return shlex.join([program, *(sys.argv[1:] if args is None else args)])
 
 
 def run_header(command: str) -> dict[str, Any]:

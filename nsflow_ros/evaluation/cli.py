@@ -22,8 +22,9 @@ from nsflow_ros.evaluation.context import EvalContext
 from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.methods import usable_methods
 from nsflow_ros.evaluation.registry import ANALYSES, select
-from nsflow_ros.evaluation.report import command_line, machine_info, now, run_analyses, write_report
+from nsflow_ros.evaluation.report import machine_info, now, run_analyses, write_report
 from nsflow_ros.optional import require_extra
+from nsflow_ros.results import command_line
 
 __all__ = ["build_parser", "main"]
 
@@ -99,7 +100,8 @@ def main(args: list[str] | None = None) -> int:
         result = run_analyses(ctx, analyses)
         info = machine_info(model)
         info["left_out"] = left_out
-        report, _ = write_report(out, result, info, command_line(args), started, quick=opts.quick)
+        command = command_line("nsflow-evaluate", args)
+        report, _ = write_report(out, result, info, command, started, quick=opts.quick)
     except NSFlowError as err:
         print(f"nsflow-evaluate: {err}", file=sys.stderr)
         return 1

@@ -10,9 +10,7 @@ import json
 import math
 import os
 import platform
-import shlex
 import subprocess
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -29,7 +27,6 @@ from nsflow_ros.results import cpu_model, run_header, table, table_lines, write_
 
 __all__ = [
     "RunResult",
-    "command_line",
     "headline",
     "headline_table",
     "machine_info",
@@ -218,13 +215,6 @@ def write_report(
     payload = json.dumps(_jsonable(results), indent=2, allow_nan=False)
     res = atomic_write(out_dir / "results.json", lambda p: p.write_text(payload + "\n", encoding="utf-8"))
     return report, res
-
-
-def command_line(argv: Sequence[str] | None) -> str:
-    """The command as typed (program name and arguments, shell-quoted); ``argv`` None = ``sys.argv``."""
-    if argv is None:
-        return shlex.join([Path(sys.argv[0]).name or "nsflow-evaluate", *sys.argv[1:]])
-    return shlex.join(["nsflow-evaluate", *argv])
 
 
 def now() -> datetime:

@@ -347,16 +347,9 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
                     yield cell
 
 
-def command_line(args: Sequence[str] | None) -> str:
-    """The command as typed (``args`` None: ``sys.argv``), under its console-script name."""
-    import shlex
-
-    return shlex.join(["nsflow-scenes", *(sys.argv[1:] if args is None else args)])
-
-
 def main(args: list[str] | None = None) -> int:
     """Entry point; 0 when every cell was measured, 1 on a known error."""
-    from nsflow_ros.results import markdown, run_header, write_tables
+    from nsflow_ros.results import command_line, markdown, run_header, write_tables
 
     opts = build_parser().parse_args(args)
     try:
@@ -372,7 +365,7 @@ def main(args: list[str] | None = None) -> int:
             vins = VinsBuild.locate(opts.vins)
         out = Path(opts.out)
         cells = list(_cells(opts, config, vins))
-        doc = {"header": run_header(command_line(args)), "tables": tables(cells)}
+        doc = {"header": run_header(command_line("nsflow-scenes", args)), "tables": tables(cells)}
         out.mkdir(parents=True, exist_ok=True)
         write_tables(doc, out / "scenes.json", out / "scenes.md")
         (out / "cells.json").write_text(json.dumps([asdict(c) for c in cells], indent=2) + "\n",
