@@ -31,20 +31,21 @@ def run_tracked(opts: argparse.Namespace, ropts: ReplayOptions, prog: str) -> in
     """
     from nsflow_ros.allocator import keep_large_buffers
     from nsflow_ros.data.sources import SensorSource
+    from nsflow_ros.resources import DEFAULT_CONFIG, share_file
+    from nsflow_ros.vins.config import load_vins_config
 
-    _check_tracked_topics(opts)
+    cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
+    _check_tracked_topics(opts, cfg)
     # a file that is no bag at all fails here, before an output exists
     next(iter(SensorSource(opts.path, topics=opts.topics).raw_messages()), None)
     keep_large_buffers()  # the tracker runs in this process
+    overrides = {"providers": opts.providers, "model_path": opts.model or None, "downsample": opts.downsample}
     if opts.features_bag is not None:
         from dataclasses import replace
 
         from nsflow_ros.data.replay import replay_records
-        from nsflow_ros.resources import DEFAULT_CONFIG, share_file
-        from nsflow_ros.vins.config import load_vins_config
         from nsflow_ros.vins.feature_bag import feature_bag_topics, write_feature_bag
 
-        cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
         asked = {"publish_rate": opts.publish_rate, "max_sigma": opts.max_sigma}
         bag = write_feature_bag(
             replay_records(replace(ropts, topics=feature_bag_topics(cfg))),
@@ -52,50 +53,34 @@ def run_tracked(opts: argparse.Namespace, ropts: ReplayOptions, prog: str) -> in
             cfg,
             method=opts.method,
             fmt=opts.features_bag_format,
-            overrides={"providers": opts.providers, "model_path": opts.model or None,
-                       "downsample": opts.downsample},
+            overrides=overrides,
             settings={k: v for k, v in asked.items() if v is not None} or None,
             masks=_static_masks(opts, cfg),
             progress=not opts.no_progress,
         )
         print(bag.text())
-        if not bag.features:  # a bag the estimator can do nothing with is a failure
-            cause = bag.health.cause if bag.health is not None else ""
-            print(f"{prog}: no feature was tracked in {bag.frames} frames"
-                  + (f": {cause}" if cause else ""), file=sys.stderr)
-            return 1
-        return 0
-    # --offline
-    from nsflow_ros.resources import DEFAULT_CONFIG, share_file
-    from nsflow_ros.vins.config import load_vins_config
-    from nsflow_ros.vins.offline import run_offline
+        features, frames, cause = bag.features, bag.frames, bag.health.cause if bag.health is not None else ""
+    else:  # --offline
+        from nsflow_ros.vins.offline import run_offline
 
-    masks = _static_masks(opts, load_vins_config(opts.config or share_file(DEFAULT_CONFIG)))
-    _make_dir(opts.offline)
-    summary = run_offline(
-        ropts, opts.offline, config=opts.config, method=opts.method,
-        overrides={"providers": opts.providers, "model_path": opts.model or None,
-                   "downsample": opts.downsample},
-        masks=masks,
-        progress=not opts.no_progress,
-    )
-    print(summary.text())
-    if not summary.figures["features_per_frame"]:
-        cause = f": {summary.tracking_cause}" if summary.tracking_cause else ""
-        print(f"{prog}: no feature was tracked in {summary.figures['frames']} frames{cause}",
+        masks = _static_masks(opts, cfg)
+        _make_dir(opts.offline)
+        summary = run_offline(ropts, opts.offline, config=opts.config, method=opts.method,
+                              overrides=overrides, masks=masks, progress=not opts.no_progress)
+        print(summary.text())
+        features, frames = summary.figures["features_per_frame"], summary.figures["frames"]
+        cause = summary.tracking_cause
+    if not features:  # outputs the estimator can do nothing with are a failure
+        print(f"{prog}: no feature was tracked in {frames} frames" + (f": {cause}" if cause else ""),
               file=sys.stderr)
         return 1
     return 0
 
 
-def _check_tracked_topics(opts: argparse.Namespace) -> None:
+def _check_tracked_topics(opts: argparse.Namespace, cfg: Any) -> None:
     """--topics with --offline / --features-bag: they must hold the config's camera topics."""
     if opts.topics is None:
         return
-    from nsflow_ros.resources import DEFAULT_CONFIG, share_file
-    from nsflow_ros.vins.config import load_vins_config
-
-    cfg = load_vins_config(opts.config or share_file(DEFAULT_CONFIG))
     cams = list(cfg.image_topics) if opts.features_bag is not None else [cfg.image0_topic]
     missing = [t for t in cams if t not in opts.topics]
     if missing:
