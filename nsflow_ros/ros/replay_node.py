@@ -407,14 +407,7 @@ def main(args: list[str] | None = None) -> int:
             n = write_ros2_bag(opts.write_bag, replay_records(ropts))
             print(f"wrote {n} messages to {opts.write_bag}")
             return 0
-        return _publish(
-            ropts,
-            clock=not opts.no_clock,
-            progress=not opts.no_progress,
-            wait_subscribers=opts.wait_subscribers,
-            wait_timeout=opts.wait_timeout,
-            ros_args=ros_args,
-        )
+        return _publish(ropts, opts, ros_args)
     except NSFlowError as err:
         print(f"{prog}: {err}", file=sys.stderr)
         return 1
@@ -423,15 +416,8 @@ def main(args: list[str] | None = None) -> int:
         return 1
 
 
-def _publish(
-    ropts: ReplayOptions,
-    *,
-    clock: bool,
-    progress: bool,
-    wait_subscribers: int = 0,
-    wait_timeout: float = 10.0,
-    ros_args: list[str] | None = None,
-) -> int:
+def _publish(ropts: ReplayOptions, opts: argparse.Namespace, ros_args: list[str]) -> int:
+    """Publish the stream of ``ropts`` over ROS 2 with the clock, progress and wait that ``opts`` ask for."""
     import rclpy
 
     from nsflow_ros.ros.signals import StopRequested, StopSignals, init_without_signal_handlers
@@ -439,7 +425,7 @@ def _publish(
 
     use_large_image_transport()
     # --ros-args remaps apply to the publishers
-    init_without_signal_handlers(args=["nsflow-replay", *(ros_args or [])])
+    init_without_signal_handlers(args=["nsflow-replay", *ros_args])
     node = rclpy.create_node("nsflow_replay")
     # SIGINT / SIGTERM stop the replay between messages; the context stays valid for the last log line
     stop = StopSignals(raise_now=True).install()
@@ -448,11 +434,11 @@ def _publish(
             node,
             replay_stream(ropts),
             rate=ropts.rate,
-            clock=clock,
-            progress=progress,
+            clock=not opts.no_clock,
+            progress=not opts.no_progress,
             total_s=ropts.duration,
-            wait_subscribers=wait_subscribers,
-            wait_timeout=wait_timeout,
+            wait_subscribers=opts.wait_subscribers,
+            wait_timeout=opts.wait_timeout,
         )
         node.get_logger().info(f"replayed {n} messages from {ropts.path}")
     except (KeyboardInterrupt, StopRequested):
