@@ -23,7 +23,6 @@ import platform
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -160,10 +159,6 @@ class _OpenCVKLT(_Method):
         self.prev = gray
 
 
-def _median_ms(fn: Callable[[], Any], repeats: int) -> float:
-    return float(np.median([_timed(fn)[1] for _ in range(repeats)]))
-
-
 def _fit_pass_costs(work: np.ndarray, ms: np.ndarray) -> tuple[float, float]:
     """Least-squares (a, b) of ms = a * passes + b * point evaluations; work rows: [passes, evaluations]."""
     if work.ndim != 2 or work.shape[1] != 2 or work.shape[0] != ms.shape[0] or work.shape[0] < 2:
@@ -206,7 +201,8 @@ def solver_cost_model(
             res = method.track_pair_result(prev, cur, sub, record=True)
             # each level also evaluates every point once at its starting flow: a pass of its own
             work = (len(res.history) + nlev, int(res.iterations.sum()) + nlev * count)
-            ms = _median_ms(functools.partial(method.track_pair_result, prev, cur, sub), repeats)
+            again = functools.partial(method.track_pair_result, prev, cur, sub)
+            ms = float(np.median([_timed(again)[1] for _ in range(repeats)]))
             rows.append(work)
             times.append(ms)
             if count == len(pts):

@@ -205,12 +205,9 @@ def run_tracker_benchmark(
             for m in names:
                 try:
                     scale = 1.0 if view is None else float(view.scale.mean())
-                    runs[key][m] = _Run(tracker_from_config(cfg, {**over, "method": m,
-                                                                   "publish_covariance": False}), scale)
-                    if covariance:
-                        runs[key][f"{m}+cov"] = _Run(tracker_from_config(cfg, {**over, "method": m,
-                                                                                "publish_covariance": True}),
-                                                     scale)
+                    for cov in (False, True) if covariance else (False,):
+                        settings = {**over, "method": m, "publish_covariance": cov}
+                        runs[key][f"{m}+cov" if cov else m] = _Run(tracker_from_config(cfg, settings), scale)
                 except UnsupportedEncoderError as err:  # e.g. OpenCV's LK and unbounded descriptors
                     left_out[m] = str(err)
         names = [m for m in names if m not in left_out]

@@ -118,11 +118,6 @@ class SessionCounters:
     rebuilds: int = 0
     gated: int = 0
 
-    @property
-    def skipped_by_policy(self) -> int:
-        """Frames the VINS-Mono policy dropped (first frames and restarts)."""
-        return self.skipped[Skip.FIRST_FRAME] + self.skipped[Skip.RESTART]
-
 
 class FrontEndSession:
     """A tracker plus the VINS front-end frame policy (see the module docstring).
