@@ -229,13 +229,9 @@ class SampleSequence:
                             self.pose(j, cj), pixels)
 
 
-def _frame_seed(seed: int, cam: int, i: int) -> int:
-    return int(np.random.SeedSequence([int(seed), 0x1316, cam, int(i)]).generate_state(1)[0])
-
-
 def _render(renderer: Renderer, T_wc: np.ndarray, params: dict[str, Any], cam: int, i: int) -> Rendered:
-    return renderer.render(T_wc, noise_sigma=float(params["image_noise"]),
-                           noise_seed=_frame_seed(params["seed"], cam, i))
+    seed = np.random.SeedSequence([int(params["seed"]), 0x1316, cam, int(i)]).generate_state(1)[0]
+    return renderer.render(T_wc, noise_sigma=float(params["image_noise"]), noise_seed=int(seed))
 
 
 def _is_complete(root: Path, key: dict[str, Any], formats: Sequence[str]) -> bool:

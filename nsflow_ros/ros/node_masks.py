@@ -204,17 +204,10 @@ class MaskTopics:
 
     def counters(self) -> dict[str, int]:
         """Per-frame masks received, used, missing (frames tracked without theirs), late, unused, refused
-        and left at the stop."""
-        buffers = self._each()
-        return {
-            "masks_received": self.received,
-            "masks_used": sum(b.used for b in buffers),
-            "masks_missing": sum(b.missing for b in buffers),
-            "masks_late": sum(b.late for b in buffers),
-            "masks_unused": sum(b.unused for b in buffers),
-            "masks_refused": self.refused,
-            "masks_left_at_stop": sum(b.left_at_stop for b in buffers),
-        }
+        and left at the stop (:data:`MASK_COUNTS`, in its order; all but two are the buffers' sums)."""
+        own = {"masks_received": self.received, "masks_refused": self.refused}
+        return {k: own[k] if k in own else sum(getattr(b, k.removeprefix("masks_")) for b in self._each())
+                for k in MASK_COUNTS}
 
     def window(self, c: dict[str, Any]) -> str:
         """The period's mask problems in words ("" = none) from the run's counters; starts the next period."""

@@ -360,10 +360,6 @@ class TartanAirSource(PairSource):
 # -- the user's footage -----------------------------------------------------------------------------------
 
 
-def _image_folder(path: Path) -> list[Path]:
-    return sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-
-
 def read_footage(
     path: str | Path, topics: list[str] | None = None, stride: int = 1, max_frames: int = 400
 ) -> list[np.ndarray]:
@@ -388,7 +384,7 @@ def read_footage(
         raise TrainError(f"footage stride must be >= 1 and max_frames >= 2, got {stride}, {max_frames}")
     src = Path(path)
     frames: list[np.ndarray] = []
-    files = _image_folder(src) if src.is_dir() else []
+    files = sorted(p for p in src.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if src.is_dir() else []
     if files:
         for f in files[::stride]:
             img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
