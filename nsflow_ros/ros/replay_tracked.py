@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 from nsflow_ros.argtypes import program_name
@@ -64,7 +63,10 @@ def run_tracked(opts: argparse.Namespace, ropts: ReplayOptions, prog: str) -> in
         from nsflow_ros.vins.offline import run_offline
 
         masks = _static_masks(opts, cfg)
-        _make_dir(opts.offline)
+        try:
+            opts.offline.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise NSFlowError(f"cannot create output folder {opts.offline}: {err.strerror}") from None
         summary = run_offline(ropts, opts.offline, config=opts.config, method=opts.method,
                               overrides=overrides, masks=masks, progress=not opts.no_progress)
         print(summary.text())
@@ -104,10 +106,3 @@ def _static_masks(opts: argparse.Namespace, cfg: Any) -> tuple[Any, Any]:
     for warning in check_static_masks(dict(zip(names, masks, strict=True)), least):
         print(f"{program_name('nsflow-replay')}: warning: {warning}", file=sys.stderr)
     return masks
-
-
-def _make_dir(path: Path) -> None:
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise NSFlowError(f"cannot create output folder {path}: {err.strerror}") from None
