@@ -11,9 +11,12 @@ import argparse
 import math
 import os
 import sys
+from typing import Any
 
 __all__ = [
     "finite_float",
+    "method_variant",
+    "method_variants",
     "names",
     "non_negative_float",
     "non_negative_int",
@@ -73,6 +76,29 @@ def non_negative_float(text: str) -> float:
 def names(text: str) -> list[str]:
     """A comma-separated list, spaces and empty items dropped: ``"a, b,"`` -> ``["a", "b"]``."""
     return [n.strip() for n in text.split(",") if n.strip()]
+
+
+def method_variant(text: str) -> tuple[str, dict[str, Any]]:
+    """A method with tracker settings, ``name[:key=value...]`` (e.g. ``nsflow:reverse_checks=1``), as
+    (registry name, settings); values are YAML scalars (``1``, ``0.3``, ``true``)."""
+    import yaml
+
+    name, *pairs = text.split(":")
+    overrides: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise argparse.ArgumentTypeError(f"method {text!r}: settings go as name:key=value, got {pair!r}")
+        overrides[key] = yaml.safe_load(value)
+    return name, overrides
+
+
+def method_variants(text: str) -> list[str]:
+    """A comma-separated list of :func:`method_variant` entries, each checked; returns the entries."""
+    entries = names(text)
+    for entry in entries:
+        method_variant(entry)
+    return entries
 
 
 def program_name(name: str) -> str:

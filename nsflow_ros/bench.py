@@ -30,7 +30,14 @@ import cv2
 import numpy as np
 
 from nsflow_ros.allocator import keep_large_buffers
-from nsflow_ros.argtypes import names, non_negative_float, non_negative_int, positive_int, program_name
+from nsflow_ros.argtypes import (
+    method_variants,
+    names,
+    non_negative_float,
+    non_negative_int,
+    positive_int,
+    program_name,
+)
 from nsflow_ros.core import detect_corners, load_encoder, to_gray
 from nsflow_ros.core.methods import LMMethod, SolveKind, make_method
 from nsflow_ros.core.tracker import GFTT_QUALITY
@@ -367,8 +374,10 @@ def _parser() -> argparse.ArgumentParser:
     add("--tracker-seconds", type=non_negative_float, default=10.0, help="seconds of the 20 Hz sample "
         "sequence for the whole-tracker benchmark, mono and stereo, every method interleaved with klt "
         "(default 10 = 200 frames; 0 = skip it)")
-    add("--methods", default="nsflow,nsflow_lk,classical,klt", help="comma-separated tracking methods of the "
-        "whole-tracker benchmark (default nsflow,nsflow_lk,classical,klt; klt is always run as the baseline)")
+    add("--methods", type=method_variants, default="nsflow,nsflow_lk,classical,klt",
+        help="comma-separated tracking methods of the whole-tracker benchmark, each optionally with tracker "
+        "settings after colons, e.g. nsflow:reverse_checks=1 (default nsflow,nsflow_lk,classical,klt; klt "
+        "is always run as the baseline)")
     add("--modes", default="mono,stereo", help="comma-separated modes of the whole-tracker benchmark: mono, "
         "stereo (default both)")
     add("--large", type=_size, metavar="WxH", help="also run the whole-tracker benchmark on the sample "
@@ -416,7 +425,7 @@ def _measure(opts: argparse.Namespace, node_threads: int | None) -> dict[str, An
     if opts.tracker_seconds > 0:
         cv_threads = setting("opencv_threads").default if opts.opencv_threads is None else opts.opencv_threads
         res["tracker"] = run_tracker_benchmark(
-            opts.tracker_seconds, names(opts.methods), names(opts.modes), model=opts.model,
+            opts.tracker_seconds, opts.methods, names(opts.modes), model=opts.model,
             threads=opts.threads, progress=not opts.json, providers=opts.providers,
             opencv_threads=int(cv_threads), covariance=opts.covariance, large=opts.large,
             downsample=opts.downsample, perturb=opts.perturb,

@@ -15,6 +15,7 @@ first by any perturbation of :data:`nsflow_ros.data.perturb.PERTURBATIONS` (e.g.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import tempfile
 import time
@@ -26,6 +27,7 @@ import cv2
 import numpy as np
 
 from nsflow_ros import threads as process_threads
+from nsflow_ros.argtypes import method_variant
 from nsflow_ros.core.downsample import check_downsample, resize_camera
 from nsflow_ros.core.encoder import encoder_provider
 from nsflow_ros.core.errors import UnsupportedEncoderError
@@ -134,7 +136,8 @@ def run_tracker_benchmark(
 
     Args:
         duration: seconds of the 20 Hz sample sequence.
-        methods: registry names; ``klt`` is always added (the ratios' baseline).
+        methods: registry names, each optionally with tracker settings (``nsflow:reverse_checks=1``,
+            :func:`~nsflow_ros.argtypes.method_variant`); ``klt`` is always added (the ratios' baseline).
         modes: "mono" and / or "stereo".
         model: ONNX encoder of the learned methods; None = the shipped one.
         threads: encoder threads; None = all usable cores.
@@ -168,7 +171,11 @@ def run_tracker_benchmark(
     from nsflow_ros.vins.tracker import tracker_from_config
 
     names = list(dict.fromkeys([*methods, "klt"]))
-    unknown = [m for m in names if m not in METHODS]
+    try:
+        chosen = {m: method_variant(m) for m in names}
+    except argparse.ArgumentTypeError as err:
+        raise NSFlowError(str(err)) from err
+    unknown = [m for m, (name, _) in chosen.items() if name not in METHODS]
     bad_modes = [m for m in modes if m not in MODES]
     if unknown or bad_modes:
         raise NSFlowError(f"unknown method(s) {unknown} or mode(s) {bad_modes}; "
@@ -205,8 +212,9 @@ def run_tracker_benchmark(
             for m in names:
                 try:
                     scale = 1.0 if view is None else float(view.scale.mean())
+                    name, settings_of_m = chosen[m]
                     for cov in (False, True) if covariance else (False,):
-                        settings = {**over, "method": m, "publish_covariance": cov}
+                        settings = {**over, **settings_of_m, "method": name, "publish_covariance": cov}
                         runs[key][f"{m}+cov" if cov else m] = _Run(tracker_from_config(cfg, settings), scale)
                 except UnsupportedEncoderError as err:  # e.g. OpenCV's LK and unbounded descriptors
                     left_out[m] = str(err)

@@ -74,9 +74,21 @@ def test_table_has_a_row_per_mode_and_method(result):
     assert "x klt" in table and "CPU ms" in table
 
 
+def test_a_method_with_settings_runs_as_its_own_row(tmp_path):
+    res = run_tracker_benchmark(0.3, ["classical", "classical:flow_back=0"], modes=["mono"],
+                                cache_dir=tmp_path, threads=1, opencv_threads=1)
+    assert res["setup"]["methods"] == ["classical", "classical:flow_back=0", "klt"]
+    plain, unchecked = res["mono"]["classical"], res["mono"]["classical:flow_back=0"]
+    # the same solves without their reverse checks: at least as many tracks carried, for less work
+    assert unchecked["carried_share"] >= plain["carried_share"]
+    assert unchecked["cpu_stages"]["track"] < plain["cpu_stages"]["track"] * 1.2 + 1
+
+
 def test_bad_method_or_duration_is_an_error(tmp_path):
     with pytest.raises(NSFlowError, match="unknown method"):
         run_tracker_benchmark(0.1, ["sift"], cache_dir=tmp_path)
+    with pytest.raises(NSFlowError, match="name:key=value"):
+        run_tracker_benchmark(0.1, ["klt:flow_back"], cache_dir=tmp_path)
     with pytest.raises(NSFlowError, match="duration"):
         run_tracker_benchmark(0.0, ["klt"], cache_dir=tmp_path)
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from nsflow_ros.argtypes import names, program_name
+from nsflow_ros.argtypes import method_variant, method_variants, names, program_name
 from nsflow_ros.core.methods import BASELINE
 from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.errors import NSFlowError
@@ -281,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rates", type=_floats, default=[20.0, 10.0, 20.0 / 3.0],
                    help="camera rates in Hz (default 20,10,6.67)")
     p.add_argument("--perturb", default="none", help="perturbations, comma-separated (default none)")
-    p.add_argument("--methods", default="nsflow,klt",
+    p.add_argument("--methods", type=method_variants, default="nsflow,klt",
                    help="methods, comma-separated, each optionally with tracker settings after colons, e.g. "
                    "nsflow:reverse_checks=1 (default nsflow,klt)")
     p.add_argument("--model", default=None, help="the learned methods' model (default: each one's own)")
@@ -301,31 +301,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def method_variant(text: str) -> tuple[str, dict[str, Any]]:
-    """A ``--methods`` entry, ``name[:key=value...]``, as (method, tracker settings); values are YAML
-    scalars (``1``, ``0.3``, ``true``).
-
-    Raises:
-        EvaluationError: an entry whose settings are not ``key=value``.
-    """
-    import yaml
-
-    name, *pairs = text.split(":")
-    overrides: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key:
-            raise EvaluationError(f"method {text!r}: settings go as name:key=value, got {pair!r}")
-        overrides[key] = yaml.safe_load(value)
-    return name, overrides
-
-
 def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellResult]:
     """Every cell of the command line's grid, scene by scene, printing a line for each."""
     from nsflow_ros.data.sample import make_sample_sequence
 
     levels = names(opts.perturb)
-    methods = {m: method_variant(m) for m in names(opts.methods)}
+    methods = {m: method_variant(m) for m in opts.methods}
     for seed in opts.seeds:
         for rate in opts.rates:
             sample = make_sample_sequence(Path(opts.cache) / f"seed{seed}-{rate:g}hz-{opts.duration:g}s",
