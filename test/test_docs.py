@@ -19,7 +19,7 @@ from nsflow_ros.ros.tracker_params import PARAMETERS
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", ROOT / "models" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-RESULTS = sorted((ROOT / "docs" / "results").glob("*.json"))
+RESULTS = sorted((ROOT / "docs" / "results").rglob("*.json"))
 LIMITS = {"README.md": 150, "models/README.md": 150, "docs/design.md": 300}
 
 
@@ -83,7 +83,7 @@ def test_the_docs_have_stored_tables():
     assert {p.stem for p in RESULTS} >= {"bench", "evaluation"}
 
 
-@pytest.mark.parametrize("stored", RESULTS, ids=lambda p: p.name)
+@pytest.mark.parametrize("stored", RESULTS, ids=lambda p: str(p.relative_to(ROOT / "docs" / "results")))
 def test_tables_regenerate_and_are_pasted_whole(stored):
     text = markdown(json.loads(stored.read_text(encoding="utf-8")))
     assert stored.with_suffix(".md").read_text(encoding="utf-8") == text

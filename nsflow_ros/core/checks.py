@@ -30,8 +30,11 @@ class CovarianceCheck:
 
     Attributes:
         max_sigma: a point is dropped when the standard deviation along its covariance's major axis
-            exceeds this (px of the tracking resolution, where the reverse check's 0.5 px is measured):
-            the window does not pin it down, or its residual says it matched something else.
+            exceeds this (px of the tracking resolution, where the reverse check's 0.5 px is measured)
+            and ``relative`` times the solve's median: the window does not pin it down, or its residual
+            says it matched something else.
+        relative: how far above the solve's median sigma a point may stand: image noise (a dark frame)
+            raises every sigma alike, and a fixed bound would then cut the tracks short.
         max_epipolar: a stereo match is dropped when it lies farther than this (px of camera 1) from the
             epipolar line of its left point; large enough for a real calibration's error, small enough
             to catch a match on another row. Only with the pair's extrinsics known.
@@ -44,22 +47,28 @@ class CovarianceCheck:
     """
 
     max_sigma: float = 0.3
+    relative: float = 2.0
     max_epipolar: float = 2.0
     max_departure: float = 3.0
 
     def __post_init__(self) -> None:
-        for name in ("max_sigma", "max_epipolar", "max_departure"):
+        for name in ("max_sigma", "relative", "max_epipolar", "max_departure"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise CoreError(f"CovarianceCheck.{name} must be finite and > 0, got {value}")
 
-    def keep(self, cov: np.ndarray) -> np.ndarray:
-        """Where the covariance pins the point down (NaN or a singular J^T J: not).
+    def keep(self, cov: np.ndarray, live: np.ndarray) -> np.ndarray:
+        """Where the covariance pins the point down against ``max_sigma`` and the ``live`` points' median
+        (NaN or a singular J^T J: not).
 
         Shape:
-            cov: (N, 3) [uu, uv, vv] px^2. Returns (N,) bool.
+            cov: (N, 3) [uu, uv, vv] px^2. live: (N,) bool. Returns (N,) bool.
         """
-        return max_sigma(cov) <= self.max_sigma
+        sigma = max_sigma(cov)
+        typical = sigma[live & np.isfinite(sigma)]
+        if typical.size:
+            return sigma <= max(self.max_sigma, self.relative * float(np.median(typical)))
+        return sigma <= self.max_sigma
 
     def unsure(self, positions: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
         """Where a solution needs the reverse solve: farther than ``max_departure`` from its prior.

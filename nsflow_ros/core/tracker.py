@@ -539,7 +539,7 @@ class FeatureTracker:
         status &= _in_border(new, size, BORDER_PX)
         reverse = status.copy() if s.flow_back else np.zeros_like(status)
         if gate is not None:
-            status &= gate.keep(cov[0])
+            status &= gate.keep(cov[0], status)
             if kind is SolveKind.STEREO and self.stereo_geometry is not None and status.any():
                 idx = np.flatnonzero(status)
                 status[idx] = self.stereo_geometry.distance(pts[idx], new[idx]) <= gate.max_epipolar

@@ -20,7 +20,7 @@ def _pose(rot_vec=(0.0, 0.0, 0.0), t=(-0.11, 0.0, 0.0)) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("field", ["max_sigma", "max_epipolar"])
+@pytest.mark.parametrize("field", ["max_sigma", "relative", "max_epipolar", "max_departure"])
 @pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), float("inf")])
 def test_check_bounds_must_be_finite_and_positive(field, value):
     with pytest.raises(CoreError, match=f"CovarianceCheck.{field}"):
@@ -28,7 +28,7 @@ def test_check_bounds_must_be_finite_and_positive(field, value):
 
 
 def test_keep_follows_the_major_axis_and_drops_undefined_covariances():
-    check = CovarianceCheck(max_sigma=0.3)
+    check = CovarianceCheck(max_sigma=0.3, relative=1.0)
     cov = np.array([
         [0.04, 0.0, 0.04],  # sigma 0.2 both ways: kept
         [0.04, 0.0, 0.16],  # 0.4 along v: dropped
@@ -36,7 +36,20 @@ def test_keep_follows_the_major_axis_and_drops_undefined_covariances():
         [np.nan, np.nan, np.nan],  # no covariance: dropped
         [np.inf, 0.0, np.inf],  # a singular J^T J: dropped
     ])
-    np.testing.assert_array_equal(check.keep(cov), [True, False, False, False, False])
+    live = np.array([True, False, False, False, False])  # the solve's median: 0.2, under the floor
+    np.testing.assert_array_equal(check.keep(cov, live), [True, False, False, False, False])
+
+
+def test_the_bound_rises_with_the_solves_median_sigma():
+    sigma = np.array([0.2, 0.22, 0.25, 0.3, 0.45, 0.6, 2.0])  # a noisy (dark) solve: median 0.3
+    cov = np.c_[sigma**2, np.zeros(7), sigma**2 / 4]
+    live = np.ones(7, bool)
+    # 2x the median (0.6) bounds it, not the 0.3 px floor; a dead point's sigma does not count
+    np.testing.assert_array_equal(CovarianceCheck().keep(cov, live), [True] * 6 + [False])
+    np.testing.assert_array_equal(CovarianceCheck(relative=1.0).keep(cov, live), [True] * 4 + [False] * 3)
+    few = np.zeros(7, bool)
+    few[:3] = True  # the live points' median is 0.22: the floor holds
+    np.testing.assert_array_equal(CovarianceCheck().keep(cov, few), [True] * 4 + [False] * 3)
 
 
 def test_a_match_on_its_epipolar_line_is_at_zero_and_a_row_off_at_its_offset():
