@@ -1,8 +1,8 @@
 """The track check that replaces VINS's reverse solves: each point's own covariance, and for a stereo match
 its distance from the epipolar line.
 
-VINS tracks every point back and keeps it when it returns within 0.5 px: a second solve per point, about a
-fifth of a learned frame's CPU. An LM solve already gives each point a calibrated covariance (its final
+VINS tracks every point back and keeps it when it returns within 0.5 px: a second solve per point (its
+cost: docs/benchmarks.md). An LM solve already gives each point a calibrated covariance (its final
 J^T J and residual, :mod:`~nsflow_ros.core.covariance`), which ranks the bad tracks better than the return
 distance does, and a right point of a calibrated stereo pair must lie on the epipolar line of its left
 point. :class:`CovarianceCheck` keeps a point when both say it is pinned down where it is. What neither
@@ -39,8 +39,8 @@ class CovarianceCheck:
             epipolar line of its left point; large enough for a real calibration's error, small enough
             to catch a match on another row. Only with the pair's extrinsics known.
         max_departure: a point that lands farther than this (px) from its prior (its track's previous
-            motion or disparity) is also tracked back as VINS does (a few in a thousand; a reverse
-            solve of every new point, which has no prior, would cost nearly what checking all does).
+            motion or disparity) is also tracked back as VINS does: few points do, while solving back
+            every new point (which has no prior) would cost nearly what checking all does.
 
     Raises:
         CoreError: a bound that is not finite and > 0.

@@ -1,11 +1,11 @@
 """The last sub-pixel step on the image itself: affine-photometric Lucas-Kanade after the descriptor solve.
 
-The learned map is robust to light but blurrier than the image, so its solution is about 20 % less precise
-than intensity's where the light is steady. One short LM solve on the full-resolution gray image, started
-at the descriptor solution and comparing windows up to a gain and an offset (the solver's ``zero_mean`` and
-``gain`` residual), recovers intensity's precision; it is kept only where it stays close to the descriptor
-solution and its own residual says the windows match, so under a lighting change the descriptors' answer
-stands.
+The learned map is robust to light but blurrier than the image, so its solution is less precise than
+intensity's where the light is steady (docs/design.md). One short LM solve on the full-resolution gray
+image, started at the descriptor solution and comparing windows up to a gain and an offset (the solver's
+``zero_mean`` and ``gain`` residual), recovers intensity's precision; it is kept only where it stays close
+to the descriptor solution and its own residual says the windows match, so under a lighting change the
+descriptors' answer stands.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ class IntensityRefinement:
             they need only bring the point within the step's reach.
         checks: the reverse checks end with the step too, so that a track is judged at the optimum it was
             placed at (off: a point the image moved from the descriptors' optimum may fail its descriptor
-            check; on costs about a sixth more CPU per frame, docs/design.md).
+            check; on costs more CPU per frame, docs/design.md).
 
     Raises:
         CoreError: a value out of range (named in the message).

@@ -106,7 +106,7 @@ class TrackerSettings:
         flow_back: VINS ``flow_back``: check every track (the method's check: its registry entry's
             covariance check, else the reverse solve).
         reverse_checks: check by VINS's reverse solves even a method whose registry entry checks by
-            covariance (about a fifth of a learned frame's CPU, docs/benchmarks.md).
+            covariance (what each costs and catches: docs/benchmarks.md).
         equalize: apply the method's CLAHE before tracking and detection.
         stereo: track camera 0 into camera 1.
         use_imu_prediction: predict the flow from the gyro samples given to :meth:`FeatureTracker.process`.
@@ -537,8 +537,9 @@ class FeatureTracker:
         if start is not None and int(status.sum()) < PREDICTION_MIN_TRACKED:
             new, status, *cov = solve(kind, frame1, frame2, pts, None, prior)
         status &= _in_border(new, size, BORDER_PX)
-        reverse = status.copy() if s.flow_back else np.zeros_like(status)
-        if gate is not None:
+        if gate is None:  # VINS's check: every live point back, or none without flow_back
+            reverse = status.copy() if s.flow_back else np.zeros_like(status)
+        else:
             status &= gate.keep(cov[0], status)
             if kind is SolveKind.STEREO and self.stereo_geometry is not None and status.any():
                 idx = np.flatnonzero(status)
