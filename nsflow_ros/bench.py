@@ -227,7 +227,7 @@ def run_benchmark(
     frames: int = 60,
     points: int = 150,
     model: str | None = None,
-    threads: int = 2,
+    threads: int = 1,
     progress: bool = False,
     providers: str = "cpu",
 ) -> dict[str, Any]:
@@ -364,8 +364,8 @@ def _parser() -> argparse.ArgumentParser:
         "benchmark (default 60)")
     add("--points", type=positive_int, default=150, help="GFTT points per frame (default 150)")
     add("--model", help="ONNX encoder: a file, or a shipped model by name (default, fast; default: default)")
-    add("--threads", type=positive_int, help="encoder (onnxruntime) threads: 2 by default in the tracker and "
-        "stage runs; given, also the node runs' num_threads (default there: the node's, all cores)")
+    add("--threads", type=positive_int, help="encoder (onnxruntime) threads of the tracker, stage and node runs "
+        f"(default: the node's num_threads default, {setting('num_threads').default})")
     add("--providers", default="cpu", help="onnxruntime execution providers of the encoder, best first, e.g. "
         "tensorrt,cuda,cpu (default cpu; as the node's providers parameter)")
     add("--json", action="store_true", help="print the figures as one JSON object")
@@ -527,7 +527,7 @@ def bench_tables(res: dict[str, Any]) -> list[dict[str, Any]]:
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``nsflow-bench`` / ``ros2 run nsflow_ros bench``."""
     opts = _parser().parse_args(args)
-    node_threads, opts.threads = opts.threads, opts.threads or 2
+    node_threads, opts.threads = opts.threads, opts.threads or int(setting("num_threads").default)
     heap = False if opts.system_malloc else keep_large_buffers()
     try:
         res = _measure(opts, node_threads)

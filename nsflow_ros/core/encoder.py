@@ -4,10 +4,12 @@
 classical mode, the gray image scaled to [0, 1]. ONNX contract, checked at load time: one float32 input
 (1, 1|3, H, W) in [0, 1] and one float32 output (1, d, H, W); H and W may be dynamic.
 
-On the CPU a local model runs on horizontal strips with a halo of its receptive-field radius (measured at
-load time), one single-threaded, non-spinning session per thread: the whole-frame result, faster because
-a strip stays in cache and idle sessions leave the cores to the solver. On an accelerator
-(:class:`ExecutionProviders`) one session encodes the whole frame, launch overhead dominating there. A
+On the CPU with several threads a local model runs on horizontal strips with a halo of its
+receptive-field radius (measured at load time), one single-threaded, non-spinning session per thread: the
+whole-frame result, in less wall time than one multi-threaded session. One thread (the tracker's default)
+encodes the whole frame in one session: with nothing to run in parallel the halos would only cost. On an
+accelerator (:class:`ExecutionProviders`) one session encodes the whole frame, launch overhead dominating
+there. A
 model may declare in its metadata key ``smoothing`` ("fine,coarse" sigmas,
 :class:`~nsflow_ros.core.pyramid.Smoothing`) how its maps are smoothed: the encoder applies ``fine`` to
 its output, the LM methods ``coarse`` to the pyramid's coarser levels. Its key ``gain_levels`` (an
@@ -264,8 +266,8 @@ class OnnxEncoder:
         path: the .onnx file.
         threads: CPU threads (None = the cores this process may use): one session per thread for a
             tiled model, else one session with that many intra-op threads.
-        tile_rows: rows per strip; None = about ``TILE_PIXELS`` pixels, 0 = the whole frame at once.
-            Only models that pass the locality check at load time are tiled (``tiled``).
+        tile_rows: rows per strip; None = about ``TILE_PIXELS`` pixels with several CPU threads, else the
+            whole frame; 0 = the whole frame at once. Only models that pass the locality check at load time are tiled (``tiled``).
         smoothing: None = what the model's metadata declares; ``Smoothing()`` turns it off.
         providers: execution providers, best first (:meth:`ExecutionProviders.parse`); None = the CPU.
             ``provider`` is the one in use.
@@ -290,8 +292,8 @@ class OnnxEncoder:
         self.providers = ExecutionProviders.parse(providers)
         self._sessions = [self._start_session(self.providers.available())]
         self.provider: str = self._sessions[0].get_providers()[0]
-        if self.provider != CPU_PROVIDER and tile_rows is None:
-            tile_rows = 0  # whole frame on an accelerator (module docstring)
+        if tile_rows is None and (self.provider != CPU_PROVIDER or self.threads == 1):
+            tile_rows = 0  # whole frame on an accelerator or on one thread (module docstring)
         self._tile_rows = tile_rows
         self._pool: ThreadPoolExecutor | None = None
         self._check_signature()

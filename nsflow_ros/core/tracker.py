@@ -98,7 +98,8 @@ class TrackerSettings:
     Attributes:
         method: a key of :data:`~nsflow_ros.core.methods.METHODS`.
         model_path: ONNX encoder of the learned methods; None = the shipped model.
-        num_threads: encoder threads; None = all usable cores.
+        num_threads: encoder threads (one: the least CPU per frame, docs/design.md); None = all usable
+            cores.
         max_cnt: VINS ``max_cnt``, the number of features kept per frame.
         min_dist: VINS ``min_dist``, the minimum distance between features in pixels.
         F_threshold: VINS ``F_threshold``, RANSAC threshold in pixels of the virtual 460 px pinhole.
@@ -126,7 +127,7 @@ class TrackerSettings:
 
     method: str = "nsflow"
     model_path: str | None = None
-    num_threads: int | None = None
+    num_threads: int | None = 1
     max_cnt: int = 150
     min_dist: float = 30.0
     F_threshold: float = 1.0

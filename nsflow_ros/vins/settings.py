@@ -325,7 +325,9 @@ SETTINGS: tuple[Setting, ...] = (
         "Predict feature positions from the gyroscope (needs imu_topic and body_T_cam0 in the VINS config).",
         tracker=True, session=True),
     Setting(
-        "num_threads", 0, Mode.REBUILD, "CPU threads of the encoder; 0 = all usable cores.",
+        "num_threads", 1, Mode.REBUILD,
+        "CPU threads of the encoder (one spends the least CPU per frame, more cut its wall time); 0 = all "
+        "usable cores.",
         tracker=True, session=True, minimum=0, none_value=0),
     Setting(
         "fisheye_mask", "", Mode.READ_ONLY,

@@ -185,8 +185,9 @@ def test_shipped_model_tiled_equals_whole_frame(threads):
     a, b = tiled(img), whole(img)
     assert a.shape == (150, 200, 4) and a.flags.c_contiguous
     np.testing.assert_array_equal(a, b)
-    # the default strip height on a frame that needs several strips, and frames of other sizes
+    # by default one thread encodes the whole frame, several run strips (the halos buy parallelism)
     auto = load_encoder("d4", threads=threads)
+    assert auto.tiled == (threads > 1)
     for h, w in ((400, 320), (480, 752), (7, 9)):
         np.testing.assert_array_equal(auto(_image(h, w)), whole(_image(h, w)))
 

@@ -556,7 +556,7 @@ def test_update_settings_changes_a_running_tracker_and_keeps_its_tracks(pan):
     assert len(second.cameras[0]) <= 80  # carried tracks are kept; only the top-up obeys the new max_cnt
 
 
-@pytest.mark.parametrize("field, value", [("method", "klt"), ("equalize", True), ("num_threads", 1)])
+@pytest.mark.parametrize("field, value", [("method", "klt"), ("equalize", True), ("num_threads", 2)])
 def test_update_settings_refuses_what_needs_a_new_tracker(pan, field, value):
     tracker = FeatureTracker([syn.camera()], _classical())
     before = tracker.settings
