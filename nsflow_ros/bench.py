@@ -364,8 +364,8 @@ def _parser() -> argparse.ArgumentParser:
         "benchmark (default 60)")
     add("--points", type=positive_int, default=150, help="GFTT points per frame (default 150)")
     add("--model", help="ONNX encoder: a file, or a shipped model by name (default, fast; default: default)")
-    add("--threads", type=positive_int, help="encoder (onnxruntime) threads of the tracker, stage and node runs "
-        f"(default: the node's num_threads default, {setting('num_threads').default})")
+    add("--threads", type=positive_int, help="encoder (onnxruntime) threads of the tracker, stage and node "
+        f"runs (default: the node's num_threads default, {setting('num_threads').default})")
     add("--providers", default="cpu", help="onnxruntime execution providers of the encoder, best first, e.g. "
         "tensorrt,cuda,cpu (default cpu; as the node's providers parameter)")
     add("--json", action="store_true", help="print the figures as one JSON object")

@@ -267,7 +267,8 @@ class OnnxEncoder:
         threads: CPU threads (None = the cores this process may use): one session per thread for a
             tiled model, else one session with that many intra-op threads.
         tile_rows: rows per strip; None = about ``TILE_PIXELS`` pixels with several CPU threads, else the
-            whole frame; 0 = the whole frame at once. Only models that pass the locality check at load time are tiled (``tiled``).
+            whole frame; 0 = the whole frame at once. Only models that pass the locality check at load
+            time are tiled (``tiled``).
         smoothing: None = what the model's metadata declares; ``Smoothing()`` turns it off.
         providers: execution providers, best first (:meth:`ExecutionProviders.parse`); None = the CPU.
             ``provider`` is the one in use.
