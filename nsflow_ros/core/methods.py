@@ -33,7 +33,7 @@ from nsflow_ros.core.covariance import (
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
-from nsflow_ros.core.refine import IntensityRefinement, gray_level, refine
+from nsflow_ros.core.refine import IntensityRefinement, StepTemplate, gray_level, refine, step_template
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
 __all__ = [
@@ -403,6 +403,7 @@ class LMMethod(TrackingMethod):
         self.policy: SolvePolicy = spec.policy
         self.pyramid_smoothing = pyramid_smoothing(encoder)
         self.refinement: IntensityRefinement | None = spec.refine
+        self._template_memo: tuple[DescriptorPyramid, StepTemplate] | None = None
 
     @staticmethod
     def residual_ratio(result: TrackResult) -> np.ndarray:
@@ -502,7 +503,7 @@ class LMMethod(TrackingMethod):
         # A check keeps its own tolerance: it starts at its answer, where a loose test would stop it.
         eps = step.coarse_eps if finest and not kind.is_check else None
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
-        done = refine(frame1.image, frame2.image, pts, new, status, step)
+        done = refine(frame1.image, frame2.image, pts, new, status, step, self._step_template(frame1, pts))
         new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
         contrast = res.contrast.copy()
@@ -525,6 +526,18 @@ class LMMethod(TrackingMethod):
         contrast[kept] = done.contrast[kept]
         merged = TrackResult(flow, status, cost, res.iterations, contrast, res.history, hessian)
         return new, status, merged
+
+    def _step_template(self, frame1: DescriptorPyramid, pts: np.ndarray) -> StepTemplate:
+        """:func:`~nsflow_ros.core.refine.step_template` of ``frame1`` at ``pts``, kept for the next call: a
+        stereo solve's template (this frame's left image at its features) is the next frame's temporal
+        one, so the tracker reads each left window once."""
+        assert self.refinement is not None and frame1.image is not None
+        memo = self._template_memo
+        if memo is not None and memo[0] is frame1 and np.array_equal(memo[1].points, pts):
+            return memo[1]
+        template = step_template(frame1.image, pts, self.refinement.window)
+        self._template_memo = (frame1, template)
+        return template
 
     def _descriptor_solve(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,

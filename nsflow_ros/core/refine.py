@@ -18,9 +18,9 @@ import numpy as np
 from nsflow_ros.core.errors import CoreError
 
 # The gain's clip is the descriptor solver's bias-and-gain residual's, so both steps accept the same lights.
-from nsflow_ros.core.solver import _GAIN_HI, _GAIN_LO, sample_windows, window_centres
+from nsflow_ros.core.solver import _GAIN_HI, _GAIN_LO, _sample_level, sample_windows, window_centres
 
-__all__ = ["IntensityRefinement", "RefineResult", "gray_level", "refine"]
+__all__ = ["IntensityRefinement", "RefineResult", "StepTemplate", "gray_level", "refine", "step_template"]
 
 
 @dataclass(frozen=True)
@@ -94,19 +94,52 @@ def gray_level(gray: np.ndarray) -> tuple[np.ndarray, ...]:
     return ((gray.astype(np.float32) * np.float32(1.0 / 255.0))[..., None],)
 
 
-def _template(image: tuple[np.ndarray, ...], centres: np.ndarray, window: int) -> np.ndarray:
-    """The zero-mean template windows and their zero-mean Scharr gradients (/32) as (M, 3, w^2) rows
-    [t, gx, gy]."""
+@dataclass(frozen=True)
+class StepTemplate:
+    """Frame 1's side of the step at given points, from :func:`step_template`: all a refinement needs of
+    the template, so that it can be read once and used by several refinements from the same image.
+
+    Attributes:
+        points: (M, 2) the points it was read at.
+        centres: (M, 2) the windows' centres (moved inward near the border).
+        rows: (M, 3, w^2) float32 the zero-mean template and its zero-mean Scharr gradients (/32):
+            [t, gx, gy].
+        gram: (M, 3, 3) float64 the rows against each other.
+    """
+
+    points: np.ndarray
+    centres: np.ndarray
+    rows: np.ndarray
+    gram: np.ndarray
+
+    def __getitem__(self, sel: np.ndarray) -> StepTemplate:
+        return StepTemplate(self.points[sel], self.centres[sel], self.rows[sel], self.gram[sel])
+
+
+def step_template(image1: tuple[np.ndarray, ...], pts: np.ndarray, window: int) -> StepTemplate:
+    """Read the step's template at ``pts`` in ``image1`` (a :func:`gray_level`); each point's rows depend on
+    that point only, so a subset of the result is the template of the subset.
+
+    Shape:
+        pts: (M, 2).
+    """
+    h, w = image1[0].shape[:2]
+    # A translation moves the whole window alike: near the border it is moved inward, so that it compares
+    # image pixels rather than replicated ones.
+    centres = window_centres(pts, (h, w), window)
     m, size = len(centres), window + 2
-    patches = sample_windows(image, centres, size)[..., 0]
-    # The patches side by side in one row: each inner pixel's 3x3 neighbourhood stays inside its own
-    # patch, and one wide filter call is faster than one over the patches stacked in a tall column.
-    wide = np.ascontiguousarray(patches.transpose(1, 0, 2)).reshape(size, m * size)
+    # The patches side by side in one row, as the sampler lays them out: each inner pixel's 3x3
+    # neighbourhood stays inside its own patch, and one wide filter call is faster than one per patch.
+    patches = _sample_level(image1, centres, size)[0][..., 0]  # (size, M, size)
+    wide = patches.reshape(size, m * size)
     grads = [cv2.Scharr(wide, cv2.CV_32F, dx, 1 - dx, scale=1.0 / 32.0).reshape(size, m, size)
              for dx in (1, 0)]
-    rows = np.stack([patches.transpose(1, 0, 2), *grads], axis=2)[1:-1, :, :, 1:-1]  # (w, M, 3, w)
+    rows = np.stack([patches, *grads], axis=2)[1:-1, :, :, 1:-1]  # (w, M, 3, w)
     rows = np.ascontiguousarray(rows.transpose(1, 2, 0, 3)).reshape(m, 3, window * window)
-    return rows - rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
+    rows = rows - rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
+    # float32 products (225 terms of order 1e-2 each), float64 from here on
+    gram = np.matmul(rows, rows.transpose(0, 2, 1)).astype(np.float64)  # [t, gx, gy] against each other
+    return StepTemplate(np.array(pts, dtype=np.float64, copy=True), centres, rows, gram)
 
 
 def refine(
@@ -116,6 +149,7 @@ def refine(
     positions: np.ndarray,
     status: np.ndarray,
     config: IntensityRefinement,
+    template: StepTemplate | None = None,
 ) -> RefineResult:
     """Refine tracked positions on the images: Gauss-Newton on intensity from each descriptor solution.
 
@@ -129,6 +163,7 @@ def refine(
         positions: their descriptor solutions in frame 2.
         status: where the descriptor solve succeeded (only those are refined).
         config: the step's settings.
+        template: :func:`step_template` of ``image1`` at ``pts`` in ``config.window``; None = read here.
 
     Returns:
         the refined positions, where the step was kept, and its J^T J, cost and contrast for a covariance.
@@ -143,14 +178,10 @@ def refine(
         return out
     h, w = image1[0].shape[:2]
     p = pts[idx]
-    # A translation moves the whole window alike: near the border it is moved inward, so that it compares
-    # image pixels rather than replicated ones.
-    centres = window_centres(p, (h, w), win)
+    tmpl = step_template(image1, p, win) if template is None else template[idx]
+    centres, rows, gram = tmpl.centres, tmpl.rows, tmpl.gram
     flow = positions[idx] - p
-    rows = _template(image1, centres, win)
     cols = rows.transpose(0, 2, 1)
-    # float32 products (225 terms of order 1e-2 each), float64 from here on
-    gram = np.matmul(rows, cols).astype(np.float64)  # [t, gx, gy] against each other
     contrast, (sxx, sxy, syy) = gram[:, 0, 0], (gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2])
     det = sxx * syy - sxy * sxy
     cost = np.zeros(len(idx))
@@ -164,7 +195,8 @@ def refine(
             dots = np.matmul(cand, cols)[:, 0].astype(np.float64)  # [c.t, c.gx, c.gy]
             csum = cand.sum(axis=2)[:, 0].astype(np.float64)
             cc = np.einsum("mip,mip->m", cand, cand).astype(np.float64) - csum * csum / npix
-            gain = np.clip(np.nan_to_num(dots[:, 0] / cc, nan=1.0), _GAIN_LO, _GAIN_HI)
+            gain = dots[:, 0] / cc
+            gain = np.clip(np.where(np.isnan(gain), 1.0, gain), _GAIN_LO, _GAIN_HI)  # a flat window: 1
             # r = g (c - mean c) - t: its energy and J^T r (J = the template's gradient) from the dots.
             cost = 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * dots[:, 0] + contrast, 0.0)
             bx = gain * dots[:, 1] - gram[:, 0, 1]

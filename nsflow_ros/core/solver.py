@@ -506,7 +506,7 @@ def _gain_equations(
             sww = np.einsum(_PER_CHANNEL, inner, inner) - s1 * s1 / n
             g = spt / sww
             free = (g > _GAIN_LO) & (g < _GAIN_HI) & (sww > 0)
-            g = np.clip(np.nan_to_num(g, nan=1.0), _GAIN_LO, _GAIN_HI)
+            g = np.clip(np.where(np.isnan(g), 1.0, g), _GAIN_LO, _GAIN_HI)  # a flat window: 1
             # The residual is formed once: f = g w - t is small where the windows match, so centring it
             # by its sum (sum f = g sum w - sum t) loses nothing, where expanding the square would.
             f = inner * g.astype(np.float32)[None, :, None, :] - t

@@ -10,7 +10,7 @@ import pytest
 
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.methods import DEPLOYED_LM, METHODS, SolveKind, klt_track, make_method
-from nsflow_ros.core.refine import IntensityRefinement, gray_level, refine
+from nsflow_ros.core.refine import IntensityRefinement, gray_level, refine, step_template
 
 SHIFT = np.array([2.37, -1.61])
 
@@ -182,3 +182,48 @@ def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) ->
     # the covariance is the step's own: smaller along the better-textured axis, positive definite
     assert (cov[:, 0] > 0).all() and (cov[:, 0] * cov[:, 2] - cov[:, 1] ** 2 > 0).all()
     assert step.kept.all()
+
+
+def test_a_template_read_once_serves_every_subset(pair: tuple[np.ndarray, ...]) -> None:
+    """Each point's template rows depend on that point only: a subset of a template read at all points is
+    the template of the subset, bit for bit, and refining with it is refining without it."""
+    g1, g2, pts = pair
+    im1, im2 = gray_level(g1), gray_level(g2)
+    pts = np.vstack([pts, [[2.0, 3.0]]])  # one near the corner: its window is moved inward
+    whole = step_template(im1, pts, 15)
+    sel = np.array([True, False, True, True, True])
+    part = step_template(im1, pts[sel], 15)
+    taken = whole[sel]
+    for name in ("centres", "rows", "gram"):
+        np.testing.assert_array_equal(getattr(taken, name), getattr(part, name))
+    start = pts + SHIFT + 0.3
+    given = refine(im1, im2, pts, start, sel, IntensityRefinement(), whole)
+    read = refine(im1, im2, pts, start, sel, IntensityRefinement())
+    for a, b in zip(vars(given).values(), vars(read).values(), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_method_reads_a_stereo_template_once_for_the_next_temporal_step(
+    pair: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A stereo solve's template (this frame's left image at its features) is the next frame's temporal
+    one: the method reads it once, and solves as it would reading it each time."""
+    import nsflow_ros.core.methods as methods_mod
+
+    g1, g2, pts = pair
+    reads = []
+    monkeypatch.setattr(methods_mod, "step_template",
+                        lambda *a: reads.append(len(a[1])) or step_template(*a))
+    method = make_method("nsflow")
+    left, right, nxt = (method.prepare(g, g) for g in (g1, _u8(_shifted(_texture(), -SHIFT)), g2))
+    stereo = method.solve_with_covariance(SolveKind.STEREO, left, right, pts)
+    temporal = method.solve_with_covariance(SolveKind.FORWARD, left, nxt, pts.copy())
+    assert reads == [len(pts)]
+    want_stereo = make_method("nsflow").solve_with_covariance(SolveKind.STEREO, left, right, pts)
+    want_temporal = make_method("nsflow").solve_with_covariance(SolveKind.FORWARD, left, nxt, pts)
+    for got, want in ((stereo, want_stereo), (temporal, want_temporal)):
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+    # another image at the same points is read anew
+    method.solve_with_covariance(SolveKind.FORWARD, nxt, left, pts)
+    assert reads == [len(pts), len(pts), len(pts), len(pts)]
