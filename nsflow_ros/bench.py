@@ -227,7 +227,7 @@ def run_benchmark(
     frames: int = 60,
     points: int = 150,
     model: str | None = None,
-    threads: int = 1,
+    threads: int | None = None,
     progress: bool = False,
     providers: str = "cpu",
 ) -> dict[str, Any]:
@@ -238,10 +238,11 @@ def run_benchmark(
         points: GFTT corners per frame.
         model: ONNX encoder path; None = the shipped model, or the paper architecture with random weights
             when no model is shipped yet (the result says which).
-        threads: encoder threads and OpenCV threads.
+        threads: encoder threads and OpenCV threads; None = the node's ``num_threads`` default.
         progress: print a line per stage to stderr.
         providers: onnxruntime execution providers of the encoder, best first.
     """
+    threads = threads or int(setting("num_threads").default)
     cv2.setNumThreads(threads)
     seq = make_frames(frames)
     tmp = None
