@@ -248,11 +248,14 @@ def _scatter_maps(centers: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarra
     m = centers.shape[0]
     off = _window_offsets(size)
     c = centers.astype(np.float32)
-    mapx = np.empty((size, m, size), np.float32)
-    mapy = np.empty((size, m, size), np.float32)
-    np.add(c[None, :, 0, None], off[None, None, :], out=mapx)  # in place: no temporary to copy
-    np.add(c[None, :, 1, None], off[:, None, None], out=mapy)
-    return mapx.reshape(size, m * size), mapy.reshape(size, m * size)
+    mapx = np.empty((size, m * size), np.float32)
+    mapy = np.empty((size, m * size), np.float32)
+    # Every row of x is the first one, and y is a row offset plus the centres' y: contiguous rows, each
+    # written once (a broadcast into the (size, M, size) layout costs as much as the remap itself).
+    np.add(c[:, 0, None], off, out=mapx[0].reshape(m, size))
+    mapx[1:] = mapx[0]
+    np.add(off[:, None], c[:, 1].repeat(size), out=mapy)
+    return mapx, mapy
 
 
 def _sample_chunk(

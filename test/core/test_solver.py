@@ -293,6 +293,19 @@ def test_remap_sampler_is_exact_and_matches_numpy_fallback(channels):
     np.testing.assert_allclose(win, expect, atol=1e-5)
 
 
+@pytest.mark.parametrize("points", [0, 1, 5])
+def test_scatter_maps_lay_square_grids_side_by_side(points):
+    centers = np.random.default_rng(4).uniform(0, 30, (points, 2))
+    mapx, mapy = solver_mod._scatter_maps(centers, 5)
+    assert mapx.shape == mapy.shape == (5, points * 5) and mapx.dtype == mapy.dtype == np.float32
+    off = np.arange(-2, 3, dtype=np.float32)
+    c = centers.astype(np.float32)
+    for i in range(points):
+        grid = np.s_[:, 5 * i : 5 * i + 5]
+        np.testing.assert_array_equal(mapx[grid], np.broadcast_to(c[i, 0] + off, (5, 5)))
+        np.testing.assert_array_equal(mapy[grid], np.broadcast_to((c[i, 1] + off)[:, None], (5, 5)))
+
+
 @pytest.mark.parametrize("channels", [1, 4, 6])
 def test_patch_scharr_jacobian_equals_sampled_derivative_maps(channels):
     """J from the Scharr filter of a sampled patch = the Scharr maps sampled at x + u, wherever the window
