@@ -18,7 +18,7 @@ from __future__ import annotations
 import enum
 import functools
 from dataclasses import dataclass, field, fields, replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -464,95 +464,146 @@ def _normal_equations(
 
 
 _GAIN_LO, _GAIN_HI = 0.25, 4.0
-_PER_CHANNEL = "imjk,imjk->mk"
+
+# The gain's equations from products of rows. Per point and channel, the candidate's rows P = [w, Jx, Jy]
+# (its window and unnormalised Scharr derivatives) are multiplied once against themselves and against the
+# template's rows [1, t, Jxt, Jyt] (Jt zero for the forward J): Z = P [P; T]^T, 3 x 7. With f = g w - t and
+# J = g Jp + Jt, each raw sum the step needs is a polynomial of degree 2 in the gain g of Z's entries and of
+# the template's own products, so an iteration costs two small matrix products and a few operations per
+# point, whatever the window: a handful of points costs NumPy's per-call price, which is what it saves.
+_W, _JX, _JY, _ONE, _T, _JXT, _JYT = range(7)  # Z's columns; its rows are the first three
+# The raw sums, in order: sum J (x, y), sum J w (x, y), sum J J (xx, xy, yy), sum J f (x, y), sum f f, sum f.
+_SX, _QX, _HXX, _GX, _FF, _SF, _NSUMS = 0, 2, 4, 7, 9, 10, 11
 
 
-def _gain_template_sums(template: list[np.ndarray]) -> list[np.ndarray]:
-    """Per chunk, minus the template's window sums as (1, M, K): the first row of :func:`_template_sums`'s
-    layout, all the gain's equations need of the template's sums, taken once per level."""
-    return [-_window_sums(t)[None] for t in template]
+def _gain_coefficients() -> np.ndarray:
+    """(21, 3 * 11): Z's entries (row-major) to each raw sum's coefficients of g^0, g^1 and g^2."""
+    coef = np.zeros((3, 7, 3, _NSUMS))  # Z row, Z column, power of g, sum
+    terms = [  # (sum, power of g, Z row, Z column, factor)
+        (_SX, 1, 1, _ONE, 1), (_SX + 1, 1, 2, _ONE, 1),
+        (_QX, 1, 0, _JX, 1), (_QX, 0, 0, _JXT, 1), (_QX + 1, 1, 0, _JY, 1), (_QX + 1, 0, 0, _JYT, 1),
+        (_HXX, 2, 1, _JX, 1), (_HXX, 1, 1, _JXT, 2),
+        (_HXX + 1, 2, 1, _JY, 1), (_HXX + 1, 1, 1, _JYT, 1), (_HXX + 1, 1, 2, _JXT, 1),
+        (_HXX + 2, 2, 2, _JY, 1), (_HXX + 2, 1, 2, _JYT, 2),
+        (_GX, 2, 1, _W, 1), (_GX, 1, 1, _T, -1), (_GX, 1, 0, _JXT, 1),
+        (_GX + 1, 2, 2, _W, 1), (_GX + 1, 1, 2, _T, -1), (_GX + 1, 1, 0, _JYT, 1),
+        (_FF, 2, 0, _W, 1), (_FF, 1, 0, _T, -2),
+        (_SF, 1, 0, _ONE, 1),
+    ]
+    for total, power, row, col, factor in terms:
+        coef[row, col, power, total] += factor
+    coef = coef.reshape(21, 3 * _NSUMS)
+    coef.flags.writeable = False
+    return coef
+
+
+_GAIN_COEF = _gain_coefficients()
+# The sums' pairs (x, x), (x, y), (y, y) of the Gauss-Newton matrix.
+_PAIR_A, _PAIR_B = [0, 0, 1], [0, 1, 1]
+
+
+@dataclass(frozen=True)
+class _GainTemplate:
+    """One chunk's template side of :func:`_gain_equations`, read once per level.
+
+    Attributes:
+        rows: (M, K, 4, n) float64 [1, t, Jxt, Jyt] per point and channel (n = window^2).
+        const: (M, K, 11) the template's own part (g^0) of each raw sum.
+        total: (M, K) sum t.
+        scale: J's normalisation: 1/64 for ESM (the mean of two Scharr derivatives), 1/32 forward.
+    """
+
+    rows: np.ndarray
+    const: np.ndarray
+    total: np.ndarray
+    scale: float
+
+    def take(self, keep: np.ndarray) -> _GainTemplate:
+        """The template of the points where ``keep`` is True."""
+        rows, const, total = (np.compress(keep, a, axis=0) for a in (self.rows, self.const, self.total))
+        return _GainTemplate(rows, const, total, self.scale)
+
+    def contrast(self, window: int) -> np.ndarray:
+        """Per point, the template's squared deviation from its window mean, summed over channels."""
+        return (self.const[..., _FF] - self.total * self.total / (window * window)).sum(axis=1)
+
+
+def _gain_templates(
+    template: list[np.ndarray], template_patch: list[np.ndarray] | None
+) -> list[_GainTemplate]:
+    """Per chunk, the :class:`_GainTemplate` of the solver's templates (and ESM patches)."""
+    out = []
+    for c, t in enumerate(template):
+        win, m, _, k = t.shape
+        rows = np.zeros((m, k, 4, win, win))
+        rows[:, :, 0] = 1.0
+        rows[:, :, 1] = t.transpose(1, 3, 0, 2)
+        if template_patch is not None:
+            jx, jy = _scharr_xy(template_patch[c])
+            rows[:, :, 2] = jx.transpose(1, 3, 0, 2)
+            rows[:, :, 3] = jy.transpose(1, 3, 0, 2)
+        rows = rows.reshape(m, k, 4, win * win)
+        tt = rows @ rows.swapaxes(-1, -2)  # [1, t, Jxt, Jyt] against each other
+        const = np.zeros((m, k, _NSUMS))
+        const[..., _SX : _SX + 2] = tt[..., 0, 2:]  # sum Jt
+        const[..., _HXX : _HXX + 3] = tt[..., 2:, 2:].reshape(m, k, 4)[..., [0, 1, 3]]  # sum Jt Jt
+        const[..., _GX : _GX + 2] = -tt[..., 1, 2:]  # minus sum Jt t
+        const[..., _FF], const[..., _SF] = tt[..., 1, 1], -tt[..., 0, 1]
+        scale = 1 / 64 if template_patch is not None else 1 / 32
+        out.append(_GainTemplate(rows, const, tt[..., 0, 1], scale))
+    return out
 
 
 def _gain_equations(
     level: tuple[np.ndarray, ...],
     centers: np.ndarray,
-    template: list[np.ndarray],
+    template: list[_GainTemplate],
     window: int,
     below: np.ndarray | None = None,
-    template_patch: list[np.ndarray] | None = None,
-    template_sums: list[np.ndarray] | None = None,
 ) -> np.ndarray:
-    """:func:`_normal_equations` (same arguments; ``template_sums`` per chunk only its first row, minus the
-    template's window sum, computed here when None) for the bias
-    and gain residual r = g (w - mean w) - (t - mean t) per channel, g the least-squares gain of the
-    candidate window w onto the template t (clipped).
+    """:func:`_normal_equations` (``template`` from :func:`_gain_templates`) for the bias and gain residual
+    r = g (w - mean w) - (t - mean t) per channel, g the least-squares gain of the candidate window w onto
+    the template t (clipped).
 
     The cost is then min over g of the zero-mean cost, so its gradient is g J_w^T r at the fitted g
     (envelope theorem); where g is not clipped the Gauss-Newton matrix takes J's part along the centred
     window off (Kaufman's variable projection), since the gain re-fits as the window moves. ESM's J is the
-    mean of g J_w and the template's J, the Scharr of g w + the template patch, halved. Every term is taken
-    from raw window sums (sum (a - mean a) b = sum ab - sum a sum b / n): no centred copy is formed, which
-    is most of the work per iteration.
+    mean of g J_w and the template's J. Every centred sum is taken from raw sums in float64
+    (sum (a - mean a)(b - mean b) = sum ab - sum a sum b / n), which the float32 samples' products fit
+    exactly, so no centred copy is formed. With ``below``, J^T J and J^T f are left 0 where S >= below.
     """
     m = centers.shape[0]
     n = float(window * window)
-    patches = _sample_level(level, centers, window + 2)
-    sums = np.zeros((m, 6))
-    parts = []
-    if template_sums is None:
-        template_sums = _gain_template_sums(template)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for p, t, ts in zip(patches, template, template_sums, strict=True):
-            inner = p[1:-1, :, 1:-1]
-            s1, st = _window_sums(inner).astype(np.float64), -ts[0].astype(np.float64)
-            spt = np.einsum(_PER_CHANNEL, inner, t) - s1 * st / n  # sum (w - mean w)(t - mean t)
-            sww = np.einsum(_PER_CHANNEL, inner, inner) - s1 * s1 / n
-            g = spt / sww
-            free = (g > _GAIN_LO) & (g < _GAIN_HI) & (sww > 0)
-            g = np.clip(np.where(np.isnan(g), 1.0, g), _GAIN_LO, _GAIN_HI)  # a flat window: 1
-            # The residual is formed once: f = g w - t is small where the windows match, so centring it
-            # by its sum (sum f = g sum w - sum t) loses nothing, where expanding the square would.
-            f = inner * g.astype(np.float32)[None, :, None, :] - t
-            sf = g * s1 - st
-            sums[:, 0] += 0.5 * (np.einsum(_PER_CHANNEL, f, f) - sf * sf / n).sum(axis=1)
-            parts.append((p, f, g, s1, sf, np.where(free, 1.0 / sww, 0.0)))
-    rows = None if below is None else np.flatnonzero(sums[:, 0] < below)
-    if rows is not None and rows.size == 0:
-        return sums
-    part = rows is not None and rows.size < m
-    terms = np.zeros((rows.size if part else m, 5))
-    for c, (p, f, g, s1, sf, proj) in enumerate(parts):
-        if part:
-            p, f = np.take(p, rows, axis=1), np.take(f, rows, axis=1)
-            g, s1, sf, proj = g[rows], s1[rows], sf[rows], proj[rows]
-        if template_patch is not None:  # ESM: J = Scharr(g p + template patch) / 64
-            tp = np.take(template_patch[c], rows, axis=1) if part else template_patch[c]
-            q = p * g.astype(np.float32)[None, :, None, :] + tp
-            scale = np.full_like(g, 1 / 64)
-        else:  # forward: J = g Scharr(p) / 32
-            q, scale = p, g / 32
-        jx, jy = _scharr_xy(q)
-        inner = p[1:-1, :, 1:-1]
-        sx, sy = (_window_sums(j).astype(np.float64) for j in (jx, jy))
-        # Raw sums of the unnormalised derivatives; centring and the scale are applied per channel below.
-        qx = np.einsum(_PER_CHANNEL, jx, inner) - s1 * sx / n  # sum J (w - mean w)
-        qy = np.einsum(_PER_CHANNEL, jy, inner) - s1 * sy / n
-        hxx = np.einsum(_PER_CHANNEL, jx, jx) - sx * sx / n - proj * qx * qx
-        hxy = np.einsum(_PER_CHANNEL, jx, jy) - sx * sy / n - proj * qx * qy
-        hyy = np.einsum(_PER_CHANNEL, jy, jy) - sy * sy / n - proj * qy * qy
-        gx = np.einsum(_PER_CHANNEL, jx, f) - sx * sf / n  # sum J r, r = f - mean f
-        gy = np.einsum(_PER_CHANNEL, jy, f) - sy * sf / n
-        s2 = scale * scale
-        terms[:, 0] += (s2 * hxx).sum(axis=1)
-        terms[:, 1] += (s2 * hxy).sum(axis=1)
-        terms[:, 2] += (s2 * hyy).sum(axis=1)
-        terms[:, 3] += (scale * gx).sum(axis=1)
-        terms[:, 4] += (scale * gy).sum(axis=1)
-    if part:
-        sums[rows, 1:] = terms
-    else:
-        sums[:, 1:] = terms
-    return sums
+    out = np.zeros((m, 6))
+    for p, tm in zip(_sample_level(level, centers, window + 2), template, strict=True):
+        k = p.shape[3]
+        jx, jy = _scharr_xy(p)
+        rows = np.empty((m, k, 3, window, window))
+        for r, a in enumerate((p[1:-1, :, 1:-1], jx, jy)):
+            rows[:, :, r] = a.transpose(1, 3, 0, 2)
+        rows = rows.reshape(m, k, 3, -1)
+        z = np.concatenate((rows @ rows.swapaxes(-1, -2), rows @ tm.rows.swapaxes(-1, -2)), axis=-1)
+        s1 = z[..., 0, _ONE]
+        sww = z[..., 0, _W] - s1 * s1 / n
+        # g = sum (w - mean w)(t - mean t) / sum (w - mean w)^2; a flat window (0 / 0): 1
+        g = np.divide(z[..., 0, _T] - s1 * tm.total / n, sww, out=np.ones_like(sww), where=sww != 0)
+        free = (g > _GAIN_LO) & (g < _GAIN_HI) & (sww > 0)
+        g = np.minimum(np.maximum(g, _GAIN_LO), _GAIN_HI)
+        proj = np.divide(1.0, sww, out=np.zeros_like(sww), where=free)
+        poly = (z.reshape(m, k, 21) @ _GAIN_COEF).reshape(m, k, 3, _NSUMS)
+        gc = g[..., None]
+        raw = tm.const + poly[..., 0, :] + gc * (poly[..., 1, :] + gc * poly[..., 2, :])
+        sj, sf = raw[..., _SX : _SX + 2], raw[..., _SF : _SF + 1]
+        qj = raw[..., _QX : _QX + 2] - s1[..., None] * sj / n  # sum J (w - mean w)
+        hess = (raw[..., _HXX : _HXX + 3] - sj[..., _PAIR_A] * sj[..., _PAIR_B] / n
+                - proj[..., None] * qj[..., _PAIR_A] * qj[..., _PAIR_B])
+        grad = raw[..., _GX : _GX + 2] - sj * sf / n  # sum J r, r = f - mean f
+        out[:, 0] += 0.5 * (raw[..., _FF] - sf[..., 0] * sf[..., 0] / n).sum(axis=1)
+        out[:, 1:4] += hess.sum(axis=1) * (tm.scale * tm.scale)
+        out[:, 4:] += grad.sum(axis=1) * tm.scale
+    if below is not None:
+        out[~(out[:, 0] < below), 1:] = 0.0
+    return out
 
 
 # Columns of the per-point LM state: flow u, cost S, J^T J (h11, h12, h22), J^T f (g1, g2).
@@ -575,27 +626,42 @@ def _solve_level(
     win = cfg.window_at(level_index)
     # The Jacobian kind is settled here, once per level: ESM carries the template's patches.
     template, tpatch = _templates(level1, pts, win, cfg.jacobian)
-    gain = cfg.gain_at(level_index)
-    if gain:
-        tsums = _gain_template_sums(template)
+    contrast = np.zeros(n)
+    # The residual is settled here too: the template side each kind of equations reads, how to evaluate
+    # them at candidates and how to keep a subset of points.
+    if cfg.gain_at(level_index):
+        tmpl: Any = _gain_templates(template, tpatch)
+        if level_index == 0:  # only level 0's contrast is reported
+            contrast = sum(t.contrast(win) for t in tmpl)
+
+        def evaluate(centers: np.ndarray, t: Any, below: np.ndarray | None) -> np.ndarray:
+            return _gain_equations(level2, centers, t, win, below)
+
+        def take(t: Any, keep: np.ndarray) -> Any:
+            return [c.take(keep) for c in t]
     else:
         tsums = _template_sums(template, tpatch) if cfg.zero_mean else None
-    contrast = np.zeros(n)
-    if level_index == 0:  # only level 0's is reported
-        # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count.
-        for c, t in enumerate(template):
-            sums = -tsums[c][0] if tsums is not None else _window_sums(t)
-            contrast += np.einsum(_SUM, t, t) - np.einsum("mk,mk->m", sums, sums) / (win * win)
-    equations = _gain_equations if gain else _normal_equations
+        tmpl = (template, tpatch, tsums)
+        if level_index == 0:
+            # Per channel, sum (t - mean)^2 = sum t^2 - (sum t)^2 / count.
+            for c, t in enumerate(template):
+                sums = -tsums[c][0] if tsums is not None else _window_sums(t)
+                contrast += np.einsum(_SUM, t, t) - np.einsum("mk,mk->m", sums, sums) / (win * win)
+
+        def evaluate(centers: np.ndarray, t: Any, below: np.ndarray | None) -> np.ndarray:
+            return _normal_equations(level2, centers, t[0], win, below, t[1], t[2])
+
+        def take(t: Any, keep: np.ndarray) -> Any:
+            return tuple(None if part is None else _take(part, keep) for part in t)
     state = np.empty((n, 8))
     state[:, _U] = u
-    state[:, _TERMS] = equations(level2, pts + u, template, win, None, tpatch, tsums)
+    state[:, _TERMS] = evaluate(pts + u, tmpl, None)
     lam = np.full(n, cfg.lambda_init)
     if cfg.lambda_scale > 0:
         lam = np.maximum(lam, cfg.lambda_scale * np.maximum(state[:, 3], state[:, 5]))
     # Working copies restricted to the still-active points; finished points are written back.
     idx = np.arange(n)
-    p_a, s_a, lam_a, t_a, tp_a, ts_a = pts, state.copy(), lam.copy(), template, tpatch, tsums
+    p_a, s_a, lam_a, t_a = pts, state.copy(), lam.copy(), tmpl
     scale = 2.0**level_index
     passes = 0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -622,7 +688,7 @@ def _solve_level(
             cand = np.empty_like(s_a)
             np.add(s_a[:, 0], du0, out=cand[:, 0])
             np.add(s_a[:, 1], du1, out=cand[:, 1])
-            cand[:, _TERMS] = equations(level2, p_a + cand[:, _U], t_a, win, below, tp_a, ts_a)
+            cand[:, _TERMS] = evaluate(p_a + cand[:, _U], t_a, below)
             accept = cand[:, _COST] < s_a[:, _COST]
             s_a = np.where(accept[:, None], cand, s_a)
             lam_a = lam_a * np.where(accept, 1.0 / cfg.nu, cfg.nu)
@@ -640,11 +706,7 @@ def _solve_level(
                 state[done] = s_a[stop]
                 iterations[done] += passes
                 keep = ~stop
-                idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], _take(t_a, keep)
-                if tp_a is not None:
-                    tp_a = _take(tp_a, keep)
-                if ts_a is not None:
-                    ts_a = _take(ts_a, keep)
+                idx, p_a, s_a, lam_a, t_a = idx[keep], p_a[keep], s_a[keep], lam_a[keep], take(t_a, keep)
     state[idx] = s_a
     iterations[idx] += passes
     return state, contrast

@@ -587,9 +587,10 @@ def test_gain_normal_equations(jacobian):
     centers = rng.uniform(8, 30, (6, 2))
     shifted = centers + np.array([0.6, -0.4])
     template, tpatch = solver_mod._templates(level, centers, 7, jacobian)
-    got = solver_mod._gain_equations(level, shifted, template, 7, None, tpatch)
+    gain_template = solver_mod._gain_templates(template, tpatch)
+    got = solver_mod._gain_equations(level, shifted, gain_template, 7)
     below = np.where(np.arange(6) % 2 == 0, got[:, 0] + 1.0, got[:, 0] - 1e-9)
-    part = solver_mod._gain_equations(level, shifted, template, 7, below, tpatch)
+    part = solver_mod._gain_equations(level, shifted, gain_template, 7, below)
     np.testing.assert_allclose(part[::2], got[::2], rtol=1e-6)
     assert not part[1::2, 1:].any()
 
