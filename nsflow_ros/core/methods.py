@@ -13,6 +13,7 @@ tracker, the evaluation and the benchmarks run the same code with the same setti
 from __future__ import annotations
 
 import enum
+import functools
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -367,6 +368,15 @@ def _fill_prior(pts: np.ndarray, prior: np.ndarray, known: np.ndarray) -> np.nda
     return flow
 
 
+@functools.lru_cache(maxsize=32)
+def _solve_config(
+    lm: LMConfig, levels: int, jacobian: Jacobian, eps: float, coarse_window: int | None
+) -> LMConfig:
+    """``lm`` with one solve's levels, Jacobian, tolerance and coarse window, made once per combination (a
+    frame runs a few solves, each of which would otherwise validate a new config)."""
+    return replace(lm, levels=levels, jacobian=jacobian, eps=eps, coarse_window=coarse_window)
+
+
 def pyramid_smoothing(encoder: Encoder) -> Smoothing | None:
     """The coarse part of ``encoder``'s declared smoothing, which an LM method applies to its pyramid."""
     coarse = encoder.smoothing.coarse
@@ -449,8 +459,9 @@ class LMMethod(TrackingMethod):
     ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
         """:meth:`track_pair` with the solver's full result; the residual test needs level 0's contrast,
         so a solve that ends above it (``finest_level``) skips it."""
-        cfg = replace(self.lm, levels=levels or self.lm.levels, jacobian=jacobian or self.lm.jacobian,
-                      eps=eps or self.lm.eps, coarse_window=self.lm.coarse_window if coarse_window else None)
+        lm = self.lm
+        cfg = _solve_config(lm, levels or lm.levels, jacobian or lm.jacobian, eps or lm.eps,
+                            lm.coarse_window if coarse_window else None)
         flow0 = None if start is None else start - pts
         res = self.track_pair_result(frame1, frame2, pts, flow0, cfg, first_level=first_level,
                                      finest_level=finest_level)

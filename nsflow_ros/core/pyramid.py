@@ -13,6 +13,7 @@ solver's basin on a learned map, whose narrow autocorrelation leaves it a narrow
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -169,8 +170,16 @@ def _check_map(desc: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(desc, dtype=np.float32)
 
 
-def _smooth(level: np.ndarray, sigma: float) -> np.ndarray:
+@functools.lru_cache(maxsize=8)
+def _kernel(sigma: float) -> np.ndarray:
+    """:func:`gaussian_kernel`, made once per sigma (every frame smooths with the same few)."""
     k = gaussian_kernel(sigma)
+    k.flags.writeable = False
+    return k
+
+
+def _smooth(level: np.ndarray, sigma: float) -> np.ndarray:
+    k = _kernel(sigma)
     out = cv2.sepFilter2D(level, cv2.CV_32F, k, k, borderType=_BORDER)
     return out[..., None] if out.ndim == 2 else out
 
