@@ -34,6 +34,7 @@ from typing import Any, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from nsflow_ros.core.bands import BandLayout, bands_file
 from nsflow_ros.core.errors import CoreError, EncoderError
 from nsflow_ros.core.pyramid import MAX_CHUNK, Smoothing, gaussian_kernel
 
@@ -314,6 +315,10 @@ class OnnxEncoder:
                 self._sessions += [self._new_session(1) for _ in range(self.threads - 1)]
                 # the calling thread encodes its own share of strips; the pool runs the others
                 self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="nsflow-encoder")
+        # A one-channel model encoding whole frames on the CPU runs in its band layout where one ships.
+        self._bands: BandLayout | None = None
+        if self.provider == CPU_PROVIDER and self.halo is None and self.input_channels == 1:
+            self._bands = self._load_bands()
 
     def _start_session(self, usable: Sequence[str]) -> Any:
         """The first session: one CPU thread on the CPU, else the best usable provider with ``threads``
@@ -331,20 +336,53 @@ class OnnxEncoder:
             return self._new_session(1)
         return session
 
-    def _new_session(self, threads: int) -> Any:
+    def _new_session(self, threads: int, path: Path | None = None, blocked: bool = False) -> Any:
+        """An onnxruntime session of ``path`` (None = the model) with ``threads`` intra-op threads.
+
+        ``blocked`` allows onnxruntime's blocked-channel (NCHWc) rewrite: it pays on the band layout's
+        many channels, and costs more than it saves on the one-channel original.
+        """
         import onnxruntime as ort  # heavy import; only when an ONNX model is used
 
+        path = path or self.path
         opts = ort.SessionOptions()
         # Busy-waiting workers would compete with the solver for the robot's few cores.
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        # EXTENDED, not ALL: ALL's NCHWc layout rewrite costs more than it saves on so small a net.
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+        level = ort.GraphOptimizationLevel
+        opts.graph_optimization_level = level.ORT_ENABLE_ALL if blocked else level.ORT_ENABLE_EXTENDED
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         try:
-            return ort.InferenceSession(str(self.path), sess_options=opts, providers=self._session_providers)
+            return ort.InferenceSession(str(path), sess_options=opts, providers=self._session_providers)
         except Exception as err:  # onnxruntime raises several unrelated types for a bad file
-            raise EncoderError(f"cannot load encoder model {self.path}: {err}") from err
+            raise EncoderError(f"cannot load encoder model {path}: {err}") from err
+
+    def _load_bands(self) -> BandLayout | None:
+        """The model's band layout (:mod:`~nsflow_ros.core.bands`) when its sibling file exists and
+        reproduces the model on a probe image; None otherwise (a mismatch is logged)."""
+        path = bands_file(self.path)
+        if not path.is_file():
+            return None
+        try:
+            layout = BandLayout(self._new_session(self.threads, path, blocked=True), self.channels)
+        except EncoderError as err:
+            _log.warning("ignoring the band layout %s: %s", path, err)
+            return None
+        # A height that is no multiple of the bands, so that the last band's border is probed too.
+        probe = np.random.default_rng(0).integers(0, 256, (4 * layout.bands + 5, 24), dtype=np.uint8)
+        x = probe[None, None].astype(np.float32) * np.float32(1.0 / 255.0)
+        if not np.allclose(layout(probe), self._run(x), rtol=1e-5, atol=1e-5):
+            _log.warning("ignoring the band layout %s: it does not reproduce %s", path, self.path.name)
+            return None
+        return layout
+
+    @property
+    def layout(self) -> str:
+        """How frames are encoded: "bands" (:mod:`~nsflow_ros.core.bands`), "strips" (one session per
+        thread) or "whole frame"."""
+        if self._bands is not None:
+            return "bands"
+        return "strips" if self.tiled else "whole frame"
 
     def _check_signature(self) -> None:
         session = self._sessions[0]
@@ -477,6 +515,12 @@ class OnnxEncoder:
         Mono input to an RGB model is replicated to three channels; colour input to a gray model is grayed.
         """
         image = _check_image(image)
+        if self._bands is not None:
+            gray = to_gray(image)
+            if self._bands.fits(gray.shape[0]):
+                out = _output(*gray.shape, self.channels)
+                _merge_into(self._planes(self._bands(gray), slice(None)), out)
+                return out[..., : self.channels]
         if self.input_channels == 1:
             x = to_gray(image)[None, None].astype(np.float32)
         elif image.ndim == 2:
