@@ -498,6 +498,24 @@ def _gain_coefficients() -> np.ndarray:
 
 
 _GAIN_COEF = _gain_coefficients()
+
+
+def _template_part() -> np.ndarray:
+    """(16, 11): the template's products [1, t, Jxt, Jyt] x [1, t, Jxt, Jyt] (row-major) to each raw sum's
+    part that needs no candidate (its g^0 coefficient)."""
+    part = np.zeros((4, 4, _NSUMS))
+    terms = [  # (sum, row, column, factor): rows and columns 1, t, Jxt, Jyt
+        (_SX, 0, 2, 1), (_SX + 1, 0, 3, 1), (_HXX, 2, 2, 1), (_HXX + 1, 2, 3, 1), (_HXX + 2, 3, 3, 1),
+        (_GX, 1, 2, -1), (_GX + 1, 1, 3, -1), (_FF, 1, 1, 1), (_SF, 0, 1, -1),
+    ]
+    for total, row, col, factor in terms:
+        part[row, col, total] = factor
+    part = part.reshape(16, _NSUMS)
+    part.flags.writeable = False
+    return part
+
+
+_TEMPLATE_PART = _template_part()
 # The sums' pairs (x, x), (x, y), (y, y) of the Gauss-Newton matrix.
 _PAIR_A, _PAIR_B = [0, 0, 1], [0, 1, 1]
 
@@ -517,6 +535,11 @@ class _GainTemplate:
     const: np.ndarray
     total: np.ndarray
     scale: float
+
+    @functools.cached_property
+    def factors(self) -> np.ndarray:
+        """What the channel sums of [2 S, J^T J (3), J^T f (2)] are multiplied by: 1/2, J's scale^2, J's."""
+        return np.array([0.5] + [self.scale * self.scale] * 3 + [self.scale] * 2)
 
     def take(self, keep: np.ndarray) -> _GainTemplate:
         """The template of the points where ``keep`` is True."""
@@ -544,11 +567,7 @@ def _gain_templates(
             rows[:, :, 3] = jy.transpose(1, 3, 0, 2)
         rows = rows.reshape(m, k, 4, win * win)
         tt = rows @ rows.swapaxes(-1, -2)  # [1, t, Jxt, Jyt] against each other
-        const = np.zeros((m, k, _NSUMS))
-        const[..., _SX : _SX + 2] = tt[..., 0, 2:]  # sum Jt
-        const[..., _HXX : _HXX + 3] = tt[..., 2:, 2:].reshape(m, k, 4)[..., [0, 1, 3]]  # sum Jt Jt
-        const[..., _GX : _GX + 2] = -tt[..., 1, 2:]  # minus sum Jt t
-        const[..., _FF], const[..., _SF] = tt[..., 1, 1], -tt[..., 0, 1]
+        const = tt.reshape(m, k, 16) @ _TEMPLATE_PART
         scale = 1 / 64 if template_patch is not None else 1 / 32
         out.append(_GainTemplate(rows, const, tt[..., 0, 1], scale))
     return out
@@ -598,9 +617,8 @@ def _gain_equations(
         hess = (raw[..., _HXX : _HXX + 3] - sj[..., _PAIR_A] * sj[..., _PAIR_B] / n
                 - proj[..., None] * qj[..., _PAIR_A] * qj[..., _PAIR_B])
         grad = raw[..., _GX : _GX + 2] - sj * sf / n  # sum J r, r = f - mean f
-        out[:, 0] += 0.5 * (raw[..., _FF] - sf[..., 0] * sf[..., 0] / n).sum(axis=1)
-        out[:, 1:4] += hess.sum(axis=1) * (tm.scale * tm.scale)
-        out[:, 4:] += grad.sum(axis=1) * tm.scale
+        cost = raw[..., _FF : _FF + 1] - sf * sf / n  # 2 S
+        out += np.concatenate((cost, hess, grad), axis=2).sum(axis=1) * tm.factors
     if below is not None:
         out[~(out[:, 0] < below), 1:] = 0.0
     return out
@@ -841,17 +859,13 @@ def _valid(
 ) -> np.ndarray:
     h, w = shape
     r = cfg.window // 2 if cfg.margin is None else cfg.margin
-
-    def inside(p: np.ndarray) -> np.ndarray:
-        return (p[:, 0] >= r) & (p[:, 0] <= w - 1 - r) & (p[:, 1] >= r) & (p[:, 1] <= h - 1 - r)
-
-    new = pts + u
-    finite = np.isfinite(new).all(axis=1)
+    # Both positions inside the margin; a NaN or infinite one fails its comparisons.
+    both = np.concatenate((pts, pts + u), axis=1)
+    ok = ((both >= r) & (both <= np.array([w - 1 - r, h - 1 - r] * 2))).all(axis=1)
     if hess is None:  # no J^T J to test
-        return finite & inside(pts) & inside(np.where(finite[:, None], new, -1e9))
+        return ok
     # Smallest eigenvalue of the symmetric 2x2 J^T J, per window element.
     tr = hess[:, 0] + hess[:, 2]
     diff = hess[:, 0] - hess[:, 2]
     min_eig = 0.5 * (tr - np.sqrt(diff * diff + 4.0 * hess[:, 1] ** 2))
-    textured = min_eig / (cfg.window**2 * channels) >= cfg.min_eigen
-    return finite & inside(pts) & inside(np.where(finite[:, None], new, -1e9)) & textured
+    return ok & (min_eig / (cfg.window**2 * channels) >= cfg.min_eigen)
