@@ -272,6 +272,7 @@ def run_benchmark(
             "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "threads": threads},
             "setup": {"frames": frames, "points": points, "size": [WIDTH, HEIGHT], "model": model_desc,
                       "descriptor_channels": encoder.channels, "encoder_provider": encoder.provider,
+                      "encoder_layout": encoder.layout,
                       "solver": classical.spec.lm.as_dict(), "interleaved": True},  # type: ignore[union-attr]
         }
         # Frame by frame, every method in turn: on a shared machine the load drifts over seconds, and
@@ -291,10 +292,14 @@ def run_benchmark(
             for name, method in methods.items()
             if isinstance(method, _Pipeline)
         }
-        for name, size in (("encoder_320x240", (320, 240)), ("encoder_752x480", (WIDTH, HEIGHT))):
+        sizes = [("encoder_320x240", encoder, (320, 240)), ("encoder_752x480", encoder, (WIDTH, HEIGHT))]
+        if encoder.layout == "bands":  # the model's own graph beside its band layout, in the same run
+            whole = load_encoder(encoder.path, threads=threads, providers=providers, bands=False)
+            sizes.append(("encoder_752x480_whole_frame", whole, (WIDTH, HEIGHT)))
+        for name, enc, size in sizes:
             if progress:
                 print(f"[bench] {name} ...", file=sys.stderr, flush=True)
-            out[name] = time_encoder(encoder, size, 30)
+            out[name] = time_encoder(enc, size, 30)
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -306,6 +311,14 @@ def run_benchmark(
     return out
 
 
+# The encoder-alone timings: the encoder as the tracker runs it, and on a band layout's model its own graph.
+_ENCODER_ROWS = (
+    ("encoder_320x240", "encoder alone 320x240"),
+    ("encoder_752x480", "encoder alone 752x480"),
+    ("encoder_752x480_whole_frame", "encoder alone 752x480, the model's own graph"),
+)
+
+
 def format_table(res: dict[str, Any]) -> str:
     """Human-readable summary of :func:`run_benchmark`'s figures."""
     s = res["setup"]
@@ -314,7 +327,8 @@ def format_table(res: dict[str, Any]) -> str:
         f"{s['points']} GFTT points, "
         f"{res['machine']['cpu_count']} cores, {res['machine']['threads']} threads, methods interleaved"
         + (", large buffers kept on the heap" if res["machine"].get("keep_large_buffers") else ""),
-        f"encoder: {s['model']} (d={s['descriptor_channels']}) on {s.get('encoder_provider', 'the CPU')}",
+        f"encoder: {s['model']} (d={s['descriptor_channels']}) on {s.get('encoder_provider', 'the CPU')}"
+        f" ({s.get('encoder_layout', 'whole frame')})",
         "",
         f"{'stage':34s} {'median ms':>10s} {'p90 ms':>10s}",
     ]
@@ -331,8 +345,9 @@ def format_table(res: dict[str, Any]) -> str:
     row("opencv KLT 21x21 x4 levels", res["opencv_klt"]["klt"])
     row("opencv GFTT", res["opencv_klt"]["detection"])
     row("opencv total", res["opencv_klt"]["total"])
-    row("encoder alone 320x240", res["encoder_320x240"])
-    row("encoder alone 752x480", res["encoder_752x480"])
+    for name, label in _ENCODER_ROWS:
+        if name in res:
+            row(label, res[name])
     lines.append("")
     for key, val in res["ratios"].items():
         lines.append(f"ratio {key:30s} {val:6.2f}x")
@@ -490,7 +505,8 @@ def bench_tables(res: dict[str, Any]) -> list[dict[str, Any]]:
         tables.append(table("Whole tracker per frame", cols, rows[False], (
             f"{s['frames']} frames {s['size'][0]}x{s['size'][1]} of the sample sequence, perturbation "
             f"{s['perturb']}, methods interleaved frame by frame; encoder on {s['encoder_provider']} with "
-            f"{s['encoder_threads']} threads, OpenCV threads {s['opencv_threads']}. CPU ms: the process's "
+            f"{s['encoder_threads']} threads ({s.get('encoder_layout', 'whole frame')}), OpenCV threads "
+            f"{s['opencv_threads']}. CPU ms: the process's "
             "CPU time per frame over all its threads; carried: features kept from one frame to the next; err "
             "px, > 1 px: their median error against the exact flow, share over 1 px; stereo: right matches "
             "per left feature.")))
@@ -517,8 +533,7 @@ def bench_tables(res: dict[str, Any]) -> list[dict[str, Any]]:
         stages = [(f"{mode} {st}", res[mode][st]) for mode in ("nsflow", "classical") if mode in res
                   for st in ("encoder", "solver", "detection", "total")]
         stages += [("opencv KLT", res["opencv_klt"]["klt"]), ("opencv GFTT", res["opencv_klt"]["detection"]),
-                   ("encoder alone 320x240", res["encoder_320x240"]),
-                   ("encoder alone 752x480", res["encoder_752x480"])]
+                   *((label, res[name]) for name, label in _ENCODER_ROWS if name in res)]
         notes = "; ".join(" ".join(x.split()) for x in format_table(res).split("\n\n")[-1].splitlines())
         tables.append(table("Stages per frame (752x480, fresh GFTT points)", ["stage", "median ms", "p90 ms"],
                             [[n, f"{v['median_ms']:.2f}", f"{v['p90_ms']:.2f}"] for n, v in stages], notes))

@@ -253,6 +253,7 @@ def run_tracker_benchmark(
                                      "interleaved": True,
                                      "configs": {m: CONFIGS[m] for m in modes},
                                      "encoder_provider": _provider(runs),
+                                     "encoder_layout": _layout(runs),
                                      "encoder_threads": threads, "opencv_threads": used_cv}}
     out["ratios"], out["cpu_ratios"] = {}, {}
     for mode, by_method in runs.items():
@@ -280,6 +281,12 @@ def _provider(runs: dict[str, dict[str, _Run]]) -> str:
     return ", ".join(sorted(found)) or "none"
 
 
+def _layout(runs: dict[str, dict[str, _Run]]) -> str:
+    """How the learned encoders encode a frame (:attr:`~nsflow_ros.core.encoder.OnnxEncoder.layout`)."""
+    found = {getattr(r.tracker.encoder, "layout", None) for by in runs.values() for r in by.values()} - {None}
+    return ", ".join(sorted(found)) or "none"
+
+
 def format_tracker_table(res: dict[str, Any]) -> str:
     """The whole-tracker figures as a text table, one row per mode and method."""
     s = res["setup"]
@@ -288,7 +295,7 @@ def format_tracker_table(res: dict[str, Any]) -> str:
     lines = [
         f"whole tracker (VINS-style, shipped EuRoC configs, flow-back on), {s['frames']} frames "
         f"{s['size'][0]}x{s['size'][1]} of the sample sequence, methods interleaved; encoder on "
-        f"{s.get('encoder_provider', 'none')}, encoder threads "
+        f"{s.get('encoder_provider', 'none')} ({s.get('encoder_layout', 'whole frame')}), encoder threads "
         f"{'all cores' if threads is None else threads}, OpenCV threads {s.get('opencv_threads', '?')}",
         *(f"left out: {why}" for why in s.get("left_out", {}).values()),
         "",

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from onnx_models import conv_encoder
 
-from nsflow_ros.bench import _fit_pass_costs, main, run_benchmark, solver_cost_model
+from nsflow_ros.bench import _fit_pass_costs, format_table, main, run_benchmark, solver_cost_model
 from nsflow_ros.core import make_method
 from nsflow_ros.core.methods import DEPLOYED_LM
 from nsflow_ros.errors import NSFlowError
@@ -24,12 +24,20 @@ def test_benchmark_measures_every_stage_beside_opencv(tmp_path):
             assert 0 < fig["median_ms"] <= fig["p90_ms"]
     assert res["opencv_klt"]["klt"]["median_ms"] > 0
     assert res["classical"]["tracked_share"] > 0.5
+    assert res["setup"]["encoder_layout"] == "whole frame" and "encoder_752x480_whole_frame" not in res
     assert set(res["solver_cost_model"]) == {"nsflow", "classical"}
     assert set(res["ratios"]) == {
         "classical_solver_vs_klt",
         "nsflow_solver_vs_klt",
         "nsflow_total_vs_klt_total",
     }
+
+
+def test_a_band_layout_is_timed_beside_the_model_s_own_graph():
+    res = run_benchmark(frames=2, points=20, model="default", threads=1)
+    assert res["setup"]["encoder_layout"] == "bands"
+    assert res["encoder_752x480_whole_frame"]["median_ms"] > 0
+    assert "encoder alone 752x480, the model's own graph" in format_table(res)
 
 
 def test_cli_json_and_errors(tmp_path, capsys):

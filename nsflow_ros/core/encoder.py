@@ -273,6 +273,8 @@ class OnnxEncoder:
         smoothing: None = what the model's metadata declares; ``Smoothing()`` turns it off.
         providers: execution providers, best first (:meth:`ExecutionProviders.parse`); None = the CPU.
             ``provider`` is the one in use.
+        bands: run whole frames on the CPU in the model's band layout where one ships beside it
+            (:mod:`~nsflow_ros.core.bands`; the same output, in less time); False = the model's own graph.
 
     Raises:
         EncoderError: a missing or unloadable file, a wrong signature, malformed ``smoothing`` or
@@ -282,6 +284,7 @@ class OnnxEncoder:
     def __init__(
         self, path: str | os.PathLike[str], threads: int | None = None, tile_rows: int | None = None,
         smoothing: Smoothing | None = None, providers: ExecutionProviders | str | Sequence[str] | None = None,
+        bands: bool = True,
     ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
@@ -317,7 +320,7 @@ class OnnxEncoder:
                 self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="nsflow-encoder")
         # A one-channel model encoding whole frames on the CPU runs in its band layout where one ships.
         self._bands: BandLayout | None = None
-        if self.provider == CPU_PROVIDER and self.halo is None and self.input_channels == 1:
+        if bands and self.provider == CPU_PROVIDER and self.halo is None and self.input_channels == 1:
             self._bands = self._load_bands()
 
     def _start_session(self, usable: Sequence[str]) -> Any:
@@ -557,6 +560,7 @@ def encoder_provider(encoder: Encoder | None) -> str:
 def load_encoder(
     path: str | os.PathLike[str] | None = None, threads: int | None = None, tile_rows: int | None = None,
     smoothing: Smoothing | None = None, providers: ExecutionProviders | str | Sequence[str] | None = None,
+    bands: bool = True,
 ) -> OnnxEncoder:
     """Load an ONNX encoder (:class:`OnnxEncoder`): a file, or a shipped model by its name in
     :data:`SHIPPED_MODELS`; ``path=None`` means the default one.
@@ -566,7 +570,8 @@ def load_encoder(
             the installed providers when none of ``providers`` is.
     """
     return OnnxEncoder(
-        model_file(path), threads=threads, tile_rows=tile_rows, smoothing=smoothing, providers=providers
+        model_file(path), threads=threads, tile_rows=tile_rows, smoothing=smoothing, providers=providers,
+        bands=bands,
     )
 
 

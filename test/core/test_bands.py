@@ -59,8 +59,9 @@ def test_a_short_image_runs_whole(shipped, whole):
     np.testing.assert_array_equal(shipped(img), whole(img))
 
 
-def test_strips_over_threads_do_not_use_bands():
+def test_strips_over_threads_do_not_use_bands_and_bands_can_be_turned_off():
     assert load_encoder("default", threads=2).layout == "strips"
+    assert load_encoder("default", threads=1, bands=False).layout == "whole frame"
 
 
 def test_a_session_of_another_graph_is_refused(whole):
