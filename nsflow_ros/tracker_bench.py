@@ -275,16 +275,20 @@ def _native(key: str) -> str:
     return key.split()[0]
 
 
+def _onnx_encoders(runs: dict[str, dict[str, _Run]]) -> list[Any]:
+    """The methods' onnxruntime encoders (the classical and OpenCV methods have none)."""
+    encoders = (r.tracker.encoder for by in runs.values() for r in by.values())
+    return [e for e in encoders if encoder_provider(e) != "none"]
+
+
 def _provider(runs: dict[str, dict[str, _Run]]) -> str:
     """The execution provider of the learned encoders ("none" when no method has one)."""
-    found = {encoder_provider(r.tracker.encoder) for by in runs.values() for r in by.values()} - {"none"}
-    return ", ".join(sorted(found)) or "none"
+    return ", ".join(sorted({encoder_provider(e) for e in _onnx_encoders(runs)})) or "none"
 
 
 def _layout(runs: dict[str, dict[str, _Run]]) -> str:
     """How the learned encoders encode a frame (:attr:`~nsflow_ros.core.encoder.OnnxEncoder.layout`)."""
-    found = {getattr(r.tracker.encoder, "layout", None) for by in runs.values() for r in by.values()} - {None}
-    return ", ".join(sorted(found)) or "none"
+    return ", ".join(sorted({e.layout for e in _onnx_encoders(runs)})) or "none"
 
 
 def format_tracker_table(res: dict[str, Any]) -> str:

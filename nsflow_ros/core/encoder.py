@@ -7,10 +7,10 @@ classical mode, the gray image scaled to [0, 1]. ONNX contract, checked at load 
 On the CPU with several threads a local model runs on horizontal strips with a halo of its
 receptive-field radius (measured at load time), one single-threaded, non-spinning session per thread: the
 whole-frame result, in less wall time than one multi-threaded session. One thread (the tracker's default)
-encodes the whole frame in one session: with nothing to run in parallel the halos would only cost. On an
-accelerator (:class:`ExecutionProviders`) one session encodes the whole frame, launch overhead dominating
-there. A
-model may declare in its metadata key ``smoothing`` ("fine,coarse" sigmas,
+encodes the whole frame in one session: with nothing to run in parallel the halos would only cost; a
+one-channel model does so in its band layout where one ships beside it (:mod:`~nsflow_ros.core.bands`).
+On an accelerator (:class:`ExecutionProviders`) one session encodes the whole frame, launch overhead
+dominating there. A model may declare in its metadata key ``smoothing`` ("fine,coarse" sigmas,
 :class:`~nsflow_ros.core.pyramid.Smoothing`) how its maps are smoothed: the encoder applies ``fine`` to
 its output, the LM methods ``coarse`` to the pyramid's coarser levels. Its key ``gain_levels`` (an
 integer, 0 when absent) asks the LM methods to compare windows up to a gain as well as an offset on that

@@ -98,12 +98,12 @@ def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
     out = network("edges", "edge_", 1, "pad_both", "pad_both")
     nodes.append(helper.make_node("Identity", [out], ["edge_descriptors"]))
 
-    def value(name: str, ch: int) -> object:
+    def tensor(name: str, ch: int) -> object:
         return helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, ch, f"{name}_h", f"{name}_w"])
 
     graph = helper.make_graph(
-        nodes, "nsflow_bands", [value("bands", bands), value("edges", 1)],
-        [value("descriptors", bands * channels), value("edge_descriptors", channels)],
+        nodes, "nsflow_bands", [tensor("bands", bands), tensor("edges", 1)],
+        [tensor("descriptors", bands * channels), tensor("edge_descriptors", channels)],
         [numpy_helper.from_array(v, k) for k, v in inits.items()],
     )
     layout = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
@@ -111,9 +111,9 @@ def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
     props = {p.key: p.value for p in proto.metadata_props}
     meta = {"name": f"{props.get('name', source.stem)} (bands)", "layout": "bands", "bands": str(bands),
             "halo": str(HALO), "source": source.name}
-    for key, value_ in meta.items():
+    for key, value in meta.items():
         entry = layout.metadata_props.add()
-        entry.key, entry.value = key, value_
+        entry.key, entry.value = key, value
     onnx.checker.check_model(layout)
     target = bands_file(source)
     onnx.save(layout, str(target))
