@@ -367,7 +367,7 @@ class OnnxEncoder:
         if not path.is_file():
             return None
         try:
-            layout = BandLayout(self._new_session(self.threads, path, blocked=True), self.channels)
+            layout = BandLayout(self._new_session(self.threads, path, blocked=True), self.channels, self._run)
         except EncoderError as err:
             _log.warning("ignoring the band layout %s: %s", path, err)
             return None
@@ -520,7 +520,7 @@ class OnnxEncoder:
         image = _check_image(image)
         if self._bands is not None:
             gray = to_gray(image)
-            if self._bands.fits(gray.shape[0]):
+            if self._bands.fits(*gray.shape):
                 out = _output(*gray.shape, self.channels)
                 _merge_into(self._planes(self._bands(gray), slice(None)), out)
                 return out[..., : self.channels]

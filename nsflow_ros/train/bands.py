@@ -1,6 +1,5 @@
 """The band layout of an exported one-channel encoder (:mod:`nsflow_ros.core.bands`): the same weights in
-a graph that takes the image cut into bands of rows as channels, every convolution grouped by band, and
-runs the original network on the image's edge rows beside it.
+a graph that takes the image cut into bands of rows as channels, every convolution grouped by band.
 
 Written beside the model as ``<stem>.bands.onnx``; the tracker uses it on the CPU where it reproduces the
 model (checked at load time). ``python -m nsflow_ros.train.bands MODEL`` writes it for an exported model;
@@ -31,10 +30,15 @@ _HEADS = ("Sigmoid", "Relu")
 def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
     """Write the band layout of the exported encoder ``path`` beside it; returns the path written.
 
-    Inputs: ``bands`` (1, bands, B + 2 HALO, W + 2), each band B rows of the image with HALO rows of context
-    each side and one replicated column each side; ``edges`` (1, 1, R, W), rows of the image. Outputs:
-    ``descriptors`` (1, bands * d, B, W) and ``edge_descriptors`` (1, d, R, W), the original network's
-    output for ``edges``, padded as the original pads.
+    Input: ``bands`` (1, bands, B + 2 HALO, W + 2 HALO), each band B rows of the image with HALO rows of
+    context each side and HALO replicated columns each side. Output: ``descriptors`` (1, bands * d, B, W).
+    Only the first and last row and column differ from the original's (they pad the hidden layer, not the
+    image); :class:`~nsflow_ros.core.bands.BandLayout` mends them.
+
+    A network one channel wide with one output channel gets its 1x1 head folded into per-band (depthwise)
+    1x1 convolutions: a hidden unit whose ReLU is the identity on the non-negative map before it joins one
+    linear term, the others stay a ReLU (or a clip at 0 for a negative output weight) each. onnxruntime
+    runs those in its blocked-channel kernels, where a grouped 1x1 of two channels per band it does not.
 
     Raises:
         TrainError: an unreadable file, a graph that is not the encoder's (four convolutions, 3x3, 3x3,
@@ -63,50 +67,28 @@ def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
         )
     heads = [n.op_type for n in proto.graph.node if n.op_type in _HEADS and n.input[0] == convs[-1].output[0]]
     channels = found[-1][0]
-    inits: dict[str, np.ndarray] = {
-        "pad_columns": np.array([0, 0, 0, 1, 0, 0, 0, 1], np.int64),
-        "pad_both": np.array([0, 0, 1, 1, 0, 0, 1, 1], np.int64),
-    }
-    nodes = []
-
-    def network(x: str, prefix: str, groups: int, pads: str, first_pads: str | None) -> str:
-        """The encoder's layers on ``x``, each conv in ``groups`` copies; returns the output's name."""
-        current = x
-        for k, conv in enumerate(convs):
-            w, b = f"{prefix}w{k}", f"{prefix}b{k}"
-            inits[w] = np.concatenate([weights[conv.input[1]]] * groups)
-            inits[b] = np.concatenate([weights[conv.input[2]]] * groups)
-            if _KERNELS[k] == 3 and (k > 0 or first_pads is not None):
-                # Padded as the original pads: replicated borders (a band's rows need none: context).
-                nodes.append(helper.make_node("Pad", [current, pads if k else first_pads], [f"{prefix}p{k}"],
-                                              mode="edge"))
-                current = f"{prefix}p{k}"
-            nodes.append(helper.make_node("Conv", [current, w, b], [f"{prefix}c{k}"], group=groups,
-                                          kernel_shape=[_KERNELS[k]] * 2))
-            current = f"{prefix}c{k}"
-            if k < len(convs) - 1:
-                nodes.append(helper.make_node("Relu", [current], [f"{prefix}r{k}"]))
-                current = f"{prefix}r{k}"
-        if heads:
-            nodes.append(helper.make_node(heads[0], [current], [f"{prefix}head"]))
-            current = f"{prefix}head"
-        return current
-
-    # The bands come with their context rows and padded columns; the edges are the original's input.
-    out = network("bands", "band_", bands, "pad_columns", None)
-    nodes.append(helper.make_node("Identity", [out], ["descriptors"]))
-    out = network("edges", "edge_", 1, "pad_both", "pad_both")
-    nodes.append(helper.make_node("Identity", [out], ["edge_descriptors"]))
+    layers = [(weights[c.input[1]], weights[c.input[2]]) for c in convs]
+    graph = _Graph(bands)
+    current = "bands"
+    for w, b in layers[:2]:  # the 3x3 convs: context rows and columns, no padding
+        current = graph.conv(current, w, b, "Relu")
+    if found[1][0] == 1 and channels == 1:
+        current = _folded_head(graph, current, *layers[2], *layers[3])
+    else:
+        current = graph.conv(current, *layers[2], "Relu")
+        current = graph.conv(current, *layers[3], None)
+    if heads:
+        current = graph.node(heads[0], [current])
+    graph.nodes.append(helper.make_node("Identity", [current], ["descriptors"]))
 
     def tensor(name: str, ch: int) -> object:
         return helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, ch, f"{name}_h", f"{name}_w"])
 
-    graph = helper.make_graph(
-        nodes, "nsflow_bands", [tensor("bands", bands), tensor("edges", 1)],
-        [tensor("descriptors", bands * channels), tensor("edge_descriptors", channels)],
-        [numpy_helper.from_array(v, k) for k, v in inits.items()],
+    onnx_graph = helper.make_graph(
+        graph.nodes, "nsflow_bands", [tensor("bands", bands)], [tensor("descriptors", bands * channels)],
+        [numpy_helper.from_array(v, k) for k, v in graph.inits.items()],
     )
-    layout = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    layout = helper.make_model(onnx_graph, opset_imports=[helper.make_opsetid("", 17)])
     layout.ir_version = proto.ir_version
     props = {p.key: p.value for p in proto.metadata_props}
     meta = {"name": f"{props.get('name', source.stem)} (bands)", "layout": "bands", "bands": str(bands),
@@ -118,6 +100,60 @@ def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
     target = bands_file(source)
     onnx.save(layout, str(target))
     return target
+
+
+class _Graph:
+    """The nodes and weights of a band graph: every convolution repeated per band (grouped by band)."""
+
+    def __init__(self, bands: int) -> None:
+        self.bands = bands
+        self.nodes: list[object] = []
+        self.inits: dict[str, np.ndarray] = {}
+
+    def node(self, op: str, inputs: list[str], **attrs: object) -> str:
+        from onnx import helper
+
+        out = f"n{len(self.nodes)}"
+        self.nodes.append(helper.make_node(op, inputs, [out], **attrs))
+        return out
+
+    def const(self, value: np.ndarray) -> str:
+        name = f"c{len(self.inits)}"
+        self.inits[name] = np.asarray(value, np.float32)
+        return name
+
+    def conv(self, x: str, w: np.ndarray, b: np.ndarray, activation: str | None) -> str:
+        """The conv ``w``, ``b`` of one band repeated over the bands, then ``activation`` (None, "Relu" or
+        "Clip", the latter to at most 0)."""
+        s = self.bands
+        out = self.node("Conv", [x, self.const(np.concatenate([w] * s)), self.const(np.concatenate([b] * s))],
+                        group=s, kernel_shape=list(w.shape[2:]))
+        if activation == "Relu":
+            return self.node("Relu", [out])
+        if activation == "Clip":
+            return self.node("Clip", [out, "", self.const(np.float32(0.0))])
+        return out
+
+
+def _folded_head(
+    graph: _Graph, h: str, w3: np.ndarray, b3: np.ndarray, w4: np.ndarray, b4: np.ndarray
+) -> str:
+    """The 1x1 head of a one-channel hidden map ``h`` (>= 0, after a ReLU) into one output channel, as
+    per-band 1x1 convolutions: y = b4 + sum_j w4_j relu(w3_j h + b3_j)."""
+    w3, b3, w4 = w3.ravel().astype(np.float64), b3.astype(np.float64), w4.ravel().astype(np.float64)
+    linear = (w3 >= 0) & (b3 >= 0)  # relu(a) = a for every h >= 0
+    zero = (w3 <= 0) & (b3 <= 0)  # relu(a) = 0 for every h >= 0
+    one = np.ones((1, 1, 1, 1))
+    terms = []
+    for j in np.flatnonzero(~linear & ~zero & (w4 != 0)):
+        # w4 relu(a) = relu(w4 a) for w4 > 0, min(w4 a, 0) for w4 < 0
+        terms.append(graph.conv(h, one * (w4[j] * w3[j]), np.array([w4[j] * b3[j]]),
+                                "Relu" if w4[j] > 0 else "Clip"))
+    slope, offset = w4[linear] @ w3[linear], b4[0] + w4[linear] @ b3[linear]
+    out = graph.conv(h, one * slope, np.array([offset]), None)
+    for term in terms:  # onnxruntime adds each into the convolution before it
+        out = graph.node("Add", [out, term])
+    return out
 
 
 def main(args: list[str] | None = None) -> int:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 
 import numpy as np
+import onnx
 import pytest
 import torch
 from onnx_models import conv_encoder
@@ -32,6 +33,35 @@ def test_a_width_1_export_gets_a_band_layout_that_reproduces_it(tmp_path, d, hea
     enc, whole = load_encoder(path, threads=1), _whole(path, tmp_path)
     assert enc.layout == "bands" and whole.layout == "whole frame"
     img = np.random.default_rng(d).integers(0, 256, (70, 45), dtype=np.uint8)
+    np.testing.assert_allclose(enc(img), whole(img), rtol=2e-6, atol=2e-6)
+
+
+@pytest.mark.parametrize(
+    ("w3", "b3", "w4", "kept"),
+    [
+        ([0.5, 1.5], [0.1, -0.01], [3.0, -1.5], ["Clip"]),  # one unit linear on h >= 0, one clipped
+        ([0.5, 1.5], [-0.1, -0.01], [3.0, 1.5], ["Relu", "Relu"]),  # both bend, positive weights
+        ([0.5, -1.5], [0.1, -0.01], [3.0, 2.0], []),  # one linear, one always 0
+    ],
+)
+def test_the_one_channel_head_is_folded_into_per_band_convolutions(tmp_path, w3, b3, w4, kept):
+    """y = b4 + sum_j w4_j relu(w3_j h + b3_j) with h >= 0: a unit whose ReLU is the identity (or 0) there
+    joins the linear term, the others keep an activation; the layout still equals the model."""
+    torch.manual_seed(0)
+    model = Encoder(EncoderSpec(d=1, width=1))
+    with torch.no_grad():
+        model.conv3.weight.copy_(torch.tensor(w3).view(2, 1, 1, 1))
+        model.conv3.bias.copy_(torch.tensor(b3))
+        model.conv4.weight.copy_(torch.tensor(w4).view(1, 2, 1, 1))
+    path = export_onnx(model, tmp_path / "enc.onnx")
+    graph = onnx.load(str(bands_file(path))).graph
+    ops = [n.op_type for n in graph.node]
+    assert [op for op in ops if op in ("Relu", "Clip")] == ["Relu", "Relu", *kept]
+    groups = [a.i for n in graph.node if n.op_type == "Conv" for a in n.attribute if a.name == "group"]
+    assert ops.count("Conv") == 3 + len(kept) and set(groups) == {16}
+    enc, whole = load_encoder(path, threads=1), _whole(path, tmp_path)
+    assert enc.layout == "bands"
+    img = np.random.default_rng(1).integers(0, 256, (80, 60), dtype=np.uint8)
     np.testing.assert_allclose(enc(img), whole(img), rtol=2e-6, atol=2e-6)
 
 
