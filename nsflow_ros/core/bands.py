@@ -55,7 +55,8 @@ class BandLayout:
     Args:
         session: the onnxruntime session of the ``.bands.onnx`` graph. Input ``bands`` (1, S, B + 2
             :data:`HALO`, W + 2 :data:`HALO`), each band B rows of the image with its context rows and
-            replicated columns; output (1, S * d, B, W).
+            replicated columns; one output, in memory the (1, d, S B, W) of the bands' rows one after the
+            other.
         channels: d, the descriptor channels.
         original: the model's own network, (1, 1, h, w) float32 image / 255 -> (1, d, h, w): the edges.
 
@@ -65,13 +66,17 @@ class BandLayout:
 
     def __init__(self, session: Any, channels: int, original: Callable[[np.ndarray], np.ndarray]) -> None:
         inputs, outputs = session.get_inputs(), session.get_outputs()
-        shapes = [i.shape for i in inputs] + [o.shape for o in outputs]
-        bands = shapes[0][1] if len(shapes) == 2 and all(len(s) == 4 for s in shapes) else None
-        if not isinstance(bands, int) or bands < 2 or shapes[1][1] != bands * channels:
+        shape = inputs[0].shape if len(inputs) == 1 and len(outputs) == 1 else []
+        bands = shape[1] if len(shape) == 4 else None
+        out = outputs[0].shape if outputs else []
+        # (1, S, rows, W) of one channel, or (d, pixels)
+        fits = (out[:2] == [1, bands] and channels == 1) or (len(out) == 2 and out[0] == channels)
+        if not isinstance(bands, int) or bands < 2 or not fits:
             raise EncoderError(
-                f"band layout: expected input (1, S, H, W) with S >= 2 and output (1, S * {channels}, H, W);"
-                f" found {shapes} (a layout written before the edges were mended outside it: write it again"
-                " with python -m nsflow_ros.train.bands MODEL)"
+                f"band layout: expected one input (1, S, H, W) with S >= 2 and one output of {channels}"
+                f" channel(s); found inputs"
+                f" {[i.shape for i in inputs]}, outputs {[o.shape for o in outputs]} (one written by an"
+                " earlier version? write it again with python -m nsflow_ros.train.bands MODEL)"
             )
         self.session = session
         self.bands: int = bands
@@ -91,7 +96,7 @@ class BandLayout:
             gray: (H, W) uint8. Returns (1, d, H, W) float32.
         """
         h, w = gray.shape
-        s, d = self.bands, self.channels
+        s = self.bands
         b = -(-h // s)  # band height; the last band reaches past the image into its replicated border
         padded = cv2.copyMakeBorder(gray, HALO, s * b - h + HALO, HALO, HALO, cv2.BORDER_REPLICATE)
         row = padded.strides[0]
@@ -99,9 +104,7 @@ class BandLayout:
         bands = np.ndarray((1, s, b + 2 * HALO, w + 2 * HALO), np.uint8, padded, 0, (0, b * row, row, 1))
         # Scaled as the original's input is: pixel / 255 in float32.
         (y,) = self.session.run(None, {self._input: np.multiply(bands, _SCALE, dtype=np.float32)})
-        # Band k's channels are k d ... k d + d - 1 (groups are consecutive): stack the bands per channel.
-        y = y.reshape(s, d, b, w)
-        out = (y[:, 0] if d == 1 else y.transpose(1, 0, 2, 3)).reshape(1, d, s * b, w)[:, :, :h]
+        out = y.reshape(1, self.channels, s * b, w)[:, :, :h]
         # The outer lines from the original on the image's edge strips, both sides stacked.
         top_bottom = np.concatenate((gray[:EDGE], gray[-EDGE:]))
         left_right = np.concatenate((gray[:, :EDGE], gray[:, -EDGE:]), axis=1)

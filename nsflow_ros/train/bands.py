@@ -3,7 +3,7 @@ a graph that takes the image cut into bands of rows as channels, every convoluti
 
 Written beside the model as ``<stem>.bands.onnx``; the tracker uses it on the CPU where it reproduces the
 model (checked at load time). ``python -m nsflow_ros.train.bands MODEL`` writes it for an exported model;
-only a one-channel network (width 1) gains: a wider one is slower in bands (docs/design.md).
+a network up to :data:`MAX_WIDTH` channels wide gains, a wider one is slower in bands (docs/design.md).
 """
 
 from __future__ import annotations
@@ -17,10 +17,15 @@ from nsflow_ros.core.bands import HALO, bands_file
 from nsflow_ros.optional import require
 from nsflow_ros.train.errors import TrainError
 
-__all__ = ["BANDS", "export_bands", "main"]
+__all__ = ["BANDS", "MAX_WIDTH", "export_bands", "main"]
 
 BANDS = 16
 """Bands of the written layout: two blocks of onnxruntime's 8-channel AVX2 kernels, one of AVX-512's."""
+
+MAX_WIDTH = 3
+"""The widest network that :func:`~nsflow_ros.train.export.export_onnx` writes a layout for: the hidden 3x3
+convolution costs width^2 per-band passes, and at width 8 the layout is slower than the model's own graph
+(docs/design.md)."""
 
 # The encoder's layers (nsflow_ros.train.model.Encoder): kernel sizes of its four convolutions.
 _KERNELS = (3, 3, 1, 1)
@@ -31,14 +36,18 @@ def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
     """Write the band layout of the exported encoder ``path`` beside it; returns the path written.
 
     Input: ``bands`` (1, bands, B + 2 HALO, W + 2 HALO), each band B rows of the image with HALO rows of
-    context each side and HALO replicated columns each side. Output: ``descriptors`` (1, bands * d, B, W).
-    Only the first and last row and column differ from the original's (they pad the hidden layer, not the
-    image); :class:`~nsflow_ros.core.bands.BandLayout` mends them.
+    context each side and HALO replicated columns each side. Output: ``descriptors``, in memory the
+    original's (1, d, bands * B, W) of the bands' rows one after the other; only its first and last row
+    and column differ from the original's (the original pads the hidden layer, not the image), and
+    :class:`~nsflow_ros.core.bands.BandLayout` mends them.
 
-    A network one channel wide with one output channel gets its 1x1 head folded into per-band (depthwise)
-    1x1 convolutions: a hidden unit whose ReLU is the identity on the non-negative map before it joins one
-    linear term, the others stay a ReLU (or a clip at 0 for a negative output weight) each. onnxruntime
-    runs those in its blocked-channel kernels, where a grouped 1x1 of two channels per band it does not.
+    Every 3x3 convolution becomes per-band (depthwise) convolutions, one per pair of input and output
+    channel, summed: onnxruntime runs those in its blocked-channel kernels, where a grouped convolution of
+    several channels per band it does not. The 1x1 head then runs on the hidden channels as two matrix
+    products (which the blocked-channel rewrite leaves alone: on a few channels it is slower). A network
+    one channel wide with one output channel gets its head folded into per-band 1x1 convolutions instead:
+    a hidden unit whose ReLU is the identity on the non-negative map before it joins one linear term, the
+    others stay a ReLU (or a clip at 0 for a negative output weight) each.
 
     Raises:
         TrainError: an unreadable file, a graph that is not the encoder's (four convolutions, 3x3, 3x3,
@@ -69,23 +78,26 @@ def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
     channels = found[-1][0]
     layers = [(weights[c.input[1]], weights[c.input[2]]) for c in convs]
     graph = _Graph(bands)
-    current = "bands"
+    hidden = ["bands"]  # one tensor per channel, band k in its channel k
     for w, b in layers[:2]:  # the 3x3 convs: context rows and columns, no padding
-        current = graph.conv(current, w, b, "Relu")
-    if found[1][0] == 1 and channels == 1:
-        current = _folded_head(graph, current, *layers[2], *layers[3])
+        hidden = [graph.channel(hidden, w[c], b[c]) for c in range(w.shape[0])]
+    if len(hidden) == 1 and channels == 1:
+        current = _folded_head(graph, hidden[0], *layers[2], *layers[3])
+        out_shape: list[int | str] = [1, bands, "rows", "width"]
     else:
-        current = graph.conv(current, *layers[2], "Relu")
-        current = graph.conv(current, *layers[3], None)
+        # (channels, bands * rows * width): each hidden channel's bands one after the other
+        stacked = graph.node("Concat", hidden, axis=1) if len(hidden) > 1 else hidden[0]
+        current = graph.node("Reshape", [stacked, graph.const(np.array([len(hidden), -1]), np.int64)])
+        current = graph.node("Relu", [graph.matmul(current, *layers[2])])
+        current = graph.matmul(current, *layers[3])
+        out_shape = [channels, "pixels"]
     if heads:
         current = graph.node(heads[0], [current])
     graph.nodes.append(helper.make_node("Identity", [current], ["descriptors"]))
-
-    def tensor(name: str, ch: int) -> object:
-        return helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, ch, f"{name}_h", f"{name}_w"])
-
     onnx_graph = helper.make_graph(
-        graph.nodes, "nsflow_bands", [tensor("bands", bands)], [tensor("descriptors", bands * channels)],
+        graph.nodes, "nsflow_bands",
+        [helper.make_tensor_value_info("bands", TensorProto.FLOAT, [1, bands, "rows", "width"])],
+        [helper.make_tensor_value_info("descriptors", TensorProto.FLOAT, out_shape)],
         [numpy_helper.from_array(v, k) for k, v in graph.inits.items()],
     )
     layout = helper.make_model(onnx_graph, opset_imports=[helper.make_opsetid("", 17)])
@@ -103,7 +115,7 @@ def export_bands(path: str | os.PathLike[str], bands: int = BANDS) -> Path:
 
 
 class _Graph:
-    """The nodes and weights of a band graph: every convolution repeated per band (grouped by band)."""
+    """The nodes and weights of a band graph."""
 
     def __init__(self, bands: int) -> None:
         self.bands = bands
@@ -117,22 +129,36 @@ class _Graph:
         self.nodes.append(helper.make_node(op, inputs, [out], **attrs))
         return out
 
-    def const(self, value: np.ndarray) -> str:
+    def const(self, value: object, dtype: type = np.float32) -> str:
         name = f"c{len(self.inits)}"
-        self.inits[name] = np.asarray(value, np.float32)
+        self.inits[name] = np.asarray(value, dtype)
         return name
 
-    def conv(self, x: str, w: np.ndarray, b: np.ndarray, activation: str | None) -> str:
-        """The conv ``w``, ``b`` of one band repeated over the bands, then ``activation`` (None, "Relu" or
-        "Clip", the latter to at most 0)."""
-        s = self.bands
-        out = self.node("Conv", [x, self.const(np.concatenate([w] * s)), self.const(np.concatenate([b] * s))],
-                        group=s, kernel_shape=list(w.shape[2:]))
+    def conv(self, x: str, w: np.ndarray, b: float, activation: str | None = None) -> str:
+        """The 2-d kernel ``w`` and bias ``b`` on every band of ``x`` (a depthwise convolution), then
+        ``activation`` (None, "Relu" or "Clip", the latter to at most 0)."""
+        s, k = self.bands, np.shape(w)
+        weight = np.broadcast_to(np.asarray(w, np.float32), (s, 1, *k))
+        out = self.node("Conv", [x, self.const(weight), self.const(np.full(s, b))], group=s,
+                        kernel_shape=list(k))
         if activation == "Relu":
             return self.node("Relu", [out])
         if activation == "Clip":
-            return self.node("Clip", [out, "", self.const(np.float32(0.0))])
+            return self.node("Clip", [out, "", self.const(0.0)])
         return out
+
+    def channel(self, inputs: list[str], w: np.ndarray, b: float) -> str:
+        """One output channel of a convolution and its ReLU: the sum over i of ``w[i]`` on ``inputs[i]``,
+        plus ``b``, on every band."""
+        if len(inputs) == 1:
+            return self.conv(inputs[0], w[0], b, "Relu")
+        pairs = enumerate(zip(inputs, w, strict=True))
+        terms = [self.conv(x, k, b if i == 0 else 0.0) for i, (x, k) in pairs]
+        return self.node("Relu", [self.node("Sum", terms)])
+
+    def matmul(self, x: str, w: np.ndarray, b: np.ndarray) -> str:
+        """A 1x1 convolution of (channels, pixels) ``x``: w @ x + b."""
+        return self.node("Gemm", [self.const(w[:, :, 0, 0]), x, self.const(b[:, None])])
 
 
 def _folded_head(
@@ -143,14 +169,11 @@ def _folded_head(
     w3, b3, w4 = w3.ravel().astype(np.float64), b3.astype(np.float64), w4.ravel().astype(np.float64)
     linear = (w3 >= 0) & (b3 >= 0)  # relu(a) = a for every h >= 0
     zero = (w3 <= 0) & (b3 <= 0)  # relu(a) = 0 for every h >= 0
-    one = np.ones((1, 1, 1, 1))
     terms = []
     for j in np.flatnonzero(~linear & ~zero & (w4 != 0)):
         # w4 relu(a) = relu(w4 a) for w4 > 0, min(w4 a, 0) for w4 < 0
-        terms.append(graph.conv(h, one * (w4[j] * w3[j]), np.array([w4[j] * b3[j]]),
-                                "Relu" if w4[j] > 0 else "Clip"))
-    slope, offset = w4[linear] @ w3[linear], b4[0] + w4[linear] @ b3[linear]
-    out = graph.conv(h, one * slope, np.array([offset]), None)
+        terms.append(graph.conv(h, [[w4[j] * w3[j]]], w4[j] * b3[j], "Relu" if w4[j] > 0 else "Clip"))
+    out = graph.conv(h, [[w4[linear] @ w3[linear]]], b4[0] + w4[linear] @ b3[linear])
     for term in terms:  # onnxruntime adds each into the convolution before it
         out = graph.node("Add", [out, term])
     return out

@@ -1,8 +1,9 @@
 """ONNX export of the encoder, in the contract ``nsflow_ros.load_encoder`` checks.
 
 Input "image" (1, c_in, H, W) float32 in [0, 1], output "descriptors" (1, d, H, W) float32, H and W
-dynamic, opset 17, metadata_props name="nsflow-d{d}" plus the encoder spec. A one-channel network of width
-1 also gets its band layout (:mod:`nsflow_ros.train.bands`) beside it.
+dynamic, opset 17, metadata_props name="nsflow-d{d}" plus the encoder spec. A network of a one-channel input
+up to :data:`~nsflow_ros.train.bands.MAX_WIDTH` wide also gets its band layout
+(:mod:`nsflow_ros.train.bands`) beside it.
 """
 
 from __future__ import annotations
@@ -63,9 +64,10 @@ def export_onnx(model: Encoder, path: str | os.PathLike[str], metadata: dict[str
         entry.key, entry.value = key, value
     onnx.checker.check_model(proto)
     onnx.save(proto, str(out))
-    if spec.width == 1 and spec.in_channels == 1:
-        # One-channel convolutions run twice as fast in the band layout on the CPU (nsflow_ros.core.bands).
-        from nsflow_ros.train.bands import export_bands
+    # imported here: ``python -m nsflow_ros.train.bands`` runs that module after the package's imports
+    from nsflow_ros.train.bands import MAX_WIDTH, export_bands
 
+    if spec.in_channels == 1 and spec.width <= MAX_WIDTH:
+        # A narrow network runs faster in the band layout on the CPU (nsflow_ros.core.bands).
         export_bands(out)
     return out

@@ -77,7 +77,7 @@ def test_strips_over_threads_do_not_use_bands_and_bands_can_be_turned_off():
 
 
 def test_a_session_of_another_graph_is_refused(whole):
-    with pytest.raises(EncoderError, match=r"band layout: expected input"):
+    with pytest.raises(EncoderError, match=r"band layout: expected one input"):
         BandLayout(whole._sessions[0], 1, whole._run)
 
 

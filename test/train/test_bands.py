@@ -12,7 +12,7 @@ from onnx_models import conv_encoder
 
 from nsflow_ros.core.bands import bands_file
 from nsflow_ros.core.encoder import load_encoder
-from nsflow_ros.train.bands import export_bands, main
+from nsflow_ros.train.bands import MAX_WIDTH, export_bands, main
 from nsflow_ros.train.errors import TrainError
 from nsflow_ros.train.export import export_onnx
 from nsflow_ros.train.model import Encoder, EncoderSpec
@@ -65,8 +65,23 @@ def test_the_one_channel_head_is_folded_into_per_band_convolutions(tmp_path, w3,
     np.testing.assert_allclose(enc(img), whole(img), rtol=2e-6, atol=2e-6)
 
 
+@pytest.mark.parametrize(("d", "width"), [(4, 3), (1, 2)])
+def test_a_narrow_export_gets_a_band_layout_of_per_band_convolutions_and_a_matrix_head(tmp_path, d, width):
+    torch.manual_seed(width)
+    path = export_onnx(Encoder(EncoderSpec(d=d, width=width, head="sigmoid")), tmp_path / "enc.onnx")
+    graph = onnx.load(str(bands_file(path))).graph
+    groups = {a.i for n in graph.node if n.op_type == "Conv" for a in n.attribute if a.name == "group"}
+    ops = [n.op_type for n in graph.node]
+    # every 3x3 a depthwise conv per pair of channels, the head two matrix products
+    assert groups == {16} and ops.count("Conv") == width + width**2 and ops.count("Gemm") == 2
+    enc = load_encoder(path, threads=1)
+    assert enc.layout == "bands"
+    img = np.random.default_rng(0).integers(0, 256, (70, 45), dtype=np.uint8)
+    np.testing.assert_allclose(enc(img), _whole(path, tmp_path)(img), rtol=2e-6, atol=2e-6)
+
+
 def test_a_wider_export_gets_none_but_can_be_written(tmp_path):
-    path = export_onnx(Encoder(EncoderSpec(d=2, width=2)), tmp_path / "enc.onnx")
+    path = export_onnx(Encoder(EncoderSpec(d=2, width=MAX_WIDTH + 1)), tmp_path / "enc.onnx")
     assert not bands_file(path).exists()
     assert export_bands(path, bands=4) == bands_file(path)
     enc = load_encoder(path, threads=1)
