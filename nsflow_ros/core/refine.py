@@ -134,9 +134,13 @@ def step_template(image1: tuple[np.ndarray, ...], pts: np.ndarray, window: int) 
     wide = patches.reshape(size, m * size)
     grads = [cv2.Scharr(wide, cv2.CV_32F, dx, 1 - dx, scale=1.0 / 32.0).reshape(size, m, size)
              for dx in (1, 0)]
-    rows = np.stack([patches, *grads], axis=2)[1:-1, :, :, 1:-1]  # (w, M, 3, w)
-    rows = np.ascontiguousarray(rows.transpose(1, 2, 0, 3)).reshape(m, 3, window * window)
-    rows = rows - rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
+    # Each of [t, gx, gy] copied straight into its (M, w, w) place: a stack and one transposed copy of
+    # the three moves rows of w floats in six times the time.
+    rows = np.empty((m, 3, window, window), np.float32)
+    for k, plane in enumerate((patches, *grads)):
+        rows[:, k] = plane[1:-1, :, 1:-1].transpose(1, 0, 2)
+    rows = rows.reshape(m, 3, window * window)
+    rows -= rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
     # float32 products (225 terms of order 1e-2 each), float64 from here on
     gram = np.matmul(rows, rows.transpose(0, 2, 1)).astype(np.float64)  # [t, gx, gy] against each other
     return StepTemplate(np.array(pts, dtype=np.float64, copy=True), centres, rows, gram)
