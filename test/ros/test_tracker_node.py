@@ -1165,10 +1165,12 @@ def test_a_silent_mask_topic_costs_one_wait_not_the_frames_and_is_not_falling_be
     node = h.tracker
     try:
         _stream(h, pan, range(40))  # 2 s at 20 Hz, no mask ever published
+        h.spin_until(lambda: node.stats.frames_received >= 40, 5.0)  # the last ones may still be in flight
         _settle(h)
         level, message, values = _status(h)
         c = node.counters()
-        assert c["frames_received"] >= 38 and c["frames_processed"] >= 0.95 * c["frames_received"]
+        # the transport may lose a few images on a loaded machine; what is received must be tracked
+        assert c["frames_received"] >= 36 and c["frames_processed"] >= 0.95 * c["frames_received"]
         # without the fix every frame waited 500 ms and 9 in 10 were superseded; a machine under load
         # may still give up a frame or two to the CPU, never to the silent topic
         assert c["frames_superseded"] + c["frames_mask_wait"] <= 2
