@@ -72,11 +72,11 @@ class BandLayout:
         # (1, S, rows, W) of one channel, or (d, pixels)
         fits = (out[:2] == [1, bands] and channels == 1) or (len(out) == 2 and out[0] == channels)
         if not isinstance(bands, int) or bands < 2 or not fits:
+            found = f"inputs {[i.shape for i in inputs]}, outputs {[o.shape for o in outputs]}"
             raise EncoderError(
                 f"band layout: expected one input (1, S, H, W) with S >= 2 and one output of {channels}"
-                f" channel(s); found inputs"
-                f" {[i.shape for i in inputs]}, outputs {[o.shape for o in outputs]} (one written by an"
-                " earlier version? write it again with python -m nsflow_ros.train.bands MODEL)"
+                f" channel(s), found {found} (one written by an earlier version? write it again with"
+                " python -m nsflow_ros.train.bands MODEL)"
             )
         self.session = session
         self.bands: int = bands
