@@ -1,9 +1,9 @@
-"""The band layout of a one-channel encoder on the CPU: the image cut into bands of rows, run as channels.
+"""The band layout of a narrow encoder on the CPU: the image cut into bands of rows, run as channels.
 
-onnxruntime's CPU convolution of a one-channel map expands every 3x3 window into a column before a
-matrix product, which costs far more than the nine multiply-adds it needs. The same network with the
-image cut into ``bands`` horizontal bands, stacked as that many channels and every convolution grouped
-by band, runs on onnxruntime's blocked-channel (NCHWc) depthwise kernels instead, in well under the time
+onnxruntime's CPU convolution of a map of few channels expands every 3x3 window into a column before a
+matrix product, which costs far more than the multiply-adds it needs. The same network with the image
+cut into ``bands`` horizontal bands, stacked as that many channels and every convolution taken per band,
+runs on onnxruntime's blocked-channel (NCHWc) depthwise kernels instead, in well under the time
 (docs/design.md). ``python -m nsflow_ros.train.bands MODEL`` writes that graph from a model's ONNX file as
 its sibling ``<stem>.bands.onnx``.
 
@@ -70,8 +70,8 @@ class BandLayout:
         bands = shape[1] if len(shape) == 4 else None
         out = outputs[0].shape if outputs else []
         # (1, S, rows, W) of one channel, or (d, pixels)
-        fits = (out[:2] == [1, bands] and channels == 1) or (len(out) == 2 and out[0] == channels)
-        if not isinstance(bands, int) or bands < 2 or not fits:
+        out_ok = (out[:2] == [1, bands] and channels == 1) or (len(out) == 2 and out[0] == channels)
+        if not isinstance(bands, int) or bands < 2 or not out_ok:
             found = f"inputs {[i.shape for i in inputs]}, outputs {[o.shape for o in outputs]}"
             raise EncoderError(
                 f"band layout: expected one input (1, S, H, W) with S >= 2 and one output of {channels}"

@@ -8,7 +8,7 @@ On the CPU with several threads a local model runs on horizontal strips with a h
 receptive-field radius (measured at load time), one single-threaded, non-spinning session per thread: the
 whole-frame result, in less wall time than one multi-threaded session. One thread (the tracker's default)
 encodes the whole frame in one session: with nothing to run in parallel the halos would only cost; a
-one-channel model does so in its band layout where one ships beside it (:mod:`~nsflow_ros.core.bands`).
+narrow model does so in its band layout where one ships beside it (:mod:`~nsflow_ros.core.bands`).
 On an accelerator (:class:`ExecutionProviders`) one session encodes the whole frame, launch overhead
 dominating there. A model may declare in its metadata key ``smoothing`` ("fine,coarse" sigmas,
 :class:`~nsflow_ros.core.pyramid.Smoothing`) how its maps are smoothed: the encoder applies ``fine`` to

@@ -1,5 +1,5 @@
-"""The band layout of an exported one-channel encoder (:mod:`nsflow_ros.core.bands`): the same weights in
-a graph that takes the image cut into bands of rows as channels, every convolution grouped by band.
+"""The band layout of an exported encoder of a one-channel input (:mod:`nsflow_ros.core.bands`): the same
+weights in a graph that takes the image cut into bands of rows as channels, every convolution per band.
 
 Written beside the model as ``<stem>.bands.onnx``; the tracker uses it on the CPU where it reproduces the
 model (checked at load time). ``python -m nsflow_ros.train.bands MODEL`` writes it for an exported model;
