@@ -14,6 +14,10 @@ stops down, the photo-electrons drawn from a Poisson law (shot noise), Gaussian 
 raising the signal back by as many stops and the result quantised to the image's 8 (or 16) bits: the EMVA
 1288 linear camera model. Its noise is a pure function of ``(seed, t, image)``.
 
+:class:`ImageNoise` adds independent Gaussian sensor noise to every image, seeded like ``dark``:
+``nsflow-scenes --draws`` tracks a scene on several such realisations, since the estimator's trajectory
+moves more between two noise realisations of one scene than between front-ends (docs/scenes.md).
+
 Every stream perturbation is chosen by name from :data:`PERTURBATIONS` (:func:`make_perturber`): the
 replay, the benchmark and the evaluation take their choices from it.
 """
@@ -37,6 +41,7 @@ __all__ = [
     "PERTURBATIONS",
     "DarkPerturber",
     "IlluminationPerturber",
+    "ImageNoise",
     "PerturbLevel",
     "Perturber",
     "SensorModel",
@@ -253,6 +258,41 @@ class DarkPerturber:
         if s.read_noise_e > 0:
             signal += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(s.read_noise_e)
         return _to_dtype(signal * np.float32(s.total_gain * top / s.full_well_e), img.dtype)
+
+
+class ImageNoise:
+    """Another realisation of a sensor's noise: ``I' = clip(round(I + N(0, sigma^2)), 0, top)`` per pixel.
+
+    The noise is drawn, as :class:`DarkPerturber`'s, from a generator seeded by ``(seed, t in ns, CRC-32 of
+    the image)``: reproducible frame by frame, independent between the images of a stereo pair.
+
+    Args:
+        sigma: standard deviation in gray levels of the 8-bit scale (scaled by 257 for 16-bit images).
+        seed: random seed (one per realisation).
+
+    Raises:
+        DataError: a negative sigma.
+    """
+
+    def __init__(self, sigma: float = 1.0, seed: int = 0) -> None:
+        if not sigma >= 0:
+            raise DataError(f"image noise sigma must be >= 0 gray levels, got {sigma}")
+        self.sigma = float(sigma)
+        self.seed = int(seed)
+
+    def __call__(self, image: Any, t: float) -> np.ndarray:
+        """The image taken at ``t`` (seconds) with the noise added; same shape and dtype.
+
+        Raises:
+            DataError: on a bad shape or dtype.
+        """
+        img = _check_image(image)
+        t_ns = round(float(t) * 1e9) % (1 << 63)
+        crc = zlib.crc32(np.ascontiguousarray(img).data)
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed & 0xFFFFFFFF, 0x1A0E, t_ns, crc]))
+        top = _full_scale(img.dtype)
+        noise = rng.standard_normal(img.shape, dtype=np.float32) * np.float32(self.sigma * top / 255.0)
+        return _to_dtype(img.astype(np.float32) + noise, img.dtype)
 
 
 PERTURBATIONS: dict[str, Callable[[int], Perturber]] = {

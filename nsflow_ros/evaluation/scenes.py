@@ -31,6 +31,10 @@ __all__ = ["CellResult", "FeatureErrors", "evaluate_cell", "main", "summary", "t
 
 DEFAULT_CONFIG = "config/euroc/euroc_stereo_imu_config.yaml"
 
+DRAW_NOISE = 1.0
+"""Gray levels of the extra sensor noise of a draw > 0: the samples' own (``image_noise``), so a draw's
+images carry sqrt(2) times a sample's noise."""
+
 
 class FeatureErrors:
     """Errors of a published feature stream against a sample's exact flow, frame by frame.
@@ -86,7 +90,11 @@ class FeatureErrors:
 
 @dataclass
 class CellResult:
-    """One (scene seed, camera rate, perturbation, method): its feature errors and estimator ATEs (m)."""
+    """One (scene seed, camera rate, perturbation, method): its feature errors and estimator ATEs (m).
+
+    With several sensor-noise draws (``nsflow-scenes --draws``) the errors are the draws' means and
+    ``ate_runs`` holds every draw's runs; ``draw_ates`` is each draw's mean (inf: every run of it failed).
+    """
 
     seed: int
     rate: float
@@ -95,10 +103,15 @@ class CellResult:
     errors: dict[str, float]
     ate_runs: list[float] = field(default_factory=list)
     failures: list[str] = field(default_factory=list)
+    draw_ates: list[float] = field(default_factory=list)
 
     @property
     def ate(self) -> float:
-        """Mean ATE RMSE over the runs (m); inf when every run failed or diverged, NaN without runs."""
+        """Mean ATE RMSE over the runs (m), or over the draws' means with several draws (each draw weighs
+        alike, whatever its runs); inf when every run failed or diverged, NaN without runs."""
+        finite = [a for a in self.draw_ates if np.isfinite(a)]
+        if len(self.draw_ates) > 1 and (finite or any(np.isinf(a) for a in self.draw_ates)):
+            return float(np.mean(finite)) if finite else float("inf")
         if not self.ate_runs and not self.failures:
             return float("nan")
         return float(np.mean(self.ate_runs)) if self.ate_runs else float("inf")
@@ -114,6 +127,7 @@ def evaluate_cell(
     model: str | None = None,
     vins: Any = None,
     runs: int = 2,
+    draws: int = 1,
     timeout_s: float = 300.0,
     progress: bool = False,
     resume: bool = False,
@@ -121,16 +135,19 @@ def evaluate_cell(
     overrides: dict[str, Any] | None = None,
 ) -> CellResult:
     """Track one sample into a feature bag (as ``nsflow-replay --features-bag``), score it, and with a
-    VINS-Fusion build run the estimator ``runs`` times on it.
+    VINS-Fusion build run the estimator ``runs`` times on it; with ``draws`` > 1, the same on further
+    realisations of the images' sensor noise, and the cell's figures are the draws' means.
 
     Args:
         sample: a :class:`~nsflow_ros.data.sample.SampleSequence` with an ASL folder.
-        out_dir: this cell's folder (the bag, each estimator run's folder).
+        out_dir: this cell's folder (the bag, each estimator run's folder; draw k > 0 in ``draw<k>/``).
         method, perturb: the tracking method and the perturbation (seeded by the sample's seed).
         config: the VINS-Fusion config tracked with and given to the estimator.
         model: the learned methods' model (None: each method's shipped default).
         vins: a :class:`~nsflow_ros.evaluation.estimator.VinsBuild`, or None for no estimator.
-        resume: return the cell's stored result (``cell.json``) when a run before measured it.
+        draws: sensor-noise realisations: draw 0 is the sample's images, draw k > 0 adds
+            :class:`~nsflow_ros.data.perturb.ImageNoise` (1 gray level, seed k) after the perturbation.
+        resume: keep each draw's stored result (its ``cell.json``) when a run before measured it.
         solver_time: the estimator's ``max_solver_time`` (s); None = the config's
             (:func:`~nsflow_ros.evaluation.estimator.estimator_config`).
         overrides: tracker settings of this cell's method (e.g. ``{"reverse_checks": True}``).
@@ -138,6 +155,27 @@ def evaluate_cell(
     Raises:
         NSFlowError: a source, config or model that cannot be used.
     """
+    if draws < 1:
+        raise EvaluationError(f"draws must be >= 1, got {draws}")
+    parts = [_evaluate_draw(sample, out_dir / f"draw{d}" if d else out_dir, method, perturb, d, config=config,
+                            model=model, vins=vins, runs=runs, timeout_s=timeout_s, progress=progress,
+                            resume=resume, solver_time=solver_time, overrides=overrides)
+             for d in range(draws)]
+    if draws == 1:
+        return parts[0]
+    keys = parts[0].errors.keys()
+    errors = {k: float(np.sum([p.errors[k] for p in parts])) if k.endswith("_count")
+              else float(np.mean([p.errors[k] for p in parts])) for k in keys}
+    return CellResult(parts[0].seed, parts[0].rate, perturb, method, errors,
+                      [a for p in parts for a in p.ate_runs], [f for p in parts for f in p.failures],
+                      [p.ate for p in parts])
+
+
+def _evaluate_draw(sample: Any, out_dir: Path, method: str, perturb: str, draw: int, *, config: Path,
+                   model: str | None, vins: Any, runs: int, timeout_s: float, progress: bool, resume: bool,
+                   solver_time: float | None, overrides: dict[str, Any] | None) -> CellResult:
+    """One sensor-noise draw of :func:`evaluate_cell`, stored in ``out_dir/cell.json``."""
+    from nsflow_ros.data.perturb import ImageNoise, perturb_records
     from nsflow_ros.data.replay import ReplayOptions, replay_records
     from nsflow_ros.vins.config import load_vins_config
     from nsflow_ros.vins.feature_bag import feature_bag_topics, write_feature_bag
@@ -153,6 +191,8 @@ def evaluate_cell(
     errors = FeatureErrors(sample)
     records = replay_records(ReplayOptions(sample.root / "asl", topics=feature_bag_topics(cfg), rate=0.0,
                                            perturb=perturb, seed=seed))
+    if draw:
+        records = perturb_records(records, ImageNoise(DRAW_NOISE, seed=draw))
     fixed = {**({"model_path": model} if model else {}), **(overrides or {})}
     write_feature_bag(records, bag, cfg, method=method, overrides=fixed or None, progress=progress,
                       observe=errors)
@@ -202,6 +242,14 @@ def _mm(v: float) -> str:
     return "-" if np.isnan(v) else ("failed" if not np.isfinite(v) else f"{v * 1e3:.1f}")
 
 
+def _ate_text(c: CellResult) -> str:
+    """The cell's mean ATE (mm), with its draws' range when it has several and its failed runs."""
+    text = _mm(c.ate)
+    if len(c.draw_ates) > 1:
+        text += f" ({_mm(min(c.draw_ates))}-{_mm(max(c.draw_ates))})"
+    return text + (f" ({len(c.failures)} failed)" if c.failures else "")
+
+
 def tables(cells: Sequence[CellResult], baseline: str = BASELINE) -> list[dict[str, Any]]:
     """The cells as the tables the docs paste (:mod:`nsflow_ros.results`): a row per scene, rate and
     perturbation with the methods side by side (``baseline`` first, "a / b" in one column), then the
@@ -225,7 +273,7 @@ def tables(cells: Sequence[CellResult], baseline: str = BASELINE) -> list[dict[s
                   and base.ate > 0 else "-" for m in methods if m != baseline]
         rows.append([
             str(seed), f"{rate:g}", perturb,
-            joined(row, lambda c: _mm(c.ate) + (f" ({len(c.failures)} failed)" if c.failures else "")),
+            joined(row, _ate_text),
             " / ".join(ratios),
             joined(row, lambda c: f"{c.errors['temporal_median_px']:.4f}"),
             joined(row, lambda c: f"{100 * c.errors['temporal_over_1px']:.2f}"),
@@ -238,8 +286,9 @@ def tables(cells: Sequence[CellResult], baseline: str = BASELINE) -> list[dict[s
                f"stereo % > 1 px ({names})"]
     per_cell = table(
         "Per scene, rate and perturbation", columns, rows,
-        "ATE: RMSE after SE3 alignment, the mean of the estimator's runs (each run in cells.json); failed: "
-        "the estimator died or diverged. Errors: every published feature against the exact flow.")
+        "ATE: RMSE after SE3 alignment, the mean of the estimator's runs (each run in cells.json), over the "
+        "sensor-noise draws with several (their range in brackets); failed: the estimator died or diverged. "
+        "Errors: every published feature against the exact flow (the draws' mean).")
     sums = [[m, f"{s['cells']:.0f}", f"{s['ate_ratio_max']:.2f}", f"{s['ate_ratio_median']:.2f}",
              f"{100 * s['ate_cells_within_1.15']:.0f} %", f"{s['temporal_median_ratio_max']:.2f}",
              f"{s['stereo_median_ratio_max']:.2f}"] for m, s in summary(cells, baseline).items()]
@@ -290,6 +339,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vins", default=None,
                    help="a VINS-Fusion catkin workspace (scripts/build_vins_fusion.sh): run the estimator")
     p.add_argument("--runs", type=int, default=2, help="estimator runs per bag (default 2)")
+    p.add_argument("--draws", type=int, default=1,
+                   help="sensor-noise realisations per cell (default 1: the sample's images): draw k > 0 "
+                   f"adds {DRAW_NOISE:g} gray level of Gaussian noise seeded by k; a cell's figures are the "
+                   "draws' means. The estimator's ATE moves more between draws than between front-ends: use "
+                   "3 or more, with --runs 1 --solver-time 1")
     p.add_argument("--solver-time", type=float, default=None,
                    help="the estimator's max_solver_time in s (default the config's 0.04); e.g. 1 on a busy "
                    "machine: the solver then stops at its iteration limit and the runs agree")
@@ -317,7 +371,8 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
                     folder = label.replace(":", "_").replace("=", "-")
                     where = Path(opts.out) / f"seed{seed}" / f"{rate:g}hz" / level / folder
                     cell = evaluate_cell(sample, where, method, level, config=config, model=opts.model,
-                                         vins=vins, runs=opts.runs, progress=not opts.no_progress,
+                                         vins=vins, runs=opts.runs, draws=opts.draws,
+                                         progress=not opts.no_progress,
                                          resume=opts.resume, solver_time=opts.solver_time,
                                          overrides=overrides)
                     cell.method = label
@@ -336,8 +391,9 @@ def main(args: list[str] | None = None) -> int:
     try:
         from nsflow_ros.resources import STEREO_CONFIG, share_file
 
-        if opts.runs < 1 or opts.duration <= 0:
-            raise EvaluationError(f"--runs must be >= 1 and --duration > 0, got {opts.runs}, {opts.duration}")
+        if opts.runs < 1 or opts.draws < 1 or opts.duration <= 0:
+            raise EvaluationError(f"--runs and --draws must be >= 1 and --duration > 0, got {opts.runs}, "
+                                  f"{opts.draws}, {opts.duration}")
         config = Path(opts.config) if opts.config else Path(share_file(STEREO_CONFIG))
         vins = None
         if opts.vins:

@@ -142,3 +142,20 @@ def test_dark_is_reproducible_and_independent_per_image(image):
     shifted = np.roll(image, 3, axis=1)
     assert not np.array_equal(np.roll(first[0], 3, axis=1), a(shifted, TIMES[0]))
     assert a(image.astype(np.uint16) * 257, 0.0).dtype == np.uint16
+
+
+def test_image_noise_is_a_seeded_realisation_of_the_given_sigma(image):
+    from nsflow_ros.data.perturb import ImageNoise
+
+    flat = np.full((200, 200), 128, np.uint8)
+    noisy = ImageNoise(2.0, seed=1)(flat, 0.5)
+    assert noisy.dtype == np.uint8 and noisy.shape == flat.shape
+    assert abs(float(np.mean(noisy)) - 128) < 0.05 and abs(float(np.std(noisy.astype(float))) - 2.0) < 0.05
+    assert np.array_equal(noisy, ImageNoise(2.0, seed=1)(flat, 0.5))
+    assert not np.array_equal(noisy, ImageNoise(2.0, seed=2)(flat, 0.5))  # another draw
+    assert not np.array_equal(noisy, ImageNoise(2.0, seed=1)(flat, 0.55))  # another frame
+    assert np.array_equal(ImageNoise(0.0, seed=1)(image, 0.5), image)
+    wide = ImageNoise(1.0, seed=1)(flat.astype(np.uint16) * 257, 0.5)
+    assert wide.dtype == np.uint16 and 200 < float(np.std(wide.astype(float))) < 314  # 257 gray levels of 16 bit
+    with pytest.raises(DataError, match="-1"):
+        ImageNoise(-1.0)

@@ -10,6 +10,7 @@ import pytest
 
 from nsflow_ros.core.tracker import CameraFeatures, FrameFeatures
 from nsflow_ros.data.sample import make_sample_sequence
+from nsflow_ros.evaluation.errors import EvaluationError
 from nsflow_ros.evaluation.scenes import CellResult, FeatureErrors, evaluate_cell, main, summary, tables
 from nsflow_ros.resources import STEREO_CONFIG, share_file
 from nsflow_ros.results import markdown
@@ -85,6 +86,38 @@ def test_a_cell_without_estimator(tiny: object, tmp_path: Path) -> None:
     assert 0 < cell.errors["temporal_median_px"] < 0.5 and 0 < cell.errors["stereo_median_px"] < 0.5
 
 
+def test_draws_track_other_noise_realisations(tiny: object, tmp_path: Path) -> None:
+    config = Path(share_file(STEREO_CONFIG))
+    one = evaluate_cell(tiny, tmp_path / "cell", "klt", "none", config=config)
+    three = evaluate_cell(tiny, tmp_path / "cell", "klt", "none", config=config, draws=3, resume=True)
+    assert (tmp_path / "cell" / "draw2" / "features.bag").is_file()
+    # draw 0 is the sample's own images, kept; the others see other noise, so other features
+    assert (tmp_path / "cell" / "draw1" / "features.bag").read_bytes() != (
+        tmp_path / "cell" / "features.bag").read_bytes()
+    parts = [one] + [CellResult(**json.loads((tmp_path / "cell" / f"draw{d}" / "cell.json").read_text()))
+                     for d in (1, 2)]
+    assert three.errors["temporal_median_px"] == pytest.approx(
+        np.mean([p.errors["temporal_median_px"] for p in parts]))
+    assert three.errors["temporal_count"] == sum(p.errors["temporal_count"] for p in parts)
+    assert len(three.draw_ates) == 3 and np.isnan(three.ate)  # no estimator: no ATE
+    with pytest.raises(EvaluationError, match="draws"):
+        evaluate_cell(tiny, tmp_path / "cell", "klt", "none", config=config, draws=0)
+
+
+def test_draws_range_in_the_table() -> None:
+    def cell(method: str, draws: list[float]) -> CellResult:
+        errors = {"temporal_median_px": 0.05, "temporal_over_1px": 0.01, "stereo_median_px": 0.06,
+                  "stereo_over_1px": 0.01}
+        return CellResult(1, 10.0, "none", method, errors, draws, [], draws)
+
+    weighed = CellResult(1, 10.0, "none", "x", {}, [0.01, 0.01, 0.04], [], [0.01, 0.04])
+    assert weighed.ate == pytest.approx(0.025)  # each draw alike, whatever its runs
+    assert CellResult(1, 10.0, "none", "x", {}, [], ["diverged"] * 2, [np.inf, np.inf]).ate == np.inf
+    doc = tables([cell("klt", [0.016, 0.027]), cell("nsflow", [0.023, 0.014])])
+    assert doc[0]["rows"][0][3] == "21.5 (16.0-27.0) / 18.5 (14.0-23.0)"
+    assert doc[0]["rows"][0][4] == "0.86"
+
+
 def test_command_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     rc = main(["--seeds", "4", "--rates", "20", "--duration", "0.3", "--methods", "klt", "--no-progress",
                "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache")])
@@ -100,6 +133,7 @@ def test_command_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFix
 @pytest.mark.parametrize("argv, message", [
     (["--vins", "/nonexistent/ws"], "/nonexistent/ws"),
     (["--runs", "0"], "--runs"),
+    (["--draws", "0"], "--draws"),
 ])
 def test_known_errors_exit_1(argv: list[str], message: str, capsys: pytest.CaptureFixture) -> None:
     assert main(argv) == 1
