@@ -109,9 +109,11 @@ class CellResult:
     def ate(self) -> float:
         """Mean ATE RMSE over the runs (m), or over the draws' means with several draws (each draw weighs
         alike, whatever its runs); inf when every run failed or diverged, NaN without runs."""
-        finite = [a for a in self.draw_ates if np.isfinite(a)]
-        if len(self.draw_ates) > 1 and (finite or any(np.isinf(a) for a in self.draw_ates)):
-            return float(np.mean(finite)) if finite else float("inf")
+        if len(self.draw_ates) > 1:
+            finite = [a for a in self.draw_ates if np.isfinite(a)]
+            if finite:
+                return float(np.mean(finite))
+            return float("inf") if any(np.isinf(a) for a in self.draw_ates) else float("nan")
         if not self.ate_runs and not self.failures:
             return float("nan")
         return float(np.mean(self.ate_runs)) if self.ate_runs else float("inf")
