@@ -156,6 +156,7 @@ def test_image_noise_is_a_seeded_realisation_of_the_given_sigma(image):
     assert not np.array_equal(noisy, ImageNoise(2.0, seed=1)(flat, 0.55))  # another frame
     assert np.array_equal(ImageNoise(0.0, seed=1)(image, 0.5), image)
     wide = ImageNoise(1.0, seed=1)(flat.astype(np.uint16) * 257, 0.5)
-    assert wide.dtype == np.uint16 and 200 < float(np.std(wide.astype(float))) < 314  # 257 gray levels of 16 bit
+    # 1 gray level of the 8-bit scale is 257 of 16 bit
+    assert wide.dtype == np.uint16 and 200 < float(np.std(wide.astype(float))) < 314
     with pytest.raises(DataError, match="-1"):
         ImageNoise(-1.0)
