@@ -214,6 +214,15 @@ class Perturber(Protocol):
     def __call__(self, image: Any, t: float) -> np.ndarray: ...
 
 
+def _image_rng(seed: int, kind: int, image: np.ndarray, t: float) -> np.random.Generator:
+    """A noise generator seeded by ``(seed, kind, t in ns, CRC-32 of the image)``: reproducible frame by
+    frame in any order, independent between the images of a stereo pair (same stamp, other content) and
+    between the kinds of noise."""
+    t_ns = round(float(t) * 1e9) % (1 << 63)
+    crc = zlib.crc32(np.ascontiguousarray(image).data)
+    return np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, kind, t_ns, crc]))
+
+
 class DarkPerturber:
     """Low light on a real sensor: fewer photo-electrons, shot and read noise, gain, quantisation.
 
@@ -233,9 +242,7 @@ class DarkPerturber:
 
     def rng(self, image: np.ndarray, t: float) -> np.random.Generator:
         """The noise generator of one image at ``t`` seconds."""
-        t_ns = round(float(t) * 1e9) % (1 << 63)
-        crc = zlib.crc32(np.ascontiguousarray(image).data)
-        return np.random.default_rng(np.random.SeedSequence([self.seed & 0xFFFFFFFF, 0xDA4C, t_ns, crc]))
+        return _image_rng(self.seed, 0xDA4C, image, t)
 
     def __call__(self, image: Any, t: float) -> np.ndarray:
         """Perturb one image taken at time ``t`` (seconds).
@@ -287,9 +294,7 @@ class ImageNoise:
             DataError: on a bad shape or dtype.
         """
         img = _check_image(image)
-        t_ns = round(float(t) * 1e9) % (1 << 63)
-        crc = zlib.crc32(np.ascontiguousarray(img).data)
-        rng = np.random.default_rng(np.random.SeedSequence([self.seed & 0xFFFFFFFF, 0x1A0E, t_ns, crc]))
+        rng = _image_rng(self.seed, 0x1A0E, img, t)
         top = _full_scale(img.dtype)
         noise = rng.standard_normal(img.shape, dtype=np.float32) * np.float32(self.sigma * top / 255.0)
         return _to_dtype(img.astype(np.float32) + noise, img.dtype)
