@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from nsflow_ros.argtypes import names, positive_float, program_name
+from nsflow_ros.argtypes import names, non_negative_float, positive_float, program_name
 from nsflow_ros.data.sample import FORMATS, make_sample_sequence
 from nsflow_ros.errors import NSFlowError
 
@@ -36,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds of images (default: %(default)s)")
     p.add_argument("--rate", type=positive_float, default=20.0,
                    help="camera rate in Hz (default: %(default)s)")
+    p.add_argument("--rest", type=non_negative_float, default=0.0,
+                   help="seconds the body holds its first pose before it flies, as EuRoC's flights start "
+                        "(default: 0, in flight from the first frame)")
     p.add_argument("--mono", action="store_true", help="cam0 only (default: stereo)")
     p.add_argument("--formats", type=_formats, default=FORMATS,
                    help=f"comma-separated subset of {','.join(FORMATS)} (default: all)")
@@ -56,6 +59,7 @@ def main(args: list[str] | None = None) -> int:
         seq = make_sample_sequence(
             opts.out, seed=opts.seed, duration=opts.duration, rate_hz=opts.rate, stereo=not opts.mono,
             formats=opts.formats, progress=False if opts.no_progress else None, overwrite=opts.overwrite,
+            rest=opts.rest,
         )
     except NSFlowError as err:  # a DataError, or the eval extra missing (the textures are its photos)
         print(f"nsflow-make-sample: error: {err}", file=sys.stderr)

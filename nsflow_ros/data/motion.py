@@ -4,10 +4,15 @@ The body frame is the IMU frame (EuRoC's ``S`` of imu0): x up when level, camera
 EuRoC MAV. Position and yaw / pitch / roll are seeded sums of sinusoids, so velocity, acceleration, angular
 velocity and hence the synthetic IMU (before its deliberate noise) are exact. World frame: z up, gravity
 ``(0, 0, -9.81)`` m/s^2; times are seconds since the trajectory's start.
+
+A flight may start at rest (``Trajectory.rest``), as EuRoC's do: the body holds its first pose, then speeds
+up along the same path over :data:`RAMP_S` seconds, a smooth time warp whose derivatives keep the kinematics
+exact.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -21,6 +26,7 @@ __all__ = [
     "EUROC_IMU_NOISE",
     "GRAVITY",
     "NO_IMU_NOISE",
+    "RAMP_S",
     "ImuNoise",
     "ImuSamples",
     "Trajectory",
@@ -30,6 +36,9 @@ __all__ = [
 ]
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
+
+RAMP_S = 2.0
+"""Seconds a flight that starts at rest takes to reach its path's own speed (a raised-cosine speed-up)."""
 
 # Body axes in the world at zero yaw / pitch / roll: body x up, body z (the cameras' view) along world x.
 _R0 = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
@@ -64,6 +73,20 @@ def _times(t: Any) -> np.ndarray:
     return arr
 
 
+def _warp(t: np.ndarray, rest: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The path's time s(t) of a flight at rest for ``rest`` s, and ds/dt, d2s/dt2.
+
+    After the rest the speed factor ds/dt rises as (1 - cos(pi tau / RAMP_S)) / 2 over :data:`RAMP_S` s (tau:
+    time since the rest), so velocity and acceleration are continuous; then s = t - rest - RAMP_S / 2.
+    """
+    tau = np.clip(t - rest, 0.0, RAMP_S)
+    arg = np.pi * tau / RAMP_S
+    s = tau / 2 - RAMP_S / (2 * np.pi) * np.sin(arg) + np.maximum(t - rest - RAMP_S, 0.0)
+    ds = np.where(t >= rest + RAMP_S, 1.0, np.where(t > rest, (1 - np.cos(arg)) / 2, 0.0))
+    dds = np.where((t > rest) & (t < rest + RAMP_S), np.pi / (2 * RAMP_S) * np.sin(arg), 0.0)
+    return s, ds, dds
+
+
 @dataclass(frozen=True, eq=False)
 class Trajectory:
     """Position and yaw / pitch / roll as constants plus sums of sinusoids.
@@ -73,6 +96,8 @@ class Trajectory:
         pos_amp, pos_freq, pos_phase: (3, K) amplitudes (m), angular frequencies (rad/s), phases (rad).
         ang_center: (3,) mean yaw, pitch, roll (rad).
         ang_amp, ang_freq, ang_phase: (3, K) the same for yaw, pitch, roll.
+        rest: seconds the body holds its first pose before it speeds up along the path (0: it flies from the
+            start, at the path's speed).
 
     Orientation: ``R_wb = Rz(yaw) Ry(pitch) Rx(roll) R0`` with ``R0`` the level pose (body x up, body z
     along world x).
@@ -86,8 +111,12 @@ class Trajectory:
     ang_amp: np.ndarray
     ang_freq: np.ndarray
     ang_phase: np.ndarray
+    rest: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.rest) and self.rest >= 0):
+            raise DataError(f"trajectory rest: expected a finite number of seconds >= 0, got {self.rest}")
+        object.__setattr__(self, "rest", float(self.rest))
         for name in ("center", "ang_center"):
             arr = np.asarray(getattr(self, name), dtype=np.float64)
             if arr.shape != (3,):
@@ -101,8 +130,10 @@ class Trajectory:
             object.__setattr__(self, name, arr)
 
     @classmethod
-    def from_seed(cls, seed: int = 0, *, speed: float = 1.0) -> Trajectory:
+    def from_seed(cls, seed: int = 0, *, speed: float = 1.0, rest: float = 0.0) -> Trajectory:
         """Draw an EuRoC-like flight around the room's centre, deterministically from ``seed``.
+
+        ``rest``: seconds at the first pose before the flight (the path is the same for every ``rest``).
 
         Bounds at ``speed`` 1 (a factor on every frequency): ``|x| <= 1.4 m``, ``|y| <= 1.0 m``, ``z`` in
         ``1.45 +- 0.35 m``, 0.5 - 1 m/s, yaw rate up to about 1 rad/s, pitch within +-0.25 rad, roll within
@@ -130,11 +161,12 @@ class Trajectory:
         ang_phase = rng.uniform(0, 2 * np.pi, (3, 2))
         ang_center = np.array([rng.uniform(-np.pi, np.pi), 0.0, 0.0])
         return cls(np.array([0.0, 0.0, 1.45]), pos_amp, pos_freq, pos_phase, ang_center, ang_amp, ang_freq,
-                   ang_phase)
+                   ang_phase, rest)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON description that :meth:`from_dict` reads back."""
-        return {k: getattr(self, k).tolist() for k in self.__dataclass_fields__}
+        """Plain-JSON description that :meth:`from_dict` reads back (``rest`` only when there is one)."""
+        out: dict[str, Any] = {k: getattr(self, k).tolist() for k in self.__dataclass_fields__ if k != "rest"}
+        return out | ({"rest": self.rest} if self.rest else {})
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Trajectory:
@@ -144,27 +176,42 @@ class Trajectory:
             DataError: when a key is missing or malformed.
         """
         try:
-            return cls(**{k: np.asarray(d[k], dtype=np.float64) for k in cls.__dataclass_fields__})
+            arrays = {k: np.asarray(d[k], dtype=np.float64) for k in cls.__dataclass_fields__ if k != "rest"}
+            return cls(**arrays, rest=float(d.get("rest", 0.0)))
         except (KeyError, TypeError, ValueError) as err:
             raise DataError(f"invalid trajectory description: {type(err).__name__}: {err}") from None
 
     # -- kinematics --------------------------------------------------------------------------------------
 
+    def _path_time(self, t: Any) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(s, ds/dt, d2s/dt2) of the path's time; the derivatives None for a flight without rest (s = t)."""
+        tt = _times(t)
+        return (tt, None, None) if self.rest == 0 else _warp(tt, self.rest)
+
     def position(self, t: Any) -> np.ndarray:
         """Body position in the world (m). Shape: (N,) -> (N, 3)."""
-        return self.center + _sines(_times(t), self.pos_amp, self.pos_freq, self.pos_phase, 0)
+        s, _, _ = self._path_time(t)
+        return self.center + _sines(s, self.pos_amp, self.pos_freq, self.pos_phase, 0)
 
     def velocity(self, t: Any) -> np.ndarray:
         """Body velocity in the world frame (m/s). Shape: (N,) -> (N, 3)."""
-        return _sines(_times(t), self.pos_amp, self.pos_freq, self.pos_phase, 1)
+        s, ds, _ = self._path_time(t)
+        v = _sines(s, self.pos_amp, self.pos_freq, self.pos_phase, 1)
+        return v if ds is None else v * ds[:, None]
 
     def acceleration(self, t: Any) -> np.ndarray:
         """Body acceleration in the world frame (m/s^2). Shape: (N,) -> (N, 3)."""
-        return _sines(_times(t), self.pos_amp, self.pos_freq, self.pos_phase, 2)
+        s, ds, dds = self._path_time(t)
+        a = _sines(s, self.pos_amp, self.pos_freq, self.pos_phase, 2)
+        if ds is None or dds is None:
+            return a
+        # d2/dt2 p(s(t)) = p''(s) s'^2 + p'(s) s''
+        return a * ds[:, None] ** 2 + _sines(s, self.pos_amp, self.pos_freq, self.pos_phase, 1) * dds[:, None]
 
     def angles(self, t: Any) -> np.ndarray:
         """Yaw, pitch, roll (rad). Shape: (N,) -> (N, 3)."""
-        return self.ang_center + _sines(_times(t), self.ang_amp, self.ang_freq, self.ang_phase, 0)
+        s, _, _ = self._path_time(t)
+        return self.ang_center + _sines(s, self.ang_amp, self.ang_freq, self.ang_phase, 0)
 
     def rotation(self, t: Any) -> np.ndarray:
         """Body-to-world rotation ``R_wb``. Shape: (N,) -> (N, 3, 3)."""
@@ -175,7 +222,10 @@ class Trajectory:
         """Angular velocity in the body frame (rad/s), as a gyroscope measures it. Shape: (N,) -> (N, 3)."""
         tt = _times(t)
         a = self.angles(tt)
-        rate = _sines(tt, self.ang_amp, self.ang_freq, self.ang_phase, 1)
+        s, ds, _ = self._path_time(tt)
+        rate = _sines(s, self.ang_amp, self.ang_freq, self.ang_phase, 1)
+        if ds is not None:
+            rate = rate * ds[:, None]
         Rz, Ry = _rz(a[:, 0]), _ry(a[:, 1])
         ez, ey, ex = np.eye(3)[2], np.eye(3)[1], np.eye(3)[0]
         # World-frame rate of R = Rz Ry Rx R0: each Euler rate about its own (rotated) axis.

@@ -18,6 +18,7 @@ The outputs are a pure function of the parameters: the same ones again return th
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import sys
@@ -80,9 +81,12 @@ class _Params:
     stereo: bool
     image_noise: float
     imu_noise: bool
+    rest: float = 0.0
 
     def key(self) -> dict[str, Any]:
-        return {"version": SAMPLE_VERSION, **self.__dict__}
+        # A flight without rest keeps the key it had before rests existed, so its rendered copies stay valid.
+        fields = {k: v for k, v in self.__dict__.items() if k != "rest" or v}
+        return {"version": SAMPLE_VERSION, **fields}
 
 
 class SampleSequence:
@@ -251,7 +255,7 @@ def is_sample(root: Path) -> bool:
 def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float = 10.0, rate_hz: float = 20.0,
                          stereo: bool = True, formats: Sequence[str] = FORMATS, imu_rate_hz: float = 200.0,
                          image_noise: float = 1.0, imu_noise: bool = True, progress: bool | None = None,
-                         overwrite: bool = False, workers: int = 2) -> SampleSequence:
+                         overwrite: bool = False, workers: int = 2, rest: float = 0.0) -> SampleSequence:
     """Make (or reuse) a synthetic EuRoC-like sequence; see the module docstring for the layout.
 
     Args:
@@ -266,6 +270,8 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
         overwrite: replace a non-empty ``out_dir`` that is not a sample sequence (a sample sequence with
             other parameters is always replaced, one with these parameters reused).
         workers: render threads (NumPy and OpenCV release the GIL in the heavy parts).
+        rest: seconds the body holds its first pose before it flies, as EuRoC's flights start
+            (:attr:`~nsflow_ros.data.motion.Trajectory.rest`); 0 = in flight from the first frame.
 
     Raises:
         DataError: on bad parameters, when ``out_dir`` holds other files and ``overwrite`` is false,
@@ -277,6 +283,8 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
     if bad:
         raise DataError(f"unknown format(s) {', '.join(map(repr, bad))}; "
                         f"expected any of {', '.join(FORMATS)}")
+    if not (math.isfinite(rest) and rest >= 0):
+        raise DataError(f"rest must be a finite number of seconds >= 0, got {rest}")
     if not (duration > 0 and rate_hz > 0 and imu_rate_hz > 0):
         raise DataError("duration, rate_hz and imu_rate_hz must be positive, "
                         f"got {duration}, {rate_hz}, {imu_rate_hz}")
@@ -284,7 +292,7 @@ def make_sample_sequence(out_dir: str | Path, *, seed: int = 0, duration: float 
     if n_frames < 1:
         raise DataError(f"duration {duration} s at {rate_hz} Hz gives no frame")
     params = _Params(int(seed), float(duration), float(rate_hz), float(imu_rate_hz), bool(stereo),
-                     float(image_noise), bool(imu_noise))
+                     float(image_noise), bool(imu_noise), float(rest))
     key = params.key()
     if _is_complete(root, key, fmts):
         return SampleSequence.load(root)
@@ -325,7 +333,7 @@ def _replace(tmp: Path, root: Path) -> None:
 def _generate(out: Path, p: _Params, key: dict[str, Any], fmts: tuple[str, ...], n_frames: int,
               progress: bool | None, workers: int) -> None:
     scene = Scene.from_seed(p.seed)
-    traj = Trajectory.from_seed(p.seed)
+    traj = Trajectory.from_seed(p.seed, rest=p.rest)
     cams = [EUROC_CAM0, EUROC_CAM1] if p.stereo else [EUROC_CAM0]
     frame_ns = (np.arange(n_frames) * (1e9 / p.rate_hz)).round().astype(np.int64)
     stamps = T0_NS + frame_ns

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from nsflow_ros.argtypes import method_variant, method_variants, names, program_name
+from nsflow_ros.argtypes import method_variant, method_variants, names, non_negative_float, program_name
 from nsflow_ros.core.methods import BASELINE
 from nsflow_ros.core.tracker import FrameFeatures
 from nsflow_ros.errors import NSFlowError
@@ -337,6 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "nsflow:reverse_checks=1 (default nsflow,klt)")
     p.add_argument("--model", default=None, help="the learned methods' model (default: each one's own)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per scene (default 20)")
+    p.add_argument("--rest", type=non_negative_float, default=0.0,
+                   help="seconds each flight holds its first pose before it flies, as EuRoC's do (default 0: "
+                   "in flight from the first frame, which the estimator must then initialise at speed)")
     p.add_argument("--config", default=None, help=f"VINS-Fusion config (default {DEFAULT_CONFIG})")
     p.add_argument("--vins", default=None,
                    help="a VINS-Fusion catkin workspace (scripts/build_vins_fusion.sh): run the estimator")
@@ -365,9 +368,11 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
     methods = {m: method_variant(m) for m in opts.methods}
     for seed in opts.seeds:
         for rate in opts.rates:
-            sample = make_sample_sequence(Path(opts.cache) / f"seed{seed}-{rate:g}hz-{opts.duration:g}s",
+            rest = f"-rest{opts.rest:g}s" if opts.rest else ""
+            name = f"seed{seed}-{rate:g}hz-{opts.duration:g}s{rest}"
+            sample = make_sample_sequence(Path(opts.cache) / name,
                                           seed=seed, duration=opts.duration, rate_hz=rate, stereo=True,
-                                          formats=("asl",), progress=not opts.no_progress)
+                                          formats=("asl",), progress=not opts.no_progress, rest=opts.rest)
             for level in levels:
                 for label, (method, overrides) in methods.items():
                     folder = label.replace(":", "_").replace("=", "-")

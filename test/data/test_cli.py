@@ -18,6 +18,8 @@ def test_makes_then_reuses_a_sample(tmp_path, capsys):
     seq = SampleSequence.load(out)
     assert seq.params["seed"] == 4 and seq.formats == ("asl", "ros1") and len(seq.cameras) == 1
     assert main(args) == 0
+    assert main([*args, "--rest", "1.5"]) == 0
+    assert SampleSequence.load(out).trajectory.rest == 1.5
 
 
 def test_known_errors_exit_1_with_a_message(tmp_path, capsys):
@@ -34,3 +36,6 @@ def test_bad_arguments_exit_2(tmp_path, capsys):
         main(["--out", str(tmp_path / "z"), "--formats", "asl,tiff"])
     assert info.value.code == 2
     assert "subset of asl,ros2,ros1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(["--out", str(tmp_path / "z"), "--rest", "-1"])
+    assert info.value.code == 2

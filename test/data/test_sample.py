@@ -122,6 +122,20 @@ def test_an_interrupted_run_leaves_nothing_that_looks_complete(tmp_path, monkeyp
         SampleSequence.load(tmp_path)
 
 
+def test_a_flight_at_rest_is_its_own_sample_and_starts_still(tmp_path):
+    moving = make_sample_sequence(tmp_path / "moving", seed=3, **SHORT)
+    assert "rest" not in moving.params  # the key of a flight without rest is the one it always had
+    still = make_sample_sequence(tmp_path / "still", seed=3, rest=0.5, **SHORT)
+    assert still.params["rest"] == 0.5 and still.trajectory.rest == 0.5
+    assert np.array_equal(still.pose(0), moving.pose(0)) and np.array_equal(still.pose(2), still.pose(0))
+    assert np.array_equal(still.image(0), moving.image(0))
+    flow, visible = still.flow(0, 2, np.array([[300.0, 200.0]]))
+    assert visible.all() and np.abs(flow).max() < 1e-9
+    # Reused with the same rest, replaced with another.
+    assert make_sample_sequence(tmp_path / "still", seed=3, rest=0.5, **SHORT).params["rest"] == 0.5
+    assert "rest" not in make_sample_sequence(tmp_path / "still", seed=3, **SHORT).params
+
+
 def test_parameter_errors(tmp_path):
     with pytest.raises(DataError, match=r"unknown format.*'hdf5'"):
         make_sample_sequence(tmp_path / "x", formats=("asl", "hdf5"))
@@ -129,6 +143,8 @@ def test_parameter_errors(tmp_path):
         make_sample_sequence(tmp_path / "x", duration=-1.0)
     with pytest.raises(DataError, match="gives no frame"):
         make_sample_sequence(tmp_path / "x", duration=0.01)
+    with pytest.raises(DataError, match=r"rest must be a finite number of seconds >= 0, got -0\.5"):
+        make_sample_sequence(tmp_path / "x", rest=-0.5)
     assert not (tmp_path / "x").exists()
 
 

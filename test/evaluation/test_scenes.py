@@ -128,6 +128,11 @@ def test_command_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFix
     assert doc["header"]["command"].startswith("nsflow-scenes --seeds 4")
     assert markdown(doc) == (tmp_path / "out" / "scenes.md").read_text()
     assert "| 4 | 20 | none | - |" in capsys.readouterr().out
+    # A flight at rest first is another scene, rendered beside the one in flight.
+    assert main(["--seeds", "4", "--rates", "20", "--duration", "0.3", "--methods", "klt", "--no-progress",
+                 "--rest", "0.2", "--out", str(tmp_path / "rest"), "--cache", str(tmp_path / "cache")]) == 0
+    scenes = sorted(p.name for p in (tmp_path / "cache").iterdir())
+    assert scenes == ["seed4-20hz-0.3s", "seed4-20hz-0.3s-rest0.2s"]
 
 
 @pytest.mark.parametrize("argv, message", [
