@@ -157,9 +157,13 @@ def refine(
 ) -> RefineResult:
     """Refine tracked positions on the images: Gauss-Newton on intensity from each descriptor solution.
 
-    The residual is g (w - mean w) - (t - mean t) per window, g the candidate's least-squares gain onto the
-    template (clipped to [1/4, 4]); J is the template's gradient, so J^T J is formed once (as OpenCV's LK
-    does) and an iteration costs one sampling of the candidate windows.
+    The residual is g (w - mean w) - (t - mean t) per window, g the ratio of the template's spread to the
+    candidate's, with the sign of their correlation (clipped to [1/4, 4]); J is the template's gradient, so
+    J^T J is formed once (as OpenCV's LK does) and an iteration costs one sampling of the candidate windows.
+    The least-squares gain would be pulled below 1 by the candidate's own noise, and g - 1 times the
+    window's own gradient term moves a point the same way in every frame: tracks of a camera standing still
+    drifted 2-3x as far as OpenCV's LK (docs/design.md). The spread ratio has the noise of both windows
+    alike and so no such pull.
 
     Args:
         image1, image2: the frames' gray levels from :func:`gray_level`.
@@ -199,8 +203,8 @@ def refine(
             dots = np.matmul(cand, cols)[:, 0].astype(np.float64)  # [c.t, c.gx, c.gy]
             csum = cand.sum(axis=2)[:, 0].astype(np.float64)
             cc = np.einsum("mip,mip->m", cand, cand).astype(np.float64) - csum * csum / npix
-            gain = dots[:, 0] / cc
-            gain = np.clip(np.where(np.isnan(gain), 1.0, gain), _GAIN_LO, _GAIN_HI)  # a flat window: 1
+            gain = np.copysign(np.sqrt(contrast / cc), dots[:, 0])
+            gain = np.clip(np.where(np.isfinite(gain), gain, 1.0), _GAIN_LO, _GAIN_HI)  # a flat window: 1
             # r = g (c - mean c) - t: its energy and J^T r (J = the template's gradient) from the dots.
             cost = 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * dots[:, 0] + contrast, 0.0)
             bx = gain * dots[:, 1] - gram[:, 0, 1]
