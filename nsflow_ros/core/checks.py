@@ -119,9 +119,19 @@ class StereoGeometry:
         """
         if len(left) == 0:
             return np.zeros(0)
-        normal = self.cam0.lift_rays(left) @ self.essential.T  # the epipolar plane's normal in camera 1
-        ray = self.cam1.lift_rays(right)
+        return self.distance_rays(self.cam0.lift_rays(left), self.cam1.lift_rays(right))
+
+    def distance_rays(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """:meth:`distance` from the pixels' rays (``CameraModel.lift_rays``), for a caller that lifts them
+        anyway (the tracker publishes every feature's undistorted point).
+
+        Shape:
+            left, right: (N, 3) rays in camera 0 and camera 1. Returns (N,).
+        """
+        if len(left) == 0:
+            return np.zeros(0)
+        normal = left @ self.essential.T  # the epipolar plane's normal in camera 1
         with np.errstate(divide="ignore", invalid="ignore"):
-            sine = np.abs(np.einsum("ij,ij->i", ray, normal)) / (
-                np.linalg.norm(ray, axis=1) * np.linalg.norm(normal, axis=1))
+            sine = np.abs(np.einsum("ij,ij->i", right, normal)) / (
+                np.linalg.norm(right, axis=1) * np.linalg.norm(normal, axis=1))
         return np.arcsin(np.minimum(sine, 1.0)) * self.focal

@@ -521,9 +521,14 @@ class FeatureTracker:
         size: tuple[int, int],
         start: np.ndarray | None = None,
         prior: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        rays: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """A solve, the border check, the track check and the ``max_sigma`` gate: (positions in frame 2,
-        status, covariances: NaN unless ``settings.covariance`` or the covariance check computed them).
+        status, covariances: NaN unless ``settings.covariance`` or the covariance check computed them,
+        camera 1's rays of the positions where the epipolar test lifted them: None without one).
+
+        ``rays``: camera 0's rays of ``pts`` for the epipolar test (:meth:`_epipolar_rays`), so that each
+        point is lifted once a frame whether the test or the published features need it.
 
         The track check (``flow_back``) is the reverse solve ``check`` of every point, or with the method's
         :class:`~nsflow_ros.core.checks.CovarianceCheck` the covariance (and for stereo the epipolar) test
@@ -538,13 +543,17 @@ class FeatureTracker:
         if start is not None and int(status.sum()) < PREDICTION_MIN_TRACKED:
             new, status, *cov = solve(kind, frame1, frame2, pts, None, prior)
         status &= _in_border(new, size, BORDER_PX)
+        new_rays = None
         if gate is None:  # VINS's check: every live point back, or none without flow_back
             reverse = status.copy() if s.flow_back else np.zeros_like(status)
         else:
             status &= gate.keep(cov[0], status)
             if kind is SolveKind.STEREO and self.stereo_geometry is not None and status.any():
                 idx = np.flatnonzero(status)
-                status[idx] = self.stereo_geometry.distance(pts[idx], new[idx]) <= gate.max_epipolar
+                left = self.cameras[0].lift_rays(pts[idx]) if rays is None else rays[idx]
+                new_rays = np.full((len(pts), 3), np.nan)
+                new_rays[idx] = self.cameras[1].lift_rays(new[idx])
+                status[idx] = self.stereo_geometry.distance_rays(left, new_rays[idx]) <= gate.max_epipolar
             reverse = status & gate.unsure(new, prior)
         if check is not None and reverse.any():
             # Only live points are checked: the others are dropped anyway.
@@ -552,13 +561,21 @@ class FeatureTracker:
             back, ok = m.solve(check, frame2, frame1, new[idx], pts[idx])
             status[idx] = ok & (np.hypot(*(back - pts[idx]).T) <= FLOW_BACK_THRESHOLD_PX)
         if not cov:
-            return new, status, np.full((len(pts), 3), np.nan)
+            return new, status, np.full((len(pts), 3), np.nan), new_rays
         if self.settings.max_sigma > 0:
             # sigma in tracking pixels against a limit in full-resolution pixels; NaN / inf count as wide
             wide = status & ~(max_sigma(cov[0]) * self._down <= self.settings.max_sigma)
             self._gated += int(wide.sum())
             status &= ~wide
-        return new, status, cov[0]
+        return new, status, cov[0], new_rays
+
+    def _epipolar_rays(self, pts: np.ndarray) -> np.ndarray | None:
+        """Camera 0's rays of ``pts`` when this frame's stereo matches will take the epipolar test, else
+        None: lifted here once for the test and the published points alike."""
+        s = self.settings
+        tested = (s.stereo and self.stereo_geometry is not None and s.flow_back and not s.reverse_checks
+                  and self.method.spec.check is not None)
+        return self.cameras[0].lift_rays(pts) if tested and len(pts) else None
 
     def _predict(self, gyro: np.ndarray | None, stamp: float) -> np.ndarray | None:
         if not self.settings.use_imu_prediction or gyro is None:
@@ -644,7 +661,7 @@ class FeatureTracker:
         # constant velocity: each id moves as it did into the previous frame
         prior = prev.pixels + (prev.pixels - prev.previous)
         back = SolveKind.FLOW_BACK if checks else None
-        pts, status, cov = self._track(
+        pts, status, cov, _ = self._track(
             SolveKind.FORWARD, back, self._frame, frame0, prev.pixels, size, predicted, prior
         )
         tracks = _Tracks(prev.ids[status], prev.track_counts[status] + 1, pts[status], prev.pixels[status],
@@ -677,10 +694,16 @@ class FeatureTracker:
         cov[:, 0::2] = DETECTION_VARIANCE if s.covariance else np.nan
         return tracks.append(_Tracks(ids, np.ones(k, np.int64), new, np.full((k, 2), np.nan), cov))
 
-    def _lift(self, camera: int, tracks: _Tracks, before: CameraFeatures, dt: float) -> CameraFeatures:
-        """Step 6: undistorted points and velocities against ``before``."""
+    def _lift(
+        self, camera: int, tracks: _Tracks, before: CameraFeatures, dt: float, rays: np.ndarray | None = None
+    ) -> CameraFeatures:
+        """Step 6: undistorted points and velocities against ``before`` (``rays``: the pixels' rays in
+        this camera, lifted already; used at full resolution only)."""
         pts = tracks.pixels
-        if self._down == 1:
+        if self._down == 1 and rays is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):  # as CameraModel.lift
+                un = rays[:, :2] / rays[:, 2:3]
+        elif self._down == 1:
             un = self.cameras[camera].lift(pts) if pts.size else np.zeros((0, 2))
         else:  # the full-resolution calibration, so the estimator's config applies as it is
             full = to_full_resolution(pts, self._down)
@@ -698,9 +721,11 @@ class FeatureTracker:
         dt: float,
         checks: bool,
         usable: np.ndarray | None,
+        rays: np.ndarray | None = None,
     ) -> CameraFeatures:
         """Step 7: left -> right with its back-check, each id starting from its previous disparity; right
-        points on a zero of ``usable`` (camera 1's mask; None = none) are dropped."""
+        points on a zero of ``usable`` (camera 1's mask; None = none) are dropped. ``rays``: the left
+        points' rays (:meth:`_epipolar_rays`)."""
         _, frame1 = self._prepare(image1, "image1")
         right = _Tracks.empty()
         if left.ids.size:
@@ -708,12 +733,13 @@ class FeatureTracker:
             disparity = r.pixels - _lookup(r.ids, prev.ids, prev.pixels)
             prior = left.pixels + _lookup(left.ids, r.ids, disparity)
             back = SolveKind.STEREO_BACK if checks else None
-            rpts, st, cov = self._track(SolveKind.STEREO, back, frame0, frame1, left.pixels, size, None,
-                                        prior)
+            rpts, st, cov, rays1 = self._track(SolveKind.STEREO, back, frame0, frame1, left.pixels, size,
+                                               None, prior, rays)
             if usable is not None:
                 st &= usable_at(usable, rpts)
             ids = left.ids[st]
             right = _Tracks(ids, left.counts[st], rpts[st], _lookup(ids, r.ids, r.pixels), cov[st])
+            return self._lift(1, right, self._right, dt, None if rays1 is None else rays1[st])
         return self._lift(1, right, self._right, dt)
 
     def _commit(self, stamp: float, frame0: Any, left: CameraFeatures, right: CameraFeatures | None) -> None:
@@ -796,11 +822,13 @@ class FeatureTracker:
             if detect:
                 tracks = self._reject_mask_detect(gray0, tracks, prev_un, size, usable0)
         dt = stamp - self._stamp if self._stamp is not None else 0.0
-        left = self._lift(0, tracks, self._left, dt)
+        rays0 = self._epipolar_rays(tracks.pixels)
+        left = self._lift(0, tracks, self._left, dt, rays0)
         right = None
         if self.settings.stereo:
             with _timed(timings, cpu, "stereo"):
-                right = self._stereo(image1, frame0, tracks, size, dt, checks, usable1)  # type: ignore[arg-type]
+                right = self._stereo(image1, frame0, tracks, size, dt, checks, usable1,  # type: ignore[arg-type]
+                                     rays0)
         self._commit(stamp, frame0, left, right)
         timings["total"] = (time.perf_counter() - t_start) * 1e3
         cpu["total"] = (time.process_time() - c_start) * 1e3

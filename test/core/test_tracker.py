@@ -668,3 +668,27 @@ def test_the_epipolar_test_drops_right_points_off_their_row():
         settings, method = _checked(stereo=True)
         free = _run(FeatureTracker([syn.camera(), syn.camera()], settings, method=method), seq)
         assert len(free[-1].cameras[1]) >= 0.7 * len(free[-1].cameras[0])
+
+
+def test_the_epipolar_test_lifts_each_point_once_with_the_published_points(monkeypatch):
+    pose = np.eye(4)
+    pose[0, 3] = -0.11
+    seq = syn.translating(3, stereo_disparity=-6)
+    settings, method = _checked(stereo=True)
+    cams = [syn.camera(), syn.camera()]
+    plain = _run(FeatureTracker(cams, settings, method=method), seq)
+    lifted: list[int] = []
+    original = type(cams[0]).lift_rays
+
+    def counting(self, px):
+        lifted.append(len(px))
+        return original(self, px)
+
+    monkeypatch.setattr(type(cams[0]), "lift_rays", counting)
+    settings, method = _checked(stereo=True)
+    res = _run(FeatureTracker(cams, settings, method=method, cam1_T_cam0=pose), seq)
+    # Two lifts a frame, camera 0's and camera 1's points, as without the test; the same points published.
+    assert len(lifted) == 2 * len(res)
+    for a, b in zip(plain, res, strict=True):
+        for ca, cb in zip(a.cameras, b.cameras, strict=True):
+            np.testing.assert_array_equal(ca.undistorted, cb.undistorted)
