@@ -527,8 +527,8 @@ class FeatureTracker:
         status, covariances: NaN unless ``settings.covariance`` or the covariance check computed them,
         camera 1's rays of the positions where the epipolar test lifted them: None without one).
 
-        ``rays``: camera 0's rays of ``pts`` for the epipolar test (:meth:`_epipolar_rays`), so that each
-        point is lifted once a frame whether the test or the published features need it.
+        ``rays``: camera 0's rays of ``pts`` (None: lifted here if the epipolar test needs them), so that
+        each point is lifted once a frame for the test and the published features alike.
 
         The track check (``flow_back``) is the reverse solve ``check`` of every point, or with the method's
         :class:`~nsflow_ros.core.checks.CovarianceCheck` the covariance (and for stereo the epipolar) test
@@ -568,14 +568,6 @@ class FeatureTracker:
             self._gated += int(wide.sum())
             status &= ~wide
         return new, status, cov[0], new_rays
-
-    def _epipolar_rays(self, pts: np.ndarray) -> np.ndarray | None:
-        """Camera 0's rays of ``pts`` when this frame's stereo matches will take the epipolar test, else
-        None: lifted here once for the test and the published points alike."""
-        s = self.settings
-        tested = (s.stereo and self.stereo_geometry is not None and s.flow_back and not s.reverse_checks
-                  and self.method.spec.check is not None)
-        return self.cameras[0].lift_rays(pts) if tested and len(pts) else None
 
     def _predict(self, gyro: np.ndarray | None, stamp: float) -> np.ndarray | None:
         if not self.settings.use_imu_prediction or gyro is None:
@@ -725,7 +717,7 @@ class FeatureTracker:
     ) -> CameraFeatures:
         """Step 7: left -> right with its back-check, each id starting from its previous disparity; right
         points on a zero of ``usable`` (camera 1's mask; None = none) are dropped. ``rays``: the left
-        points' rays (:meth:`_epipolar_rays`)."""
+        points' rays, if lifted already."""
         _, frame1 = self._prepare(image1, "image1")
         right = _Tracks.empty()
         if left.ids.size:
@@ -822,7 +814,9 @@ class FeatureTracker:
             if detect:
                 tracks = self._reject_mask_detect(gray0, tracks, prev_un, size, usable0)
         dt = stamp - self._stamp if self._stamp is not None else 0.0
-        rays0 = self._epipolar_rays(tracks.pixels)
+        # At the tracking resolution the published points are the rays' (as CameraModel.lift): lifted once
+        # here, they serve the stereo epipolar test too.
+        rays0 = self.cameras[0].lift_rays(tracks.pixels) if self._down == 1 and len(tracks.pixels) else None
         left = self._lift(0, tracks, self._left, dt, rays0)
         right = None
         if self.settings.stereo:
