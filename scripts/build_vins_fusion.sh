@@ -10,8 +10,11 @@
 #   --rev REV    the commit to build (from a git repository; default: the one below)  [VINS_REV]
 #   --jobs N     parallel compile jobs (default 2)                                   [VINS_JOBS]
 #   --no-apt     do not install Debian packages (they must be there already)         [VINS_NO_APT=1]
+#   --yaw-gauge  also hold the window's yaw without Euler angles (an estimator change:  [VINS_YAW_GAUGE=1]
+#                scripts/vins_fusion_yaw_gauge.patch, docs/scenes.md); build it into its own workspace
 #
-# Only two changes to upstream, both needed by Debian 12's toolchain, nothing that alters the estimator:
+# Without --yaw-gauge, only two changes to upstream, both needed by Debian 12's toolchain, nothing that
+# alters the estimator:
 #   1. OpenCV 4 dropped the C API's constant names (CV_LOAD_IMAGE_GRAYSCALE, CV_AA, CV_GRAY2RGB, ...):
 #      they become their cv:: names (scripts/vins_fusion_opencv4.sed);
 #   2. `-std=c++11` becomes `-std=c++17` (Debian's Ceres 2.1 and its headers need C++14 or later).
@@ -29,15 +32,17 @@ DEFAULT_GIT_URL=https://github.com/HKUST-Aerial-Robotics/VINS-Fusion.git
 
 SCRIPT_DIR=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 SED_SCRIPT="$SCRIPT_DIR/vins_fusion_opencv4.sed"
+YAW_PATCH="$SCRIPT_DIR/vins_fusion_yaw_gauge.patch"
 
 SRC=${VINS_SRC:-}
 GIT_URL=${VINS_GIT_URL:-$DEFAULT_GIT_URL}
 REV=${VINS_REV:-}
 JOBS=${VINS_JOBS:-2}
 NO_APT=${VINS_NO_APT:-0}
+YAW_GAUGE=${VINS_YAW_GAUGE:-0}
 WS=""
 
-usage() { sed -n '2,12p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,14p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; }
 die() { echo "build_vins_fusion: $*" >&2; exit 1; }
 
 while [[ $# -gt 0 ]]; do
@@ -47,6 +52,7 @@ while [[ $# -gt 0 ]]; do
         --rev) REV=${2:?--rev needs a commit}; shift 2 ;;
         --jobs) JOBS=${2:?--jobs needs a number}; shift 2 ;;
         --no-apt) NO_APT=1; shift ;;
+        --yaw-gauge) YAW_GAUGE=1; shift ;;
         -h|--help) usage; exit 0 ;;
         -*) die "unknown option $1 (see --help)" ;;
         *) [[ -z "$WS" ]] || die "one workspace folder only (got '$WS' and '$1')"; WS=$1; shift ;;
@@ -56,6 +62,7 @@ WS=${WS:-$HOME/vins_ws}
 mkdir -p "$WS"
 WS=$(cd "$WS" && pwd)
 [[ -f "$SED_SCRIPT" ]] || die "missing $SED_SCRIPT (run the script from its repository)"
+[[ "$YAW_GAUGE" != 1 || -f "$YAW_PATCH" ]] || die "missing $YAW_PATCH (run the script from its repository)"
 
 # ---- 1. Debian packages -------------------------------------------------------------------------------
 # ROS 1 Noetic-era packages as Debian 12 ships them (under /usr, no /opt/ros): catkin and roscpp with the
@@ -119,6 +126,11 @@ find "$STAGE" -type f \( -name '*.cpp' -o -name '*.cc' -o -name '*.h' -o -name '
 sed -i 's/-std=c++11/-std=c++17/' "$STAGE/camera_models/CMakeLists.txt" "$STAGE/vins_estimator/CMakeLists.txt"
 left=$(grep -rnE '\bCV_(LOAD_IMAGE_[A-Z]+|AA|[A-Z]+2[A-Z]+|CALIB_CB_[A-Z_]+|ADAPTIVE_THRESH_[A-Z_]+|THRESH_[A-Z_]+|RETR_[A-Z]+|CHAIN_APPROX_[A-Z]+|SHAPE_[A-Z]+|TERMCRIT_[A-Z]+)\b' "$STAGE" || true)
 [[ -z "$left" ]] || die "OpenCV C constants left after the patch (upstream changed?):"$'\n'"$left"
+if [[ "$YAW_GAUGE" == 1 ]]; then
+    patch -d "$STAGE" -p1 --forward --quiet < "$YAW_PATCH" \
+        || die "$YAW_PATCH does not apply to this source (upstream changed?)"
+    echo "build_vins_fusion: applied $(basename "$YAW_PATCH")"
+fi
 
 # Replace the workspace's copy only when it differs, so that an unchanged tree rebuilds nothing.
 DEST="$WS/src/VINS-Fusion"
