@@ -135,6 +135,7 @@ def evaluate_cell(
     resume: bool = False,
     solver_time: float | None = None,
     overrides: dict[str, Any] | None = None,
+    bags_from: Path | None = None,
 ) -> CellResult:
     """Track one sample into a feature bag (as ``nsflow-replay --features-bag``), score it, and with a
     VINS-Fusion build run the estimator ``runs`` times on it; with ``draws`` > 1, the same on further
@@ -153,15 +154,20 @@ def evaluate_cell(
         solver_time: the estimator's ``max_solver_time`` (s); None = the config's
             (:func:`~nsflow_ros.evaluation.estimator.estimator_config`).
         overrides: tracker settings of this cell's method (e.g. ``{"reverse_checks": True}``).
+        bags_from: this cell's folder in an earlier run's output: each draw's feature bag and feature
+            figures are taken from there instead of tracked again, and only the estimator runs (to score
+            the same tracks with another estimator build).
 
     Raises:
-        NSFlowError: a source, config or model that cannot be used.
+        NSFlowError: a source, config or model that cannot be used; with ``bags_from``, a draw without its
+            ``features.bag`` or ``cell.json`` there.
     """
     if draws < 1:
         raise EvaluationError(f"draws must be >= 1, got {draws}")
     parts = [_evaluate_draw(sample, out_dir / f"draw{d}" if d else out_dir, method, perturb, d, config=config,
                             model=model, vins=vins, runs=runs, timeout_s=timeout_s, progress=progress,
-                            resume=resume, solver_time=solver_time, overrides=overrides)
+                            resume=resume, solver_time=solver_time, overrides=overrides,
+                            bags_from=(bags_from / f"draw{d}" if d else bags_from) if bags_from else None)
              for d in range(draws)]
     if draws == 1:
         return parts[0]
@@ -175,7 +181,8 @@ def evaluate_cell(
 
 def _evaluate_draw(sample: Any, out_dir: Path, method: str, perturb: str, draw: int, *, config: Path,
                    model: str | None, vins: Any, runs: int, timeout_s: float, progress: bool, resume: bool,
-                   solver_time: float | None, overrides: dict[str, Any] | None) -> CellResult:
+                   solver_time: float | None, overrides: dict[str, Any] | None,
+                   bags_from: Path | None = None) -> CellResult:
     """One sensor-noise draw of :func:`evaluate_cell`, stored in ``out_dir/cell.json``."""
     from nsflow_ros.data.perturb import ImageNoise, perturb_records
     from nsflow_ros.data.replay import ReplayOptions, replay_records
@@ -186,19 +193,23 @@ def _evaluate_draw(sample: Any, out_dir: Path, method: str, perturb: str, draw: 
     if resume and record.is_file():
         return CellResult(**json.loads(record.read_text(encoding="utf-8")))
     seed = int(sample.params["seed"])
-    cfg = load_vins_config(config)
-    bag = out_dir / "features.bag"
     out_dir.mkdir(parents=True, exist_ok=True)
-    bag.unlink(missing_ok=True)  # a cell is re-measured whole
-    errors = FeatureErrors(sample)
-    records = replay_records(ReplayOptions(sample.root / "asl", topics=feature_bag_topics(cfg), rate=0.0,
-                                           perturb=perturb, seed=seed))
-    if draw:
-        records = perturb_records(records, ImageNoise(DRAW_NOISE, seed=draw))
-    fixed = {**({"model_path": model} if model else {}), **(overrides or {})}
-    write_feature_bag(records, bag, cfg, method=method, overrides=fixed or None, progress=progress,
-                      observe=errors)
-    cell = CellResult(seed, float(sample.params["rate_hz"]), perturb, method, errors.figures())
+    if bags_from is not None:
+        bag, tracked = _stored_bag(bags_from)
+        cell = CellResult(seed, float(sample.params["rate_hz"]), perturb, method, tracked.errors)
+    else:
+        cfg = load_vins_config(config)
+        bag = out_dir / "features.bag"
+        bag.unlink(missing_ok=True)  # a cell is re-measured whole
+        errors = FeatureErrors(sample)
+        records = replay_records(ReplayOptions(sample.root / "asl", topics=feature_bag_topics(cfg), rate=0.0,
+                                               perturb=perturb, seed=seed))
+        if draw:
+            records = perturb_records(records, ImageNoise(DRAW_NOISE, seed=draw))
+        fixed = {**({"model_path": model} if model else {}), **(overrides or {})}
+        write_feature_bag(records, bag, cfg, method=method, overrides=fixed or None, progress=progress,
+                          observe=errors)
+        cell = CellResult(seed, float(sample.params["rate_hz"]), perturb, method, errors.figures())
     if vins is not None:
         from nsflow_ros.evaluation.estimator import run_vins, score_vio
 
@@ -211,6 +222,18 @@ def _evaluate_draw(sample: Any, out_dir: Path, method: str, perturb: str, draw: 
                 cell.failures.append(str(err).splitlines()[0])
     record.write_text(json.dumps(asdict(cell), indent=2) + "\n", encoding="utf-8")
     return cell
+
+
+def _stored_bag(folder: Path) -> tuple[Path, CellResult]:
+    """The feature bag and the stored result of one draw that an earlier run tracked into ``folder``."""
+    bag, record = folder / "features.bag", folder / "cell.json"
+    for path in (bag, record):
+        if not path.is_file():
+            raise EvaluationError(f"--bags-from: {path} does not exist (was this cell measured there?)")
+    try:
+        return bag, CellResult(**json.loads(record.read_text(encoding="utf-8")))
+    except (ValueError, TypeError) as err:
+        raise EvaluationError(f"--bags-from: {record} is not a cell record: {err}") from err
 
 
 def summary(cells: Sequence[CellResult], baseline: str = BASELINE) -> dict[str, dict[str, float]]:
@@ -354,6 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "machine: the solver then stops at its iteration limit and the runs agree")
     p.add_argument("--out", default="out/scenes", help="output folder (default out/scenes)")
     p.add_argument("--cache", default="data/scenes", help="where scenes are rendered (default data/scenes)")
+    p.add_argument("--bags-from", default=None,
+                   help="an earlier run's --out: take each cell's feature bags and feature figures from "
+                   "there and only run the estimator (needs --vins; e.g. to score the same tracks with "
+                   "another estimator build)")
     p.add_argument("--resume", action="store_true",
                    help="keep the cells a run before measured into --out (their cell.json)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -381,7 +408,9 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
                                          vins=vins, runs=opts.runs, draws=opts.draws,
                                          progress=not opts.no_progress,
                                          resume=opts.resume, solver_time=opts.solver_time,
-                                         overrides=overrides)
+                                         overrides=overrides,
+                                         bags_from=(Path(opts.bags_from) / where.relative_to(opts.out)
+                                                    if opts.bags_from else None))
                     cell.method = label
                     e = cell.errors
                     print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {label}: ATE {_mm(cell.ate)} mm, "
@@ -402,6 +431,8 @@ def main(args: list[str] | None = None) -> int:
             raise EvaluationError(f"--runs and --draws must be >= 1 and --duration > 0, got {opts.runs}, "
                                   f"{opts.draws}, {opts.duration}")
         config = Path(opts.config) if opts.config else Path(share_file(STEREO_CONFIG))
+        if opts.bags_from and not opts.vins:
+            raise EvaluationError("--bags-from only runs the estimator: give --vins too")
         vins = None
         if opts.vins:
             from nsflow_ros.evaluation.estimator import VinsBuild

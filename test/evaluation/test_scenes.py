@@ -104,6 +104,25 @@ def test_draws_track_other_noise_realisations(tiny: object, tmp_path: Path) -> N
         evaluate_cell(tiny, tmp_path / "cell", "klt", "none", config=config, draws=0)
 
 
+def test_bags_from_scores_the_stored_tracks_without_tracking_again(tiny: object, tmp_path: Path) -> None:
+    from evaluation.test_estimator import fake_build
+
+    config = Path(share_file(STEREO_CONFIG))
+    first = evaluate_cell(tiny, tmp_path / "a" / "cell", "klt", "none", config=config, draws=2)
+    vins = fake_build(tmp_path)  # plays the bag it is given; its trajectory does not match: a failure
+    again = evaluate_cell(tiny, tmp_path / "b" / "cell", "klt", "none", config=config, draws=2, vins=vins,
+                          runs=1, bags_from=tmp_path / "a" / "cell")
+    assert again.errors == first.errors  # the stored figures, the same tracks
+    assert not list((tmp_path / "b").rglob("features.bag"))
+    for sub in ("", "draw1/"):
+        played = json.loads((tmp_path / "b" / "cell" / sub / "run0" / "rosbag.json").read_text())
+        assert str(tmp_path / "a" / "cell" / sub / "features.bag") in played
+    assert len(again.failures) == 2
+    with pytest.raises(EvaluationError, match=r"--bags-from: .*draw2.*features\.bag does not exist"):
+        evaluate_cell(tiny, tmp_path / "c", "klt", "none", config=config, draws=3, vins=vins,
+                      bags_from=tmp_path / "a" / "cell")
+
+
 def test_draws_range_in_the_table() -> None:
     def cell(method: str, draws: list[float]) -> CellResult:
         errors = {"temporal_median_px": 0.05, "temporal_over_1px": 0.01, "stereo_median_px": 0.06,
@@ -139,6 +158,7 @@ def test_command_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFix
     (["--vins", "/nonexistent/ws"], "/nonexistent/ws"),
     (["--runs", "0"], "--runs"),
     (["--draws", "0"], "--draws"),
+    (["--bags-from", "out/scenes"], "give --vins too"),
 ])
 def test_known_errors_exit_1(argv: list[str], message: str, capsys: pytest.CaptureFixture) -> None:
     assert main(argv) == 1
