@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from vins_fakes import fake_build
 
 from nsflow_ros.core.tracker import CameraFeatures, FrameFeatures
 from nsflow_ros.data.sample import make_sample_sequence
@@ -105,8 +106,6 @@ def test_draws_track_other_noise_realisations(tiny: object, tmp_path: Path) -> N
 
 
 def test_bags_from_scores_the_stored_tracks_without_tracking_again(tiny: object, tmp_path: Path) -> None:
-    from evaluation.test_estimator import fake_build
-
     config = Path(share_file(STEREO_CONFIG))
     first = evaluate_cell(tiny, tmp_path / "a" / "cell", "klt", "none", config=config, draws=2)
     vins = fake_build(tmp_path)  # plays the bag it is given; its trajectory does not match: a failure
