@@ -164,10 +164,10 @@ def evaluate_cell(
     """
     if draws < 1:
         raise EvaluationError(f"draws must be >= 1, got {draws}")
-    parts = [_evaluate_draw(sample, out_dir / f"draw{d}" if d else out_dir, method, perturb, d, config=config,
+    parts = [_evaluate_draw(sample, _draw_dir(out_dir, d), method, perturb, d, config=config,
                             model=model, vins=vins, runs=runs, timeout_s=timeout_s, progress=progress,
                             resume=resume, solver_time=solver_time, overrides=overrides,
-                            bags_from=(bags_from / f"draw{d}" if d else bags_from) if bags_from else None)
+                            bags_from=_draw_dir(bags_from, d) if bags_from else None)
              for d in range(draws)]
     if draws == 1:
         return parts[0]
@@ -177,6 +177,11 @@ def evaluate_cell(
     return CellResult(parts[0].seed, parts[0].rate, perturb, method, errors,
                       [a for p in parts for a in p.ate_runs], [f for p in parts for f in p.failures],
                       [p.ate for p in parts])
+
+
+def _draw_dir(cell_dir: Path, draw: int) -> Path:
+    """Where draw ``draw`` of a cell is stored: the cell's folder for draw 0, ``draw<k>/`` in it else."""
+    return cell_dir / f"draw{draw}" if draw else cell_dir
 
 
 def _evaluate_draw(sample: Any, out_dir: Path, method: str, perturb: str, draw: int, *, config: Path,
@@ -403,14 +408,12 @@ def _cells(opts: argparse.Namespace, config: Path, vins: Any) -> Iterator[CellRe
             for level in levels:
                 for label, (method, overrides) in methods.items():
                     folder = label.replace(":", "_").replace("=", "-")
-                    where = Path(opts.out) / f"seed{seed}" / f"{rate:g}hz" / level / folder
-                    cell = evaluate_cell(sample, where, method, level, config=config, model=opts.model,
-                                         vins=vins, runs=opts.runs, draws=opts.draws,
-                                         progress=not opts.no_progress,
-                                         resume=opts.resume, solver_time=opts.solver_time,
-                                         overrides=overrides,
-                                         bags_from=(Path(opts.bags_from) / where.relative_to(opts.out)
-                                                    if opts.bags_from else None))
+                    cell_dir = Path(f"seed{seed}") / f"{rate:g}hz" / level / folder
+                    stored = Path(opts.bags_from) / cell_dir if opts.bags_from else None
+                    cell = evaluate_cell(sample, Path(opts.out) / cell_dir, method, level, config=config,
+                                         model=opts.model, vins=vins, runs=opts.runs, draws=opts.draws,
+                                         progress=not opts.no_progress, resume=opts.resume,
+                                         solver_time=opts.solver_time, overrides=overrides, bags_from=stored)
                     cell.method = label
                     e = cell.errors
                     print(f"nsflow-scenes: seed {seed} {rate:g} Hz {level} {label}: ATE {_mm(cell.ate)} mm, "
