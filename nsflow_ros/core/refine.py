@@ -10,6 +10,7 @@ descriptors' answer stands.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -18,7 +19,15 @@ import numpy as np
 from nsflow_ros.core.errors import CoreError
 
 # The gain's clip is the descriptor solver's bias-and-gain residual's, so both steps accept the same lights.
-from nsflow_ros.core.solver import _GAIN_HI, _GAIN_LO, _sample_level, sample_windows, window_centres
+from nsflow_ros.core.solver import (
+    _GAIN_HI,
+    _GAIN_LO,
+    _REMAP_MAX_COLS,
+    _sample_level,
+    _window_offsets,
+    sample_windows,
+    window_centres,
+)
 
 __all__ = ["IntensityRefinement", "RefineResult", "StepTemplate", "gray_level", "refine", "step_template"]
 
@@ -42,6 +51,10 @@ class IntensityRefinement:
         checks: the reverse checks end with the step too, so that a track is judged at the optimum it was
             placed at (off: a point the image moved from the descriptors' optimum may fail its descriptor
             check; on costs more CPU per frame, docs/design.md).
+        affine: the window's warp is affine, not a translation. A translation fitted to a window that
+            turns or scales is pulled toward where the window's texture lies, by the same amount in every
+            frame while the camera keeps turning, so a track drifts from its point over its life
+            (docs/design.md); the affine warp measures the turn and the scale and leaves the point alone.
 
     Raises:
         CoreError: a value out of range (named in the message).
@@ -54,6 +67,7 @@ class IntensityRefinement:
     min_eigen: float = 1e-5
     coarse_eps: float = 0.2
     checks: bool = False
+    affine: bool = True
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -146,6 +160,148 @@ def step_template(image1: tuple[np.ndarray, ...], pts: np.ndarray, window: int) 
     return StepTemplate(np.array(pts, dtype=np.float64, copy=True), centres, rows, gram)
 
 
+def _warped_windows(image: np.ndarray, centres: np.ndarray, affine: np.ndarray, window: int) -> np.ndarray:
+    """Bilinear samples of ``image`` at each centre + A (x, y) over the window's offsets (x, y), replicated
+    beyond the border.
+
+    Shape:
+        image: (H, W) float32. centres: (M, 2). affine: (M, 2, 2). Returns (M, window^2) float32.
+    """
+    m = centres.shape[0]
+    off = _window_offsets(window)
+    # rows y, points, columns x: one remap call for all windows side by side (its column limit in blocks)
+    a = affine.astype(np.float32)
+    c = centres.astype(np.float32)
+    mapx = (c[:, 0, None] + a[:, 0, 0, None] * off)[None] + (a[:, 0, 1, None] * off[:, None, None])
+    mapy = (c[:, 1, None] + a[:, 1, 0, None] * off)[None] + (a[:, 1, 1, None] * off[:, None, None])
+    mapx, mapy = mapx.reshape(window, m * window), mapy.reshape(window, m * window)
+    step = (_REMAP_MAX_COLS // window) * window
+    parts = [cv2.remap(image, mapx[:, i:i + step], mapy[:, i:i + step], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE) for i in range(0, m * window, step)]
+    out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    return out.reshape(window, m, window).transpose(1, 0, 2).reshape(m, window * window)
+
+
+# The ridge on the deformation terms, per unit of the window's gradient energy (J^T J of the translation
+# is about 1/19 of the deformation terms' in a 15 px window): a prior that a window turns and scales little
+# between two frames. On the sample's texture it halves the spread of a pure translation's answer that the
+# four extra unknowns add, and keeps a 1.5 degree, 2 % turn-and-scale at its best error.
+_RIDGE = 3.0
+# The affine warp's steepest-descent rows are each image gradient times one of (x, y, 1): row k is
+# gradient _GRAD[k] (0: x, 1: y) times coordinate _COORD[k] (0: 1, 1: x, 2: y), in the order of the
+# parameters [A11 - 1, A12, A21, A22 - 1, tx, ty].
+_GRAD = np.array([0, 0, 1, 1, 0, 1])
+_COORD = np.array([1, 2, 1, 2, 0, 0])
+# A product of two rows is gradient pair _PAIR (0: xx, 1: xy, 2: yy) times a coordinate monomial (index
+# into 1, x, y, x^2, xy, y^2).
+_PAIR = _GRAD[:, None] + _GRAD[None, :]
+_MONO = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])[_COORD[:, None], _COORD[None, :]]
+
+
+@functools.cache
+def _monomials(window: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (window^2, 3) float32 monomials [1, x, y] and [x^2, xy, y^2] of each window pixel's offset,
+    row-major (two products of three columns each: one of six is above OpenBLAS's threading threshold,
+    and its threads cost far more than the product on a busy machine)."""
+    off = _window_offsets(window)
+    x, y = np.tile(off, window), np.repeat(off, window)
+    return (np.stack([np.ones_like(x), x, y], axis=1).astype(np.float32),
+            np.stack([x * x, x * y, y * y], axis=1).astype(np.float32))
+
+
+def _refine_affine(
+    image2: tuple[np.ndarray, ...], tmpl: StepTemplate, flow: np.ndarray, config: IntensityRefinement
+) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse-compositional Gauss-Newton on an affine warp of each window, with the gain and offset
+    residual of :func:`refine`: (the points' flows, the cost at the last iterate).
+
+    The steepest-descent rows [x gx, y gx, x gy, y gy, gx, gy] are never formed: their 6x6 J^T J, taken
+    about their means (the offset is free), comes from the template's gradient products against six
+    coordinate monomials, and J^T r per iteration from the gradients times r against (1, x, y), two small
+    matrix products. An iteration samples the warped candidates, solves and composes the inverse update.
+
+    Shape:
+        flow: (M, 2) the points' starting flows. Returns (M, 2), (M,).
+    """
+    gray = image2[0][..., 0]
+    win = config.window
+    rows, gram = tmpl.rows, tmpl.gram
+    m, npix = rows.shape[0], float(win * win)
+    mono3, mono_hi = _monomials(win)
+    t, grads = rows[:, 0], rows[:, 1:]  # (M, w^2), (M, 2, w^2) zero-mean
+    pairs = np.stack([grads[:, 0] * grads[:, 0], grads[:, 0] * grads[:, 1], grads[:, 1] * grads[:, 1]], 1)
+    flat = pairs.reshape(3 * m, -1)
+    second = np.concatenate([flat @ mono3, flat @ mono_hi], axis=1).reshape(m, 3, 6).astype(np.float64)
+    first = (grads.reshape(2 * m, -1) @ mono3).reshape(m, 2, 3).astype(np.float64)
+    mean = first[:, _GRAD, _COORD] / npix  # (M, 6) each row's mean
+    hess = second[:, _PAIR, _MONO] - npix * mean[:, :, None] * mean[:, None, :]
+    # The ridge also keeps a window with structure in one direction only solvable: its translation is
+    # what the point needs.
+    ridge = _RIDGE * (gram[:, 1, 1] + gram[:, 2, 2])
+    hess[:, range(4), range(4)] += ridge[:, None]
+    hess[:, range(6), range(6)] += 1e-12  # a flat window: solvable (and then refused by min_eigen)
+    contrast = gram[:, 0, 0]
+    warp = np.broadcast_to(np.eye(2), (m, 2, 2)).copy()
+    trans = tmpl.centres + flow  # where each window's centre goes
+    cost = np.zeros(m)
+    for _ in range(config.iterations):
+        cand = _warped_windows(gray, trans, warp, win)
+        csum = cand.sum(axis=1, dtype=np.float64)
+        cc = np.einsum("mp,mp->m", cand, cand).astype(np.float64) - csum * csum / npix
+        ct = np.einsum("mp,mp->m", cand, t).astype(np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = np.copysign(np.sqrt(contrast / cc), ct)
+        gain = np.clip(np.where(np.isfinite(gain), gain, 1.0), _GAIN_LO, _GAIN_HI)  # a flat window: 1
+        cost = 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * ct + contrast, 0.0)
+        r = cand * gain[:, None].astype(np.float32) - t  # r = g c - t; its sum is g sum(c) (t is zero-mean)
+        jr = ((grads * r[:, None]).reshape(2 * m, -1) @ mono3).reshape(m, 2, 3).astype(np.float64)
+        jtr = jr[:, _GRAD, _COORD] - mean * (gain * csum)[:, None]
+        dp = np.linalg.solve(hess, jtr[..., None])[..., 0]
+        # W <- W o dW^-1, dW(x) = (I + D) x + d
+        warp = np.matmul(warp, np.linalg.inv(np.eye(2) + dp[:, :4].reshape(m, 2, 2)))
+        trans = trans - np.matmul(warp, dp[:, 4:, None])[..., 0]
+    # the point sits off its window's centre near the border: it moves with the warp too
+    point = trans + np.matmul(warp, (tmpl.points - tmpl.centres)[:, :, None])[..., 0]
+    return point - tmpl.points, cost
+
+
+def _refine_translation(
+    image2: tuple[np.ndarray, ...], tmpl: StepTemplate, flow: np.ndarray, config: IntensityRefinement
+) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on a translation of each window with the gain and offset residual of :func:`refine`:
+    (the points' flows, the cost at the last iterate). J is the template's gradient, so J^T J is formed
+    once (as OpenCV's LK does) and an iteration costs one sampling of the candidate windows.
+
+    Shape:
+        flow: (M, 2) the points' starting flows. Returns (M, 2), (M,).
+    """
+    win, m = config.window, len(flow)
+    rows, gram, centres = tmpl.rows, tmpl.gram, tmpl.centres
+    cols = rows.transpose(0, 2, 1)
+    contrast, (sxx, sxy, syy) = gram[:, 0, 0], (gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2])
+    det = sxx * syy - sxy * sxy
+    inv = np.where(det > 0, 1.0 / np.where(det > 0, det, 1.0), 0.0)
+    npix = float(win * win)
+    flow = flow.copy()
+    cost = np.zeros(m)
+    for _ in range(config.iterations):
+        cand = sample_windows(image2, centres + flow, win).reshape(m, 1, win * win)
+        # The columns are zero-mean, so the candidate needs no centring against them; its own energy
+        # about its mean comes from its sum and its sum of squares.
+        dots = np.matmul(cand, cols)[:, 0].astype(np.float64)  # [c.t, c.gx, c.gy]
+        csum = cand.sum(axis=2)[:, 0].astype(np.float64)
+        cc = np.einsum("mip,mip->m", cand, cand).astype(np.float64) - csum * csum / npix
+        gain = np.copysign(np.sqrt(contrast / cc), dots[:, 0])
+        gain = np.clip(np.where(np.isfinite(gain), gain, 1.0), _GAIN_LO, _GAIN_HI)  # a flat window: 1
+        # r = g (c - mean c) - t: its energy and J^T r (J = the template's gradient) from the dots.
+        cost = 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * dots[:, 0] + contrast, 0.0)
+        bx = gain * dots[:, 1] - gram[:, 0, 1]
+        by = gain * dots[:, 2] - gram[:, 0, 2]
+        flow[:, 0] -= (syy * bx - sxy * by) * inv
+        flow[:, 1] -= (sxx * by - sxy * bx) * inv
+    return flow, cost
+
+
 def refine(
     image1: tuple[np.ndarray, ...],
     image2: tuple[np.ndarray, ...],
@@ -158,9 +314,8 @@ def refine(
     """Refine tracked positions on the images: Gauss-Newton on intensity from each descriptor solution.
 
     The residual is g (w - mean w) - (t - mean t) per window, g the ratio of the template's spread to the
-    candidate's, with the sign of their correlation (clipped to [1/4, 4]); J is the template's gradient, so
-    J^T J is formed once (as OpenCV's LK does) and an iteration costs one sampling of the candidate windows.
-    The least-squares gain would be pulled below 1 by the candidate's own noise, and g - 1 times the
+    candidate's, with the sign of their correlation (clipped to [1/4, 4]); the window's warp is affine
+    (``config.affine``, except a window moved inward at the border) or a translation. The least-squares gain would be pulled below 1 by the candidate's own noise, and g - 1 times the
     window's own gradient term moves a point the same way in every frame: tracks of a camera standing still
     drifted 2-3x as far as OpenCV's LK (docs/design.md). The spread ratio has the noise of both windows
     alike and so no such pull.
@@ -187,30 +342,19 @@ def refine(
     h, w = image1[0].shape[:2]
     p = pts[idx]
     tmpl = step_template(image1, p, win) if template is None else template[idx]
-    centres, rows, gram = tmpl.centres, tmpl.rows, tmpl.gram
+    gram = tmpl.gram
     flow = positions[idx] - p
-    cols = rows.transpose(0, 2, 1)
     contrast, (sxx, sxy, syy) = gram[:, 0, 0], (gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2])
-    det = sxx * syy - sxy * sxy
     cost = np.zeros(len(idx))
-    npix = float(win * win)
+    # A window moved inward at the border may reach past it in frame 2, where replicated rows would read
+    # as a deformation that its point, off the window's centre, then follows: a translation there.
+    affine = (np.flatnonzero((tmpl.points == tmpl.centres).all(axis=1)) if config.affine
+              else np.zeros(0, np.int64))
+    shifted = np.setdiff1d(np.arange(len(idx)), affine, assume_unique=True)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(det > 0, 1.0 / det, 0.0)
-        for _ in range(config.iterations):
-            cand = sample_windows(image2, centres + flow, win).reshape(len(idx), 1, win * win)
-            # The columns are zero-mean, so the candidate needs no centring against them; its own energy
-            # about its mean comes from its sum and its sum of squares.
-            dots = np.matmul(cand, cols)[:, 0].astype(np.float64)  # [c.t, c.gx, c.gy]
-            csum = cand.sum(axis=2)[:, 0].astype(np.float64)
-            cc = np.einsum("mip,mip->m", cand, cand).astype(np.float64) - csum * csum / npix
-            gain = np.copysign(np.sqrt(contrast / cc), dots[:, 0])
-            gain = np.clip(np.where(np.isfinite(gain), gain, 1.0), _GAIN_LO, _GAIN_HI)  # a flat window: 1
-            # r = g (c - mean c) - t: its energy and J^T r (J = the template's gradient) from the dots.
-            cost = 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * dots[:, 0] + contrast, 0.0)
-            bx = gain * dots[:, 1] - gram[:, 0, 1]
-            by = gain * dots[:, 2] - gram[:, 0, 2]
-            flow[:, 0] -= (syy * bx - sxy * by) * inv
-            flow[:, 1] -= (sxx * by - sxy * bx) * inv
+        for sub, solve in ((affine, _refine_affine), (shifted, _refine_translation)):
+            if sub.size:
+                flow[sub], cost[sub] = solve(image2, tmpl[sub], flow[sub], config)
         ratio = np.where(contrast > 0, 2.0 * cost / contrast, np.inf)
     new = p + flow
     min_eig = 0.5 * (sxx + syy - np.sqrt((sxx - syy) ** 2 + 4.0 * sxy * sxy))
