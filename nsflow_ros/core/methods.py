@@ -496,10 +496,10 @@ class LMMethod(TrackingMethod):
     ) -> tuple[np.ndarray, np.ndarray, TrackResult]:
         """:meth:`solve` with the solver's full result (cost, J^T J, ...), e.g. for the evaluation.
 
-        With an intensity step (:attr:`refinement`), the pyramid solve stops one level short of full
-        resolution and the step on the images finishes it (the checks' too, unless ``checks`` is off; from
-        the IMU prediction the step follows the one-level solve); the points it does not keep get the
-        descriptors' last level as before. A kept point's row of the result holds the step's J^T J and
+        With an intensity step (:attr:`refinement`), the pyramid solve stops at the step's ``from_level``
+        and the step on the images finishes it (the checks' too, unless ``checks`` is off; from the IMU
+        prediction the step follows the one-level solve); the points it does not keep get the descriptors'
+        remaining levels as before. A kept point's row of the result holds the step's J^T J and
         its cost rescaled to the descriptor window's degrees of freedom, so that
         :meth:`result_covariance` is the step's covariance there.
         """
@@ -510,7 +510,7 @@ class LMMethod(TrackingMethod):
             return self._descriptor_solve(kind, frame1, frame2, pts, start, prior)
         assert step is not None
         # From the IMU prediction the descriptor solve has one level only: the step follows it whole.
-        finest = 0 if start is not None and not kind.is_check else 1
+        finest = 0 if start is not None and not kind.is_check else step.from_level
         # A check keeps its own tolerance: it starts at its answer, where a loose test would stop it.
         eps = step.coarse_eps if finest and not kind.is_check else None
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
@@ -520,12 +520,12 @@ class LMMethod(TrackingMethod):
         contrast = res.contrast.copy()
         rest = np.flatnonzero(status & ~kept) if finest else np.zeros(0, np.int64)
         status = status.copy()
-        if rest.size:  # the descriptors' own last level, from where the coarse levels left them
+        if rest.size:  # the descriptors' own last levels, from where the coarse levels left them
             p = self.policy
             fine_new, fine_status, fine = (
-                self._track_pair(frame1, frame2, pts[rest], new[rest], 1, jacobian=p.check_jacobian,
+                self._track_pair(frame1, frame2, pts[rest], new[rest], finest, jacobian=p.check_jacobian,
                                  eps=p.check_eps) if kind.is_check
-                else self._track_pair(frame1, frame2, pts[rest], new[rest], 1, residual_test=True))
+                else self._track_pair(frame1, frame2, pts[rest], new[rest], finest, residual_test=True))
             new[rest], status[rest] = fine_new, fine_status
             flow[rest], hessian[rest], cost[rest] = fine.flow, fine.hessian, fine.cost
             contrast[rest] = fine.contrast

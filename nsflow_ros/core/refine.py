@@ -55,6 +55,9 @@ class IntensityRefinement:
             turns or scales is pulled toward where the window's texture lies, by the same amount in every
             frame while the camera keeps turning, so a track drifts from its point over its life
             (docs/design.md); the affine warp measures the turn and the scale and leaves the point alone.
+        from_level: the descriptor pyramid's level the step starts from (without the IMU's prediction):
+            2 leaves the step a quarter-resolution answer, within its two iterations' reach, and saves the
+            descriptors' half-resolution level, which pays for most of the affine warp's cost.
 
     Raises:
         CoreError: a value out of range (named in the message).
@@ -68,12 +71,15 @@ class IntensityRefinement:
     coarse_eps: float = 0.2
     checks: bool = False
     affine: bool = True
+    from_level: int = 2
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
             raise CoreError(f"IntensityRefinement.window must be odd and >= 3, got {self.window}")
         if self.iterations < 1:
             raise CoreError(f"IntensityRefinement.iterations must be >= 1, got {self.iterations}")
+        if self.from_level < 1:
+            raise CoreError(f"IntensityRefinement.from_level must be >= 1, got {self.from_level}")
         for name in ("max_shift", "max_residual", "coarse_eps"):
             if not getattr(self, name) > 0:
                 raise CoreError(f"IntensityRefinement.{name} must be > 0, got {getattr(self, name)}")
@@ -238,8 +244,12 @@ def _refine_affine(
     # The ridge also keeps a window with structure in one direction only solvable: its translation is
     # what the point needs.
     ridge = _RIDGE * (gram[:, 1, 1] + gram[:, 2, 2])
+    # A window moved inward at the border may reach past it in frame 2, where replicated rows would read
+    # as a deformation that its point, off the window's centre, then follows: it stays a translation.
+    ridge[(tmpl.points != tmpl.centres).any(axis=1)] *= 1e9
     hess[:, range(4), range(4)] += ridge[:, None]
     hess[:, range(6), range(6)] += 1e-12  # a flat window: solvable (and then refused by min_eigen)
+    inverse = np.linalg.inv(hess)  # J^T J stays: invert it once for all iterations
     contrast = gram[:, 0, 0]
     warp = np.broadcast_to(np.eye(2), (m, 2, 2)).copy()
     trans = tmpl.centres + flow  # where each window's centre goes
@@ -256,9 +266,11 @@ def _refine_affine(
         r = cand * gain[:, None].astype(np.float32) - t  # r = g c - t; its sum is g sum(c) (t is zero-mean)
         jr = ((grads * r[:, None]).reshape(2 * m, -1) @ mono3).reshape(m, 2, 3).astype(np.float64)
         jtr = jr[:, _GRAD, _COORD] - mean * (gain * csum)[:, None]
-        dp = np.linalg.solve(hess, jtr[..., None])[..., 0]
-        # W <- W o dW^-1, dW(x) = (I + D) x + d
-        warp = np.matmul(warp, np.linalg.inv(np.eye(2) + dp[:, :4].reshape(m, 2, 2)))
+        dp = np.matmul(inverse, jtr[..., None])[..., 0]
+        # W <- W o dW^-1, dW(x) = (I + D) x + d; (I + D)^-1 in closed form
+        a, b, c, d = 1.0 + dp[:, 0], dp[:, 1], dp[:, 2], 1.0 + dp[:, 3]
+        undo = np.stack([d, -b, -c, a], axis=1).reshape(m, 2, 2) / (a * d - b * c)[:, None, None]
+        warp = np.matmul(warp, undo)
         trans = trans - np.matmul(warp, dp[:, 4:, None])[..., 0]
     # the point sits off its window's centre near the border: it moves with the warp too
     point = trans + np.matmul(warp, (tmpl.points - tmpl.centres)[:, :, None])[..., 0]
@@ -315,10 +327,11 @@ def refine(
 
     The residual is g (w - mean w) - (t - mean t) per window, g the ratio of the template's spread to the
     candidate's, with the sign of their correlation (clipped to [1/4, 4]); the window's warp is affine
-    (``config.affine``, except a window moved inward at the border) or a translation. The least-squares gain would be pulled below 1 by the candidate's own noise, and g - 1 times the
-    window's own gradient term moves a point the same way in every frame: tracks of a camera standing still
-    drifted 2-3x as far as OpenCV's LK (docs/design.md). The spread ratio has the noise of both windows
-    alike and so no such pull.
+    (``config.affine``, except a window moved inward at the border) or a translation. The least-squares
+    gain would be pulled below 1 by the candidate's own noise, and g - 1 times the window's own gradient
+    term moves a point the same way in every frame: tracks of a camera standing still drifted 2-3x as far
+    as OpenCV's LK (docs/design.md). The spread ratio has the noise of both windows alike and so no such
+    pull.
 
     Args:
         image1, image2: the frames' gray levels from :func:`gray_level`.
@@ -346,15 +359,9 @@ def refine(
     flow = positions[idx] - p
     contrast, (sxx, sxy, syy) = gram[:, 0, 0], (gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2])
     cost = np.zeros(len(idx))
-    # A window moved inward at the border may reach past it in frame 2, where replicated rows would read
-    # as a deformation that its point, off the window's centre, then follows: a translation there.
-    affine = (np.flatnonzero((tmpl.points == tmpl.centres).all(axis=1)) if config.affine
-              else np.zeros(0, np.int64))
-    shifted = np.setdiff1d(np.arange(len(idx)), affine, assume_unique=True)
     with np.errstate(divide="ignore", invalid="ignore"):
-        for sub, solve in ((affine, _refine_affine), (shifted, _refine_translation)):
-            if sub.size:
-                flow[sub], cost[sub] = solve(image2, tmpl[sub], flow[sub], config)
+        solve = _refine_affine if config.affine else _refine_translation
+        flow, cost = solve(image2, tmpl, flow, config)
         ratio = np.where(contrast > 0, 2.0 * cost / contrast, np.inf)
     new = p + flow
     min_eig = 0.5 * (sxx + syy - np.sqrt((sxx - syy) ** 2 + 4.0 * sxy * sxy))
