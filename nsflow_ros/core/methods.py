@@ -546,7 +546,7 @@ class LMMethod(TrackingMethod):
         memo = self._template_memo
         if memo is not None and memo[0] is frame1 and np.array_equal(memo[1].points, pts):
             return memo[1]
-        template = step_template(frame1.image, pts, self.refinement.window)
+        template = step_template(frame1.image, pts, self.refinement.window, self.refinement.affine)
         self._template_memo = (frame1, template)
         return template
 

@@ -125,20 +125,28 @@ class StepTemplate:
         rows: (M, 3, w^2) float32 the zero-mean template and its zero-mean Scharr gradients (/32):
             [t, gx, gy].
         gram: (M, 3, 3) float64 the rows against each other.
+        system: for the affine warp, its six steepest-descent rows' means (M, 6) and the inverse of their
+            J^T J with the ridge (M, 6, 6), float64; None for a translation step.
     """
 
     points: np.ndarray
     centres: np.ndarray
     rows: np.ndarray
     gram: np.ndarray
+    system: tuple[np.ndarray, np.ndarray] | None = None
 
     def __getitem__(self, sel: np.ndarray) -> StepTemplate:
-        return StepTemplate(self.points[sel], self.centres[sel], self.rows[sel], self.gram[sel])
+        system = None if self.system is None else (self.system[0][sel], self.system[1][sel])
+        return StepTemplate(self.points[sel], self.centres[sel], self.rows[sel], self.gram[sel], system)
 
 
-def step_template(image1: tuple[np.ndarray, ...], pts: np.ndarray, window: int) -> StepTemplate:
+def step_template(
+    image1: tuple[np.ndarray, ...], pts: np.ndarray, window: int, affine: bool = True
+) -> StepTemplate:
     """Read the step's template at ``pts`` in ``image1`` (a :func:`gray_level`); each point's rows depend on
-    that point only, so a subset of the result is the template of the subset.
+    that point only, so a subset of the result is the template of the subset. With ``affine`` it carries
+    the affine warp's normal equations, formed once for every refinement from it (a stereo solve's and the
+    next frame's temporal one).
 
     Shape:
         pts: (M, 2).
@@ -163,7 +171,9 @@ def step_template(image1: tuple[np.ndarray, ...], pts: np.ndarray, window: int) 
     rows -= rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
     # float32 products (225 terms of order 1e-2 each), float64 from here on
     gram = np.matmul(rows, rows.transpose(0, 2, 1)).astype(np.float64)  # [t, gx, gy] against each other
-    return StepTemplate(np.array(pts, dtype=np.float64, copy=True), centres, rows, gram)
+    points = np.array(pts, dtype=np.float64, copy=True)
+    system = _affine_system(rows, gram, points, centres, window) if affine else None
+    return StepTemplate(points, centres, rows, gram, system)
 
 
 def _warped_windows(image: np.ndarray, centres: np.ndarray, affine: np.ndarray, window: int) -> np.ndarray:
@@ -215,26 +225,15 @@ def _monomials(window: int) -> tuple[np.ndarray, np.ndarray]:
             np.stack([x * x, x * y, y * y], axis=1).astype(np.float32))
 
 
-def _refine_affine(
-    image2: tuple[np.ndarray, ...], tmpl: StepTemplate, flow: np.ndarray, config: IntensityRefinement
+def _affine_system(
+    rows: np.ndarray, gram: np.ndarray, points: np.ndarray, centres: np.ndarray, window: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse-compositional Gauss-Newton on an affine warp of each window, with the gain and offset
-    residual of :func:`refine`: (the points' flows, the cost at the last iterate).
-
-    The steepest-descent rows [x gx, y gx, x gy, y gy, gx, gy] are never formed: their 6x6 J^T J, taken
-    about their means (the offset is free), comes from the template's gradient products against six
-    coordinate monomials, and J^T r per iteration from the gradients times r against (1, x, y), two small
-    matrix products. An iteration samples the warped candidates, solves and composes the inverse update.
-
-    Shape:
-        flow: (M, 2) the points' starting flows. Returns (M, 2), (M,).
-    """
-    gray = image2[0][..., 0]
-    win = config.window
-    rows, gram = tmpl.rows, tmpl.gram
-    m, npix = rows.shape[0], float(win * win)
-    mono3, mono_hi = _monomials(win)
-    t, grads = rows[:, 0], rows[:, 1:]  # (M, w^2), (M, 2, w^2) zero-mean
+    """The affine warp's steepest-descent rows' means (M, 6) and the inverse of their J^T J about those
+    means, with the ridge (M, 6, 6): from the template's gradient products against six coordinate
+    monomials, two small matrix products, without forming the rows."""
+    m, npix = rows.shape[0], float(window * window)
+    mono3, mono_hi = _monomials(window)
+    grads = rows[:, 1:]  # (M, 2, w^2) zero-mean
     pairs = np.stack([grads[:, 0] * grads[:, 0], grads[:, 0] * grads[:, 1], grads[:, 1] * grads[:, 1]], 1)
     flat = pairs.reshape(3 * m, -1)
     second = np.concatenate([flat @ mono3, flat @ mono_hi], axis=1).reshape(m, 3, 6).astype(np.float64)
@@ -246,10 +245,33 @@ def _refine_affine(
     ridge = _RIDGE * (gram[:, 1, 1] + gram[:, 2, 2])
     # A window moved inward at the border may reach past it in frame 2, where replicated rows would read
     # as a deformation that its point, off the window's centre, then follows: it stays a translation.
-    ridge[(tmpl.points != tmpl.centres).any(axis=1)] *= 1e9
+    ridge[(points != centres).any(axis=1)] *= 1e9
     hess[:, range(4), range(4)] += ridge[:, None]
     hess[:, range(6), range(6)] += 1e-12  # a flat window: solvable (and then refused by min_eigen)
-    inverse = np.linalg.inv(hess)  # J^T J stays: invert it once for all iterations
+    return mean, np.linalg.inv(hess)
+
+
+def _refine_affine(
+    image2: tuple[np.ndarray, ...], tmpl: StepTemplate, flow: np.ndarray, config: IntensityRefinement
+) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse-compositional Gauss-Newton on an affine warp of each window, with the gain and offset
+    residual of :func:`refine`: (the points' flows, the cost at the last iterate).
+
+    The steepest-descent rows [x gx, y gx, x gy, y gy, gx, gy] are never formed: their J^T J is the
+    template's (:func:`_affine_system`, kept with it), and J^T r per iteration comes from the gradients times
+    r against (1, x, y), one small matrix product. An iteration samples the warped candidates, solves and
+    composes the inverse update.
+
+    Shape:
+        flow: (M, 2) the points' starting flows. Returns (M, 2), (M,).
+    """
+    gray = image2[0][..., 0]
+    win = config.window
+    rows, gram = tmpl.rows, tmpl.gram
+    m, npix = rows.shape[0], float(win * win)
+    t, grads = rows[:, 0], rows[:, 1:]  # (M, w^2), (M, 2, w^2) zero-mean
+    mono3 = _monomials(win)[0]
+    mean, inverse = tmpl.system or _affine_system(rows, gram, tmpl.points, tmpl.centres, win)
     contrast = gram[:, 0, 0]
     warp = np.broadcast_to(np.eye(2), (m, 2, 2)).copy()
     trans = tmpl.centres + flow  # where each window's centre goes
@@ -354,7 +376,7 @@ def refine(
         return out
     h, w = image1[0].shape[:2]
     p = pts[idx]
-    tmpl = step_template(image1, p, win) if template is None else template[idx]
+    tmpl = step_template(image1, p, win, config.affine) if template is None else template[idx]
     gram = tmpl.gram
     flow = positions[idx] - p
     contrast, (sxx, sxy, syy) = gram[:, 0, 0], (gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2])
