@@ -274,3 +274,20 @@ def test_the_method_reads_a_stereo_template_once_for_the_next_temporal_step(
     # another image at the same points is read anew
     method.solve_with_covariance(SolveKind.FORWARD, nxt, left, pts)
     assert reads == [len(pts), len(pts), len(pts), len(pts)]
+
+
+def test_a_template_s_kept_affine_system_gives_the_answer_of_one_formed_in_the_call(
+    pair: tuple[np.ndarray, ...],
+) -> None:
+    # The stereo solve's template is the next frame's temporal one: its normal equations are formed once.
+    g1, g2, pts = pair
+    l1, l2 = gray_level(g1), gray_level(g2)
+    start, ok = pts + SHIFT + 0.3, np.ones(len(pts), bool)
+    kept = step_template(l1, pts, 15)
+    bare = step_template(l1, pts, 15, affine=False)
+    assert kept.system is not None and bare.system is None
+    assert kept[np.array([0, 2])].system[1].shape == (2, 6, 6)
+    a = refine(l1, l2, pts, start, ok, IntensityRefinement(), kept)
+    b = refine(l1, l2, pts, start, ok, IntensityRefinement(), bare)
+    np.testing.assert_array_equal(a.positions, b.positions)
+    np.testing.assert_array_equal(a.kept, b.kept)
