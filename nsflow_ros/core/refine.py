@@ -252,6 +252,15 @@ def _affine_system(
     return mean, np.linalg.inv(hess)
 
 
+def _gain_and_cost(contrast: np.ndarray, cc: np.ndarray, ct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The step's gain (the template's spread over the candidate's, with the sign of their correlation,
+    clipped; 1 for a flat window) and the cost 0.5 |g (c - mean c) - t|^2, from the template's energy
+    ``contrast``, the candidate's ``cc`` about its mean and their product ``ct``."""
+    gain = np.copysign(np.sqrt(contrast / cc), ct)
+    gain = np.clip(np.where(np.isfinite(gain), gain, 1.0), _GAIN_LO, _GAIN_HI)
+    return gain, 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * ct + contrast, 0.0)
+
+
 def _refine_affine(
     image2: tuple[np.ndarray, ...], tmpl: StepTemplate, flow: np.ndarray, config: IntensityRefinement
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -283,9 +292,7 @@ def _refine_affine(
         cc = np.einsum("mp,mp->m", cand, cand).astype(np.float64) - csum * csum / npix
         ct = np.einsum("mp,mp->m", cand, t).astype(np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
-            gain = np.copysign(np.sqrt(contrast / cc), ct)
-        gain = np.clip(np.where(np.isfinite(gain), gain, 1.0), _GAIN_LO, _GAIN_HI)  # a flat window: 1
-        cost = 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * ct + contrast, 0.0)
+            gain, cost = _gain_and_cost(contrast, cc, ct)
         r = cand * gain[:, None].astype(np.float32) - t  # r = g c - t; its sum is g sum(c) (t is zero-mean)
         jr = ((grads * r[:, None]).reshape(2 * m, -1) @ mono3).reshape(m, 2, 3).astype(np.float64)
         jtr = jr[:, _GRAD, _COORD] - mean * (gain * csum)[:, None]
@@ -326,10 +333,8 @@ def _refine_translation(
         dots = np.matmul(cand, cols)[:, 0].astype(np.float64)  # [c.t, c.gx, c.gy]
         csum = cand.sum(axis=2)[:, 0].astype(np.float64)
         cc = np.einsum("mip,mip->m", cand, cand).astype(np.float64) - csum * csum / npix
-        gain = np.copysign(np.sqrt(contrast / cc), dots[:, 0])
-        gain = np.clip(np.where(np.isfinite(gain), gain, 1.0), _GAIN_LO, _GAIN_HI)  # a flat window: 1
         # r = g (c - mean c) - t: its energy and J^T r (J = the template's gradient) from the dots.
-        cost = 0.5 * np.maximum(gain * gain * cc - 2.0 * gain * dots[:, 0] + contrast, 0.0)
+        gain, cost = _gain_and_cost(contrast, cc, dots[:, 0])
         bx = gain * dots[:, 1] - gram[:, 0, 1]
         by = gain * dots[:, 2] - gram[:, 0, 2]
         flow[:, 0] -= (syy * bx - sxy * by) * inv
@@ -381,7 +386,6 @@ def refine(
     gram = tmpl.gram
     flow = positions[idx] - p
     contrast, (sxx, sxy, syy) = gram[:, 0, 0], (gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2])
-    cost = np.zeros(len(idx))
     with np.errstate(divide="ignore", invalid="ignore"):
         solve = _refine_affine if config.affine else _refine_translation
         flow, cost = solve(image2, tmpl, flow, config)
