@@ -42,7 +42,9 @@ def test_png_compressed_node_run_reproduces_the_raw_features(sample_dir):
     agree = png["agreement"]
     assert agree["frames"] >= 18
     if raw["tracker_processed"] == png["tracker_processed"] == 20:  # no frame dropped: the same tracks
-        assert agree["identical_frames"] == 20 and agree["same_share"] == 1.0 and agree["median_px"] == 0.0
+        # compared over the frames both recorders heard: a recorder may join after the first messages
+        assert agree["identical_frames"] == agree["frames"]
+        assert agree["same_share"] == 1.0 and agree["median_px"] == 0.0
     else:  # a dropped frame starts other tracks, but the frames before it agree
         assert agree["same_share"] > 0.5
     assert raw["tracker_processed"] >= 18
