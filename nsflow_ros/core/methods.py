@@ -99,13 +99,15 @@ CLAHE = Clahe()
 """VINS-Mono's equalisation (``equalize: 1``)."""
 
 DEPLOYED_LM = LMConfig(
-    levels=4, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05, zero_mean=True,
+    levels=6, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05, zero_mean=True,
     coarse_window=21, coarse_from=2,
 )
 """The LM solver settings the tracker deploys; each difference from :data:`PAPER_LM` has a measured reason
 (docs/design.md has the measurement behind each):
 
-* ``levels`` 4: VINS's maxLevel 3, the capture range stereo disparity and fast motion need;
+* ``levels`` 6: the learned map's coarse levels carry little (it is trained at one scale): from zero flow,
+  4 levels lost flows of 30 px and more, which a 10 Hz camera in flight sees; only solves from zero flow
+  start that high;
 * ``margin`` 1: a point is kept until its window reaches past the edge, as OpenCV's LK allows;
 * ``tail_share`` 0.4 after ``tail_passes`` 2: a level ends when only stragglers are left;
 * ``jacobian`` ESM: a wider basin at a small cost;

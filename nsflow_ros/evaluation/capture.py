@@ -75,8 +75,8 @@ def stretch_target(depth: str, klt_share: float) -> Target:
     """The stretch goal: NSFlow at one level fewer captures at least what KLT does at the deployed levels.
 
     Args:
-        depth: the deployed levels in words.
-        klt_share: KLT's pooled share within 1 px at the deployed levels (NaN: KLT not evaluated).
+        depth: KLT's deployed levels in words.
+        klt_share: KLT's pooled share within 1 px at its deployed levels (NaN: KLT not evaluated).
 
     Returns:
         the target, checked on ``{NSFLOW: share at one level fewer, KLT: share at the deployed levels}``.
@@ -396,9 +396,10 @@ def _headline(ctx: EvalContext, sh: _Shares) -> list[HeadlineRow]:
                      sh.share[(s, cond, 0)], pct, TARGETS[cond])
         for s in SOURCES for cond in CONDITIONS
     ]  # fmt: skip
+    klt_depth = levels_text([m for m in ctx.methods if m.name == KLT] or ctx.methods)
     for cond in CONDITIONS if 1 in sh.fewer_set else ():
         deployed, fewer = sh.pooled[(cond, 0)], sh.pooled[(cond, 1)]
-        rows.append(stretch_target(depth, deployed.get(KLT, np.nan)).row(
+        rows.append(stretch_target(klt_depth, deployed.get(KLT, np.nan)).row(
             f"capture from zero flow, both sources, share < 1 px, {condition_label(cond)}, "
             f"one level fewer ({fewer_depth})",
             {n: pct(v) for n, v in fewer.items()}, {NSFLOW: fewer.get(NSFLOW), KLT: deployed.get(KLT)},

@@ -18,6 +18,7 @@ from nsflow_ros.core.encoder import Encoder, to_gray
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.methods import (
     DEPLOYED_LM,
+    KLT_MAX_LEVEL,
     METHODS,
     KLTMethod,
     LMMethod,
@@ -287,8 +288,8 @@ def eval_method(
     Args:
         label: the method's label.
         encoder: encoder to use instead of the one the registry loads (a method without one: ignored).
-        levels: pyramid levels; None = the tracker's deployed depth (the LM solver's, which is OpenCV's
-            maxLevel 3 + 1 as VINS calls it).
+        levels: pyramid levels; None = the depth the tracker runs the method at (the LM solver's 6, or
+            OpenCV's maxLevel 3 + 1 as VINS calls it).
         model: ONNX encoder of the learned methods when ``encoder`` is None; None = the shipped one.
         threads: encoder threads (None = all usable cores).
         providers: onnxruntime execution providers of the learned encoder, best first.
@@ -300,7 +301,8 @@ def eval_method(
     variant = VARIANTS.get(label)
     if variant is None:
         raise EvaluationError(f"unknown method {label!r}; expected one of {list(VARIANTS)}")
-    lev = DEPLOYED_LM.levels if levels is None else levels
+    # each at the depth the tracker runs it: the LM solver's, or OpenCV's maxLevel as VINS calls it
+    lev = (DEPLOYED_LM.levels if variant.spec.is_lm else KLT_MAX_LEVEL + 1) if levels is None else levels
     if lev < 1:
         raise EvaluationError(f"levels must be >= 1, got {lev}")
     spec = variant.spec.with_levels(lev)

@@ -729,7 +729,7 @@ def _method_text(ctx: EvalContext, setup: SequenceSetup, source: FrameSource) ->
         f"perturbation seed {ctx.seed} (dark: {_dark_text()}). Every method runs through the VINS-style "
         "`FeatureTracker` "
         f"(max_cnt {setup.max_cnt}, min_dist {setup.min_dist:g}, flow-back 0.5 px), offline with every frame "
-        "processed; the LM methods use the tracker's 4 levels, the OpenCV LK methods (KLT, KLT on CLAHE'd "
+        "processed; the LM methods use the tracker's 6 levels, the OpenCV LK methods (KLT, KLT on CLAHE'd "
         "images, LK on the uint8 NSFlow descriptors) are called exactly as VINS-Fusion calls KLT (21x21, "
         "maxLevel 3, 30 iterations / eps 0.01)."
     )

@@ -107,8 +107,10 @@ def test_gyro_prediction_helps_under_fast_rotation():
     seq = syn.rotating(15, np.deg2rad([36.0, 120.0, 24.0]), translation_px=0.5)
     base_survival, base_wrong = _run(seq, prediction=False)
     pred_survival, pred_wrong = _run(seq, prediction=True)
-    assert pred_survival > base_survival + 0.07
-    assert pred_wrong <= base_wrong
-    # The constant-velocity start (the default without IMU) recovers part of it; the gyro still does best.
-    cv_survival, _ = _run(seq, prediction=False, prior=True)
-    assert base_survival < cv_survival < pred_survival
+    # the blind solve captures most of it on the full pyramid (survival 0.65), but a twentieth of what it
+    # keeps is wrong; from the gyro's start 0.70 survive and nearly none is wrong
+    assert pred_survival > base_survival + 0.03
+    assert pred_wrong < base_wrong / 4
+    # The constant-velocity start (the default without IMU) does no better than the blind solve here.
+    cv_survival, cv_wrong = _run(seq, prediction=False, prior=True)
+    assert cv_survival < pred_survival and pred_wrong < cv_wrong / 4

@@ -82,7 +82,8 @@ def test_lm_methods_smooth_coarse_levels_as_the_encoder_declares(pair, tmp_path)
     nsflow = make_method("nsflow", encoder=enc)
     assert nsflow.pyramid_smoothing == Smoothing(coarse=0.5)  # the encoder applied the fine part
     got, want = nsflow.prepare(img, gray), build_pyramid(enc(img), nsflow.lm.levels, Smoothing(coarse=0.5))
-    assert got.num_levels == want.num_levels == 4
+    # 6 asked; a 1/32 level of this 320x240 image would be under 8 px
+    assert got.num_levels == want.num_levels == 5
     for lev in range(got.num_levels):
         np.testing.assert_array_equal(got.level(lev), want.level(lev))
     plain = load_encoder(conv_encoder(tmp_path / "m.onnx", c_in=1, d=3))
@@ -269,12 +270,12 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     assert ok.mean() > 0.8 and np.median(np.hypot(*(new - truth).T)[ok]) < 0.1
     # with no prior at all, the whole pyramid from zero flow; fill_levels 0 = the whole pyramid too
     method.solve(SolveKind.FORWARD, fa, fb, pts, prior=np.full_like(prior, np.nan))
-    assert calls[-1] == (None, 4)
+    assert calls[-1] == (None, method.lm.levels)
     spec = method.spec
     make_method(replace(spec, policy=replace(spec.policy, fill_levels=0))).solve(
         SolveKind.FORWARD, fa, fb, pts, prior=prior
     )
-    assert (calls[-1][0][::3] == 3).all() and (calls[-1][0][1::3] == 1).all()
+    assert (calls[-1][0][::3] == method.lm.levels - 1).all() and (calls[-1][0][1::3] == 1).all()
     back, back_ok = method.solve(SolveKind.FLOW_BACK, fb, fa, new[ok], pts[ok])
     assert calls[-1][1] == 2  # the check starts at its answer on two levels
     assert np.hypot(*(back - pts[ok]).T)[back_ok].max() < 0.5
@@ -409,7 +410,7 @@ def test_the_registry_deploys_what_the_tracker_deployed_before_the_registry_exis
 
     spec = METHODS["nsflow"]
     assert spec.lm == LMConfig(
-        levels=4, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05, zero_mean=True,
+        levels=6, margin=1, tail_share=0.4, tail_passes=2, jacobian=Jacobian.ESM, eps=0.05, zero_mean=True,
         coarse_window=21, coarse_from=2,
     )
     assert METHODS["classical"].lm == spec.lm

@@ -77,7 +77,8 @@ def test_quick_run_tables_the_basin_at_one_level_and_the_deployed_depth_and_one_
 
     ctx = EvalContext(methods=default_methods(), quick=True, out_dir=tmp_path, progress=False)
     sec = cv.run(ctx)
-    assert {r["levels"] for r in sec.data["capture_within_1px"]} == {1, 3, 4}
+    # one level, then LM 6 and OpenCV LK 4 levels, each also one fewer
+    assert {r["levels"] for r in sec.data["capture_within_1px"]} == {1, 3, 4, 5, 6}
     none, light = sec.headline
     assert none.target == "< LM (intensity)"
     assert light.target == f"< {CLASSICAL} and < {KLT_CLAHE}"

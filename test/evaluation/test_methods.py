@@ -50,7 +50,11 @@ def test_no_solver_is_called_outside_the_core_methods():
 def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
     deployed = core.METHODS["nsflow"].lm
     assert [m.name for m in methods] == list(ev.METHOD_ORDER) == list(ev.VARIANTS)
-    assert {m.levels for m in methods} == {deployed.levels} == {4}
+    # each at the depth the tracker runs it: the LM solver's, OpenCV's maxLevel 3 as VINS calls it
+    lm_depths = {m.levels for m in methods if isinstance(m, ev.LMPairMethod)}
+    assert lm_depths == {deployed.levels} == {6}
+    lk_depths = {m.levels for m in methods if not isinstance(m, ev.LMPairMethod)}
+    assert lk_depths == {core.KLT_MAX_LEVEL + 1} == {4}
     for m in methods:
         variant = ev.VARIANTS[m.name]
         # the evaluated method is the registry entry the tracker deploys, equalised as the label says
@@ -115,13 +119,13 @@ def test_clahe_and_descriptor_lk_prepare_what_the_tracker_tracks(methods, pair):
 def test_guards(methods, pair):
     f1, f2, pts, _ = pair
     frames = ev.prepare_pair(methods, f1, f2)
-    with pytest.raises(EvaluationError, match=r"levels must be in 1\.\.4, got 5"):
-        methods[0].track(*frames[methods[0].name], pts, None, 5)
+    with pytest.raises(EvaluationError, match=r"levels must be in 1\.\.6, got 7"):
+        methods[0].track(*frames[methods[0].name], pts, None, 7)
     with pytest.raises(EvaluationError, match=r"\(N, 2\)"):
         methods[3].track(*frames[methods[3].name], pts[:, 0])
-    with pytest.raises(EvaluationError, match="cannot be reduced by 4"):
-        methods[0].levels_fewer(4)
-    assert methods[0].levels_fewer(1) == 3
+    with pytest.raises(EvaluationError, match="cannot be reduced by 6"):
+        methods[0].levels_fewer(6)
+    assert methods[0].levels_fewer(1) == 5
     with pytest.raises(EvaluationError, match="levels"):
         ev.default_methods(levels=0)
     klt = next(m for m in methods if m.name == ev.KLT)

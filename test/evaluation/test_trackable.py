@@ -102,13 +102,14 @@ def test_quick_run_reports_the_deployed_depth_and_one_fewer_with_computed_target
 
     ctx = EvalContext(methods=methods, quick=True, out_dir=tmp_path, progress=False)
     sec = tr.run(ctx)
-    assert set(sec.data["levels"].values()) == {4}
+    assert set(sec.data["levels"].values()) == {4, 6}
     med, fewer = sec.data["median"], sec.data["median_one_level_fewer"]
     rows = sec.headline
-    assert [r.metric.endswith("(4 levels)") for r in rows] == [True, True, True, False, False]
+    assert [r.metric.endswith("(LM 6, OpenCV LK 4 levels)") for r in rows] == [True, True, True, False, False]
     assert "windows not clipped" in rows[2].metric and rows[2].target == "" and rows[2].met is None
     assert rows[2].values[NSFLOW] == f"{sec.data['median_unclipped']['light'][NSFLOW][0]:.1%}"
-    assert rows[3].metric.endswith("(3 levels: one fewer)") and rows[3].target == "" and rows[3].met is None
+    assert rows[3].metric.endswith("(LM 5, OpenCV LK 3 levels: one fewer)")
+    assert rows[3].target == "" and rows[3].met is None
     ns = med["none"][NSFLOW][0]
     assert rows[0].met == (ns > med["none"]["LM (intensity)"][0] and ns >= 0.85)
     best = max(med["light"][b][0] for b in BASELINES)
