@@ -137,6 +137,9 @@ class SolvePolicy:
         prior_levels: levels for points with a prior (previous flow / disparity); 0 = ignore priors.
         fill_levels: levels for the points of a prior solve without a prior of their own (started from
             the median of the others' flows); 0 = the full pyramid.
+        stereo_levels: levels of a stereo solve without any prior (a first frame's matches); 0 = the full
+            pyramid. A disparity is bounded by the baseline, and the levels a temporal solve from zero
+            needs made the coarse alignment of a left / right pair under unequal light worse.
         max_residual: a forward or stereo solve loses a point whose :meth:`LMMethod.residual_ratio`
             exceeds this (true tracks: 0.01-0.1, tracks onto an occluder: 0.3-10); inf = no test.
         check_jacobian: the Jacobian of check solves: forward, because an ESM check started where an
@@ -150,12 +153,13 @@ class SolvePolicy:
 
     prior_levels: int = 2
     fill_levels: int = 3
+    stereo_levels: int = 4
     max_residual: float = 0.5
     check_jacobian: Jacobian = Jacobian.FORWARD
     check_eps: float = 0.01
 
     def __post_init__(self) -> None:
-        for label in ("prior_levels", "fill_levels"):
+        for label in ("prior_levels", "fill_levels", "stereo_levels"):
             if getattr(self, label) < 0:
                 raise CoreError(f"SolvePolicy.{label} must be >= 0, got {getattr(self, label)}")
         if not self.max_residual > 0:
@@ -168,7 +172,7 @@ class SolvePolicy:
     @classmethod
     def paper(cls) -> SolvePolicy:
         """Every solve from zero flow on the full pyramid, without the residual test (Algorithm 1)."""
-        return cls(prior_levels=0, fill_levels=0, max_residual=float("inf"))
+        return cls(prior_levels=0, fill_levels=0, stereo_levels=0, max_residual=float("inf"))
 
 
 @dataclass(frozen=True)
@@ -400,7 +404,7 @@ class LMMethod(TrackingMethod):
 
     A check starts at the point it must return to; a forward or stereo solve starts points with a prior
     from it on fewer levels and the others from the median flow; only a solve without any prior runs from
-    zero flow on the whole pyramid, with the coarse window.
+    zero flow with the coarse window, on the whole pyramid (a stereo one on ``policy.stereo_levels``).
 
     Raises:
         CoreError: a spec without LM settings or solve policy.
@@ -573,7 +577,9 @@ class LMMethod(TrackingMethod):
         if p.prior_levels > 0 and prior is not None:
             known = np.isfinite(prior).all(axis=1)
         if prior is None or not known.any():  # no prior, or the median of nothing: all from zero flow
-            return self._track_pair(frame1, frame2, pts, residual_test=True, finest_level=finest, eps=eps)
+            levels = p.stereo_levels if kind is SolveKind.STEREO else 0
+            return self._track_pair(frame1, frame2, pts, levels=levels or None, residual_test=True,
+                                    finest_level=finest, eps=eps)
         flow0 = _fill_prior(pts, prior, known)
         first = np.where(known, p.prior_levels, p.fill_levels or self.lm.levels).astype(np.int64) - 1
         # Every point starts near its answer: the coarse window, there for starts far off, is not needed.

@@ -205,7 +205,7 @@ def capture_errors(
     methods: list[EvalMethod], pair: CapturePair, fewer_levels: int = 0
 ) -> dict[str, np.ndarray]:
     """Each method's (N,) endpoint errors (inf where lost) tracking the pair's keypoints from zero flow,
-    ``fewer_levels`` below its own depth.
+    ``fewer_levels`` below its own depth (a stereo pair's: the depth of the tracker's first stereo solve).
 
     Raises:
         EvaluationError: an object that is not an evaluation method, or too few levels to remove.
@@ -213,7 +213,8 @@ def capture_errors(
     frames = prepare_pair(methods, pair.image1, pair.image2)
     out = {}
     for m in methods:
-        res = m.track(*frames[m.name], pair.points, None, m.levels_fewer(fewer_levels))
+        depth = m.stereo_levels if pair.source == SOURCES[1] else m.levels
+        res = m.track(*frames[m.name], pair.points, None, m.levels_fewer(fewer_levels + m.levels - depth))
         out[m.name] = endpoint_errors(res, pair.flow)
     return out
 
@@ -310,6 +311,7 @@ def run(ctx: EvalContext, cfg: CaptureConfig | None = None) -> Section:
     data = {
         "config": config_data(cfg),
         "levels": {m.name: m.levels for m in ctx.methods},
+        "stereo_levels": {m.name: m.stereo_levels for m in ctx.methods},
         "pairs": n_pairs,
         "points": points,
         "bin_edges_px": list(BIN_EDGES),
@@ -359,19 +361,20 @@ def _method_text(ctx: EvalContext, cfg: CaptureConfig, n_pairs: dict[str, int], 
         f"disparities {np.min(stereo_d):.1f}-{np.max(stereo_d):.1f} px "
         f"(median {np.median(stereo_d):.1f}). Each pair once without and once with a full-strength "
         f"lighting change of both frames. Every method at {levels_text(ctx.methods)} (the tracker's deployed "
-        "depth)" + (f" and at {levels_text(ctx.methods, 1)} (one fewer)" if 1 in fewer_set else "")
+        f"depth; the stereo pairs at {levels_text(ctx.methods, stereo=True)}, the tracker's first stereo "
+        "solve)" + (" and at one level fewer" if 1 in fewer_set else "")
         + ". Share of keypoints within 1 px of the truth (a lost point is not)." + quick_note(ctx.quick)
     )
 
 
 def _tables(ctx: EvalContext, sh: _Shares, figure: str) -> list[str]:
     """The share tables (per source, condition and depth; then per displacement bin too) and the figure."""
-    depth, fewer_depth, names = levels_text(ctx.methods), levels_text(ctx.methods, 1), sh.names
+    names = sh.names
     keys = [(s, cond, f) for s in SOURCES for cond in CONDITIONS for f in sh.fewer_set]
     lines = ["", "| source | condition | levels | " + " | ".join(names) + " |",
              "|---|---|---|" + "---|" * len(names)]  # fmt: skip
     for s, cond, f in keys:
-        tag = depth if f == 0 else f"{fewer_depth} (one fewer)"
+        tag = _depth(ctx, s) if f == 0 else f"{_depth(ctx, s, 1)} (one fewer)"
         cells = " | ".join(f"{100 * sh.share[(s, cond, f)][n]:.1f} %" for n in names)
         lines.append(f"| {s} | {cond} | {tag} | {cells} |")
     lines += [
@@ -388,11 +391,16 @@ def _tables(ctx: EvalContext, sh: _Shares, figure: str) -> list[str]:
     return [*lines, "", f"![capture from zero flow]({figure})", ""]
 
 
+def _depth(ctx: EvalContext, source: str, fewer: int = 0) -> str:
+    """The methods' depth on ``source``'s pairs in words, ``fewer`` less."""
+    return levels_text(ctx.methods, fewer, stereo=source == SOURCES[1])
+
+
 def _headline(ctx: EvalContext, sh: _Shares) -> list[HeadlineRow]:
     """Each source's share at the deployed depth against :data:`TARGETS`, then the stretch goal per light."""
-    depth, fewer_depth, pct = levels_text(ctx.methods), levels_text(ctx.methods, 1), "{:.1%}".format
+    pct = "{:.1%}".format
     rows = [
-        headline_row(f"capture from zero flow, {s}, share < 1 px, {condition_label(cond)} ({depth})",
+        headline_row(f"capture from zero flow, {s}, share < 1 px, {condition_label(cond)} ({_depth(ctx, s)})",
                      sh.share[(s, cond, 0)], pct, TARGETS[cond])
         for s in SOURCES for cond in CONDITIONS
     ]  # fmt: skip
@@ -401,7 +409,7 @@ def _headline(ctx: EvalContext, sh: _Shares) -> list[HeadlineRow]:
         deployed, fewer = sh.pooled[(cond, 0)], sh.pooled[(cond, 1)]
         rows.append(stretch_target(klt_depth, deployed.get(KLT, np.nan)).row(
             f"capture from zero flow, both sources, share < 1 px, {condition_label(cond)}, "
-            f"one level fewer ({fewer_depth})",
+            "one level fewer",
             {n: pct(v) for n, v in fewer.items()}, {NSFLOW: fewer.get(NSFLOW), KLT: deployed.get(KLT)},
         ))  # fmt: skip
     return rows

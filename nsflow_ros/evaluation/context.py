@@ -123,18 +123,22 @@ def axis_label(name: str) -> str:
     return name.replace(" + ", "\n+ ")
 
 
-def levels_text(methods: Sequence[EvalMethod], fewer: int = 0) -> str:
-    """The pyramid depth of the methods, ``fewer`` less: "4 levels"; per solver when they differ ("LM 6,
-    OpenCV LK 4 levels"); else each method's."""
-    depths = sorted({m.levels - fewer for m in methods})
+def levels_text(methods: Sequence[EvalMethod], fewer: int = 0, stereo: bool = False) -> str:
+    """The pyramid depth of the methods (of their stereo solves from zero flow: ``stereo``), ``fewer``
+    less: "4 levels"; per solver when they differ ("LM 6, OpenCV LK 4 levels"); else each method's."""
+
+    def depth(m: EvalMethod) -> int:
+        return (m.stereo_levels if stereo else m.levels) - fewer
+
+    depths = sorted({depth(m) for m in methods})
     if len(depths) == 1:
         return f"{depths[0]} level{'s' if depths[0] != 1 else ''}"
     by_solver: dict[str, set[int]] = {}
     for m in methods:
-        by_solver.setdefault("LM" if m.core.spec.is_lm else "OpenCV LK", set()).add(m.levels - fewer)
+        by_solver.setdefault("LM" if m.core.spec.is_lm else "OpenCV LK", set()).add(depth(m))
     if all(len(d) == 1 for d in by_solver.values()):
         return ", ".join(f"{k} {min(d)}" for k, d in by_solver.items()) + " levels"
-    return ", ".join(f"{m.name} {m.levels - fewer}" for m in methods) + " levels"
+    return ", ".join(f"{m.name} {depth(m)}" for m in methods) + " levels"
 
 
 def level_reductions(methods: Sequence[EvalMethod]) -> tuple[int, ...]:

@@ -135,6 +135,7 @@ class EvalMethod:
         self.name = name
         self.core = core
         self.levels = int(levels)
+        self.stereo_levels = self.levels  # a stereo solve from zero flow: as deep (LM: its policy's)
         self.equalize = bool(equalize)
         self._clahe = core.spec.clahe.create() if equalize else None
 
@@ -214,6 +215,8 @@ class LMPairMethod(EvalMethod):
 
     def __init__(self, name: str, core: LMMethod) -> None:
         super().__init__(name, core, core.lm.levels)
+        if core.policy.stereo_levels:
+            self.stereo_levels = min(core.policy.stereo_levels, self.levels)
 
     @property
     def config(self) -> LMConfig:

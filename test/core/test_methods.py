@@ -98,6 +98,8 @@ def test_solve_policy_and_specs_reject_bad_values():
         SolvePolicy(prior_levels=-1)
     with pytest.raises(CoreError, match="fill_levels"):
         SolvePolicy(fill_levels=-1)
+    with pytest.raises(CoreError, match="stereo_levels"):
+        SolvePolicy(stereo_levels=-1)
     with pytest.raises(CoreError, match="max_residual"):
         SolvePolicy(max_residual=0)
     with pytest.raises(CoreError, match="check_jacobian must be a Jacobian"):
@@ -271,6 +273,9 @@ def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monk
     # with no prior at all, the whole pyramid from zero flow; fill_levels 0 = the whole pyramid too
     method.solve(SolveKind.FORWARD, fa, fb, pts, prior=np.full_like(prior, np.nan))
     assert calls[-1] == (None, method.lm.levels)
+    # a stereo solve without any prior (a first frame's matches) on the policy's fewer levels
+    method.solve(SolveKind.STEREO, fa, fb, pts)
+    assert calls[-1] == (None, method.policy.stereo_levels) and method.policy.stereo_levels < method.lm.levels
     spec = method.spec
     make_method(replace(spec, policy=replace(spec.policy, fill_levels=0))).solve(
         SolveKind.FORWARD, fa, fb, pts, prior=prior
@@ -414,7 +419,7 @@ def test_the_registry_deploys_what_the_tracker_deployed_before_the_registry_exis
         coarse_window=21, coarse_from=2,
     )
     assert METHODS["classical"].lm == spec.lm
-    assert spec.policy == SolvePolicy(prior_levels=2, fill_levels=3, max_residual=0.5,
+    assert spec.policy == SolvePolicy(prior_levels=2, fill_levels=3, stereo_levels=4, max_residual=0.5,
                                       check_jacobian=Jacobian.FORWARD, check_eps=0.01)
     assert (CHECK_LEVELS, PREDICTED_LEVELS) == (2, 1)
     vins = (tr.GFTT_QUALITY, tr.FLOW_BACK_THRESHOLD_PX, tr.BORDER_PX, tr.PREDICTION_MIN_TRACKED)

@@ -55,6 +55,8 @@ def test_every_method_at_the_deployed_depth_on_a_registry_object(methods):
     assert lm_depths == {deployed.levels} == {6}
     lk_depths = {m.levels for m in methods if not isinstance(m, ev.LMPairMethod)}
     assert lk_depths == {core.KLT_MAX_LEVEL + 1} == {4}
+    # a stereo pair from zero flow at the depth of the tracker's first stereo solve
+    assert {m.stereo_levels for m in methods} == {core.METHODS['nsflow'].policy.stereo_levels} == {4}
     for m in methods:
         variant = ev.VARIANTS[m.name]
         # the evaluated method is the registry entry the tracker deploys, equalised as the label says
