@@ -428,3 +428,30 @@ def test_the_registry_deploys_what_the_tracker_deployed_before_the_registry_exis
     klt = METHODS["klt"].klt
     assert (klt.window, klt.max_iterations, klt.eps) == (21, 30, 0.01)
     assert (CLAHE.clip, CLAHE.tiles) == (3.0, (8, 8))
+
+
+def test_a_solve_from_zero_flow_captures_the_first_pair_of_a_flight_at_10_hz(tmp_path):
+    # Scene 3 in flight from its first frame at 10 Hz: the first pair's corners move 30-50 px. The learned
+    # map's coarse levels carry little; on 4 levels none of the kept tracks was right (0 of 57).
+    from nsflow_ros.core.detector import detect_corners
+    from nsflow_ros.data.sample import make_sample_sequence
+
+    seq = make_sample_sequence(tmp_path / "s", seed=3, duration=0.2, rate_hz=10.0, stereo=False,
+                               formats=("asl",), progress=False)  # fmt: skip
+    a, b = seq.image(0, 0), seq.image(1, 0)
+    pts = detect_corners(a, 150, quality=0.01, min_distance=30)
+    flow, visible = seq.flow(0, 1, pts)
+    assert np.median(np.hypot(*flow.T)) > 30
+
+    def right_share(method):
+        fa, fb = method.prepare(a, a), method.prepare(b, b)
+        new, ok = method.solve(SolveKind.FORWARD, fa, fb, pts)
+        right = np.hypot(*(new - pts - flow).T) < 1.0
+        return np.mean(right[ok & visible]) if (ok & visible).any() else 0.0, np.mean(ok & visible & right)
+
+    nsflow = make_method("nsflow")
+    assert nsflow.lm.levels == 6
+    kept_right, right = right_share(nsflow)
+    assert kept_right > 0.95 and right > 0.8
+    four, _ = right_share(make_method(METHODS["nsflow"].with_levels(4)))
+    assert four < 0.2
