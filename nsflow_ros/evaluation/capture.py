@@ -212,9 +212,9 @@ def capture_errors(
     """
     frames = prepare_pair(methods, pair.image1, pair.image2)
     out = {}
+    stereo = pair.source == SOURCES[1]
     for m in methods:
-        depth = m.stereo_levels if pair.source == SOURCES[1] else m.levels
-        res = m.track(*frames[m.name], pair.points, None, m.levels_fewer(fewer_levels + m.levels - depth))
+        res = m.track(*frames[m.name], pair.points, None, m.levels_fewer(fewer_levels, stereo))
         out[m.name] = endpoint_errors(res, pair.flow)
     return out
 

@@ -135,7 +135,6 @@ class EvalMethod:
         self.name = name
         self.core = core
         self.levels = int(levels)
-        self.stereo_levels = self.levels  # a stereo solve from zero flow: as deep (LM: its policy's)
         self.equalize = bool(equalize)
         self._clahe = core.spec.clahe.create() if equalize else None
 
@@ -144,15 +143,22 @@ class EvalMethod:
         """The core method's descriptor encoder (None for OpenCV's KLT on the gray image)."""
         return self.core.encoder
 
-    def levels_fewer(self, fewer: int) -> int:
-        """:attr:`levels` less ``fewer``.
+    @property
+    def stereo_levels(self) -> int:
+        """The depth of the tracker's stereo solve from zero flow (a first frame's matches): :attr:`levels`
+        unless the method's solve policy says fewer."""
+        return self.levels
+
+    def levels_fewer(self, fewer: int, stereo: bool = False) -> int:
+        """:attr:`levels` (``stereo``: :attr:`stereo_levels`) less ``fewer``.
 
         Raises:
             EvaluationError: no level would be left.
         """
-        if self.levels - fewer < 1:
-            raise EvaluationError(f"{self.name}: {self.levels} levels cannot be reduced by {fewer}")
-        return self.levels - fewer
+        depth = self.stereo_levels if stereo else self.levels
+        if depth - fewer < 1:
+            raise EvaluationError(f"{self.name}: {depth} levels cannot be reduced by {fewer}")
+        return depth - fewer
 
     def prepare(self, image: np.ndarray) -> Any:
         """The image's representation (the core method's ``prepare``, as the tracker calls it).
@@ -215,8 +221,10 @@ class LMPairMethod(EvalMethod):
 
     def __init__(self, name: str, core: LMMethod) -> None:
         super().__init__(name, core, core.lm.levels)
-        if core.policy.stereo_levels:
-            self.stereo_levels = min(core.policy.stereo_levels, self.levels)
+
+    @property
+    def stereo_levels(self) -> int:
+        return min(self.core.policy.stereo_levels or self.levels, self.levels)
 
     @property
     def config(self) -> LMConfig:
