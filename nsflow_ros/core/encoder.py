@@ -522,7 +522,15 @@ class OnnxEncoder:
             gray = to_gray(image)
             if self._bands.fits(*gray.shape):
                 out = _output(*gray.shape, self.channels)
-                _merge_into(self._planes(self._bands(gray), slice(None)), out)
+                y, k = self._bands(gray), self._kernel
+                if self.channels == 1 and k is not None:  # smoothed straight into its place: no copy
+                    plane = out[..., 0]
+                    done = cv2.sepFilter2D(y[0, 0], cv2.CV_32F, k, k, dst=plane,
+                                           borderType=cv2.BORDER_REPLICATE)
+                    if not np.shares_memory(done, plane):  # cv2 wrote elsewhere
+                        plane[...] = done
+                else:
+                    _merge_into(self._planes(y, slice(None)), out)
                 return out[..., : self.channels]
         if self.input_channels == 1:
             x = to_gray(image)[None, None].astype(np.float32)
