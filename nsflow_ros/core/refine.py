@@ -145,9 +145,10 @@ def step_template(
     image1: tuple[np.ndarray, ...], pts: np.ndarray, window: int, affine: bool = True
 ) -> StepTemplate:
     """Read the step's template at ``pts`` in ``image1`` (a :func:`gray_level`); each point's rows depend on
-    that point only, so a subset of the result is the template of the subset. With ``affine`` it carries
-    the affine warp's normal equations, formed once for every refinement from it (a stereo solve's and the
-    next frame's temporal one).
+    that point only, so a subset of the result is the template of the subset (its window sums to float32
+    rounding: a BLAS product's rounding may depend on how many rows it multiplies). With ``affine`` it
+    carries the affine warp's normal equations, formed once for every refinement from it (a stereo
+    solve's and the next frame's temporal one).
 
     Shape:
         pts: (M, 2).
@@ -170,10 +171,10 @@ def step_template(
         rows[:, k] = plane[1:-1, :, 1:-1].transpose(1, 0, 2)
     rows = rows.reshape(m, 3, window * window)
     rows -= rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
-    # float32 products (225 terms of order 1e-2 each), float64 from here on
-    gram = np.matmul(rows, rows.transpose(0, 2, 1)).astype(np.float64)  # [t, gx, gy] against each other
+    prods, sums = _row_products(rows, window)
+    gram = sums[:, _GRAM, 0]  # [t, gx, gy] against each other
     points = np.array(pts, dtype=np.float64, copy=True)
-    system = _affine_system(rows, gram, points, centres, window) if affine else None
+    system = _affine_system(rows, prods, sums, points, centres, window) if affine else None
     return StepTemplate(points, centres, rows, gram, system)
 
 
@@ -213,6 +214,11 @@ _COORD = np.array([1, 2, 1, 2, 0, 0])
 # into 1, x, y, x^2, xy, y^2).
 _PAIR = _GRAD[:, None] + _GRAD[None, :]
 _MONO = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])[_COORD[:, None], _COORD[None, :]]
+# The template's six products of its rows [t, gx, gy] (row _ROW_I[k] times row _ROW_J[k]: tt, t gx, t gy,
+# gx gx, gx gy, gy gy) and where each entry of their 3x3 gram is among them.
+_ROW_I = (0, 0, 0, 1, 1, 2)
+_ROW_J = (0, 1, 2, 1, 2, 2)
+_GRAM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
 @functools.cache
@@ -226,24 +232,41 @@ def _monomials(window: int) -> tuple[np.ndarray, np.ndarray]:
             np.stack([x * x, x * y, y * y], axis=1).astype(np.float32))
 
 
+def _row_products(rows: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """The template rows' six products pixel by pixel (6, M, w^2) float32 (``_ROW_I`` x ``_ROW_J``) and their
+    sums against (1, x, y) (M, 6, 3) float64: the gram is the sums' first column, the affine system needs
+    the rest (float32 products of 225 terms of order 1e-2 each, float64 from here on).
+
+    Shape:
+        rows: (M, 3, w^2) [t, gx, gy].
+    """
+    m = rows.shape[0]
+    prods = np.empty((6, m, window * window), np.float32)
+    for k, (i, j) in enumerate(zip(_ROW_I, _ROW_J, strict=True)):
+        np.multiply(rows[:, i], rows[:, j], out=prods[k])
+    # two products of 3 M rows, each below OpenBLAS's threading threshold (see _monomials)
+    mono3 = _monomials(window)[0]
+    sums = np.concatenate([prods[:3].reshape(3 * m, -1) @ mono3, prods[3:].reshape(3 * m, -1) @ mono3])
+    return prods, sums.reshape(6, m, 3).transpose(1, 0, 2).astype(np.float64)
+
+
 def _affine_system(
-    rows: np.ndarray, gram: np.ndarray, points: np.ndarray, centres: np.ndarray, window: int
+    rows: np.ndarray, prods: np.ndarray, sums: np.ndarray, points: np.ndarray, centres: np.ndarray,
+    window: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The affine warp's steepest-descent rows' means (M, 6) and the inverse of their J^T J about those
-    means, with the ridge (M, 6, 6): from the template's gradient products against six coordinate
-    monomials, two small matrix products, without forming the rows."""
+    means, with the ridge (M, 6, 6): from :func:`_row_products` of the template ``rows``, the gradient
+    pairs also against (x^2, xy, y^2) here, two small matrix products, without forming the rows."""
     m, npix = rows.shape[0], float(window * window)
     mono3, mono_hi = _monomials(window)
-    grads = rows[:, 1:]  # (M, 2, w^2) zero-mean
-    pairs = np.stack([grads[:, 0] * grads[:, 0], grads[:, 0] * grads[:, 1], grads[:, 1] * grads[:, 1]], 1)
-    flat = pairs.reshape(3 * m, -1)
-    second = np.concatenate([flat @ mono3, flat @ mono_hi], axis=1).reshape(m, 3, 6).astype(np.float64)
-    first = (grads.reshape(2 * m, -1) @ mono3).reshape(m, 2, 3).astype(np.float64)
+    hi = (prods[3:].reshape(3 * m, -1) @ mono_hi).reshape(3, m, 3).transpose(1, 0, 2).astype(np.float64)
+    second = np.concatenate([sums[:, 3:], hi], axis=2)  # (M, 3 gradient pairs, 6 monomials)
+    first = (rows[:, 1:].reshape(2 * m, -1) @ mono3).reshape(m, 2, 3).astype(np.float64)
     mean = first[:, _GRAD, _COORD] / npix  # (M, 6) each row's mean
     hess = second[:, _PAIR, _MONO] - npix * mean[:, :, None] * mean[:, None, :]
     # The ridge also keeps a window with structure in one direction only solvable: its translation is
     # what the point needs.
-    ridge = _RIDGE * (gram[:, 1, 1] + gram[:, 2, 2])
+    ridge = _RIDGE * (sums[:, 3, 0] + sums[:, 5, 0])  # gx gx + gy gy
     # A window moved inward at the border may reach past it in frame 2, where replicated rows would read
     # as a deformation that its point, off the window's centre, then follows: it stays a translation.
     ridge[(points != centres).any(axis=1)] *= 1e9
@@ -281,7 +304,8 @@ def _refine_affine(
     m, npix = rows.shape[0], float(win * win)
     t, grads = rows[:, 0], rows[:, 1:]  # (M, w^2), (M, 2, w^2) zero-mean
     mono3 = _monomials(win)[0]
-    mean, inverse = tmpl.system or _affine_system(rows, gram, tmpl.points, tmpl.centres, win)
+    mean, inverse = tmpl.system or _affine_system(rows, *_row_products(rows, win), tmpl.points,
+                                                  tmpl.centres, win)
     contrast = gram[:, 0, 0]
     warp = np.broadcast_to(np.eye(2), (m, 2, 2)).copy()
     trans = tmpl.centres + flow  # where each window's centre goes

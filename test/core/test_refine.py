@@ -233,7 +233,9 @@ def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) ->
 
 def test_a_template_read_once_serves_every_subset(pair: tuple[np.ndarray, ...]) -> None:
     """Each point's template rows depend on that point only: a subset of a template read at all points is
-    the template of the subset, bit for bit, and refining with it is refining without it."""
+    the template of the subset, its rows bit for bit and its window sums to float32 rounding (a BLAS
+    product rounds by how many rows it multiplies, differently per CPU), and refining with it is refining
+    without it to that rounding."""
     g1, g2, pts = pair
     im1, im2 = gray_level(g1), gray_level(g2)
     pts = np.vstack([pts, [[2.0, 3.0]]])  # one near the corner: its window is moved inward
@@ -241,13 +243,16 @@ def test_a_template_read_once_serves_every_subset(pair: tuple[np.ndarray, ...]) 
     sel = np.array([True, False, True, True, True])
     part = step_template(im1, pts[sel], 15)
     taken = whole[sel]
-    for name in ("centres", "rows", "gram"):
+    for name in ("centres", "rows"):
         np.testing.assert_array_equal(getattr(taken, name), getattr(part, name))
+    np.testing.assert_allclose(taken.gram, part.gram, rtol=1e-6, atol=1e-9)
     start = pts + SHIFT + 0.3
     given = refine(im1, im2, pts, start, sel, IntensityRefinement(), whole)
     read = refine(im1, im2, pts, start, sel, IntensityRefinement())
-    for a, b in zip(vars(given).values(), vars(read).values(), strict=True):
-        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(given.kept, read.kept)
+    np.testing.assert_allclose(given.positions, read.positions, rtol=0, atol=1e-5)  # px
+    for name in ("hessian", "cost", "contrast"):
+        np.testing.assert_allclose(getattr(given, name), getattr(read, name), rtol=1e-5, atol=1e-9)
 
 
 def test_the_method_reads_a_stereo_template_once_for_the_next_temporal_step(
