@@ -450,6 +450,18 @@ class OnnxEncoder:
             return [p[rows] for p in out[0]]
         return [cv2.sepFilter2D(p, cv2.CV_32F, k, k, borderType=cv2.BORDER_REPLICATE)[rows] for p in out[0]]
 
+    def _write(self, out: np.ndarray, dst: np.ndarray) -> None:
+        """A whole encoder output (1, d, h, w), smoothed as declared, into the output block ``dst``; one
+        smoothed plane is filtered straight into its place (no copy of the plane)."""
+        k = self._kernel
+        if k is None or out.shape[1] != 1:
+            _merge_into(self._planes(out, slice(None)), dst)
+            return
+        plane = dst[..., 0]
+        done = cv2.sepFilter2D(out[0, 0], cv2.CV_32F, k, k, dst=plane, borderType=cv2.BORDER_REPLICATE)
+        if not np.shares_memory(done, plane):  # cv2 wrote elsewhere
+            plane[...] = done
+
     @property
     def tiled(self) -> bool:
         """Whether frames are encoded in strips."""
@@ -522,15 +534,7 @@ class OnnxEncoder:
             gray = to_gray(image)
             if self._bands.fits(*gray.shape):
                 out = _output(*gray.shape, self.channels)
-                y, k = self._bands(gray), self._kernel
-                if self.channels == 1 and k is not None:  # smoothed straight into its place: no copy
-                    plane = out[..., 0]
-                    done = cv2.sepFilter2D(y[0, 0], cv2.CV_32F, k, k, dst=plane,
-                                           borderType=cv2.BORDER_REPLICATE)
-                    if not np.shares_memory(done, plane):  # cv2 wrote elsewhere
-                        plane[...] = done
-                else:
-                    _merge_into(self._planes(y, slice(None)), out)
+                self._write(self._bands(gray), out)
                 return out[..., : self.channels]
         if self.input_channels == 1:
             x = to_gray(image)[None, None].astype(np.float32)
@@ -543,7 +547,7 @@ class OnnxEncoder:
         halo = self.halo
         if halo is None:
             out = _output(h, w, self.channels)
-            _merge_into(self._planes(self._run(x), slice(None)), out)
+            self._write(self._run(x), out)
             return out[..., : self.channels]
         # Strips of about TILE_PIXELS, and at least one per worker.
         rows = self._tile_rows or max(1, min(math.ceil(TILE_PIXELS / w), math.ceil(h / self.threads)))

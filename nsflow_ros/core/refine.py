@@ -172,7 +172,7 @@ def step_template(
     rows = rows.reshape(m, 3, window * window)
     rows -= rows.mean(axis=2, keepdims=True)  # a contiguous last axis: a fast mean
     prods, sums = _row_products(rows, window)
-    gram = sums[:, _GRAM, 0]  # [t, gx, gy] against each other
+    gram = sums[:, _SYM3, 0]  # [t, gx, gy] against each other
     points = np.array(pts, dtype=np.float64, copy=True)
     system = _affine_system(rows, prods, sums, points, centres, window) if affine else None
     return StepTemplate(points, centres, rows, gram, system)
@@ -212,13 +212,14 @@ _GRAD = np.array([0, 0, 1, 1, 0, 1])
 _COORD = np.array([1, 2, 1, 2, 0, 0])
 # A product of two rows is gradient pair _PAIR (0: xx, 1: xy, 2: yy) times a coordinate monomial (index
 # into 1, x, y, x^2, xy, y^2).
+# Where entry (i, j) of a symmetric 3x3 matrix is among its six upper-triangle entries, row by row
+# (np.triu_indices(3) order).
+_SYM3 = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 _PAIR = _GRAD[:, None] + _GRAD[None, :]
-_MONO = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])[_COORD[:, None], _COORD[None, :]]
-# The template's six products of its rows [t, gx, gy] (row _ROW_I[k] times row _ROW_J[k]: tt, t gx, t gy,
-# gx gx, gx gy, gy gy) and where each entry of their 3x3 gram is among them.
-_ROW_I = (0, 0, 0, 1, 1, 2)
-_ROW_J = (0, 1, 2, 1, 2, 2)
-_GRAM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+_MONO = _SYM3[_COORD[:, None], _COORD[None, :]]
+# The template's six products of its rows [t, gx, gy]: row _ROW_I[k] times row _ROW_J[k] (tt, t gx, t gy,
+# gx gx, gx gy, gy gy); entry (i, j) of their gram is product _SYM3[i, j].
+_ROW_I, _ROW_J = np.triu_indices(3)
 
 
 @functools.cache
