@@ -419,6 +419,9 @@ class LMMethod(TrackingMethod):
         self.policy: SolvePolicy = spec.policy
         self.pyramid_smoothing = pyramid_smoothing(encoder)
         self.refinement: IntensityRefinement | None = spec.refine
+        # A temporal solve's step, with its own shift limit, settled once.
+        self._temporal_step = (None if spec.refine is None
+                               else replace(spec.refine, max_shift=spec.refine.temporal_max_shift))
         self._template_memo: tuple[DescriptorPyramid, StepTemplate] | None = None
 
     @staticmethod
@@ -505,9 +508,9 @@ class LMMethod(TrackingMethod):
         With an intensity step (:attr:`refinement`), the pyramid solve stops at the step's ``from_level``
         and the step on the images finishes it (the checks' too, unless ``checks`` is off; from the IMU
         prediction the step follows the one-level solve); the points it does not keep get the descriptors'
-        remaining levels as before. A kept point's row of the result holds the step's J^T J and
-        its cost rescaled to the descriptor window's degrees of freedom, so that
-        :meth:`result_covariance` is the step's covariance there.
+        remaining levels, except in a temporal solve, where they end (``retrack_refused`` off). A kept
+        point's row of the result holds the step's J^T J and its cost rescaled to the descriptor window's
+        degrees of freedom, so that :meth:`result_covariance` is the step's covariance there.
         """
         step = self.refinement
         step_applies = (step is not None and (step.checks or not kind.is_check) and frame1.image is not None
@@ -520,12 +523,17 @@ class LMMethod(TrackingMethod):
         # A check keeps its own tolerance: it starts at its answer, where a loose test would stop it.
         eps = step.coarse_eps if finest and not kind.is_check else None
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
-        done = refine(frame1.image, frame2.image, pts, new, status, step, self._step_template(frame1, pts))
+        temporal = kind is SolveKind.FORWARD
+        config = (self._temporal_step or step) if temporal else step
+        done = refine(frame1.image, frame2.image, pts, new, status, config, self._step_template(frame1, pts))
         new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
         contrast = res.contrast.copy()
         rest = np.flatnonzero(status & ~kept) if finest else np.zeros(0, np.int64)
         status = status.copy()
+        if rest.size and temporal and not step.retrack_refused:
+            status[rest] = False  # the track ends here; the detector fills its place
+            rest = rest[:0]
         if rest.size:  # the descriptors' own last levels, from where the coarse levels left them
             p = self.policy
             fine_new, fine_status, fine = (

@@ -40,7 +40,15 @@ class IntensityRefinement:
         window: window side (odd, px) of the intensity solve.
         iterations: Gauss-Newton iterations (the start is within a pixel or two).
         max_shift: the step is kept only when it moves the point less than this (px): a larger move is
-            the image disagreeing with the descriptors, not a refinement.
+            the image disagreeing with the descriptors, not a refinement. A stereo match's limit.
+        temporal_max_shift: ``max_shift`` of a temporal solve (previous frame to this one), whose
+            quarter-resolution start may be 2-4 px off where the step still converges: kept there, the
+            step's answer was as precise as the descriptors' remaining levels (docs/design.md).
+        retrack_refused: a temporal point the step refuses is solved on the descriptors' remaining
+            levels (True) instead of ending its track there (False; the detector fills its place). Those
+            points, 2-5 % a frame, track several times worse than the rest, and their solve costs a fixed
+            price per frame whatever their number (docs/design.md). A stereo match the step refuses always
+            gets the descriptors' levels: ending those lost 7 % of the matches.
         max_residual: the step is kept only when its residual ratio (the residual's energy over the
             template's contrast, after gain and offset) is below this: above it the light changed inside
             the window in a way a gain and an offset do not explain.
@@ -67,6 +75,8 @@ class IntensityRefinement:
     window: int = 15
     iterations: int = 2
     max_shift: float = 2.0
+    temporal_max_shift: float = 4.0
+    retrack_refused: bool = False
     max_residual: float = 0.2
     min_eigen: float = 1e-5
     coarse_eps: float = 0.2
@@ -81,7 +91,7 @@ class IntensityRefinement:
             raise CoreError(f"IntensityRefinement.iterations must be >= 1, got {self.iterations}")
         if self.from_level < 1:
             raise CoreError(f"IntensityRefinement.from_level must be >= 1, got {self.from_level}")
-        for name in ("max_shift", "max_residual", "coarse_eps"):
+        for name in ("max_shift", "temporal_max_shift", "max_residual", "coarse_eps"):
             if not getattr(self, name) > 0:
                 raise CoreError(f"IntensityRefinement.{name} must be > 0, got {getattr(self, name)}")
         if not self.min_eigen >= 0:

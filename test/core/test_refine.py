@@ -157,6 +157,7 @@ def test_empty_input() -> None:
 
 
 @pytest.mark.parametrize("kwargs", [{"window": 4}, {"window": 1}, {"iterations": 0}, {"max_shift": 0.0},
+                                    {"temporal_max_shift": -1.0},
                                     {"max_residual": -1.0}, {"min_eigen": -1.0}, {"coarse_eps": 0.0}])
 def test_settings_out_of_range(kwargs: dict[str, float]) -> None:
     with pytest.raises(CoreError, match=next(iter(kwargs))):
@@ -206,17 +207,50 @@ def test_checks_can_end_on_the_image_too(pair: tuple[np.ndarray, ...]) -> None:
     assert (~ok | (np.hypot(*(back - pts).T) > 0.5)).all()
 
 
-def test_points_the_step_rejects_get_the_descriptors_last_level(pair: tuple[np.ndarray, ...]) -> None:
+@pytest.mark.parametrize(("kind", "retrack"), [(SolveKind.STEREO, False), (SolveKind.FORWARD, True)])
+def test_points_the_step_rejects_get_the_descriptors_last_level(
+    pair: tuple[np.ndarray, ...], kind: SolveKind, retrack: bool
+) -> None:
     """No point kept: the coarse levels (at the plain solve's tolerance), then the last level on its own, are
-    the plain method's solve."""
+    the plain method's solve (a stereo match always, a temporal point with ``retrack_refused``)."""
     g1, g2, pts = pair
-    step = IntensityRefinement(max_residual=1e-30, coarse_eps=DEPLOYED_LM.eps)
+    step = IntensityRefinement(max_residual=1e-30, coarse_eps=DEPLOYED_LM.eps, retrack_refused=retrack)
     never = make_method(replace(METHODS["nsflow"], refine=step))
     plain = make_method(replace(METHODS["nsflow"], refine=None))
-    a = never.solve_with_covariance(SolveKind.FORWARD, never.prepare(g1, g1), never.prepare(g2, g2), pts)
-    b = plain.solve_with_covariance(SolveKind.FORWARD, plain.prepare(g1, g1), plain.prepare(g2, g2), pts)
+    a = never.solve_with_covariance(kind, never.prepare(g1, g1), never.prepare(g2, g2), pts)
+    b = plain.solve_with_covariance(kind, plain.prepare(g1, g1), plain.prepare(g2, g2), pts)
     for x, y in zip(a, b, strict=True):
         np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+
+
+def test_a_temporal_point_the_step_refuses_ends_its_track(pair: tuple[np.ndarray, ...]) -> None:
+    """By default a temporal point the step refuses is lost (the detector replaces it), whatever the
+    descriptors would say; the stereo solve of the same pair keeps every point."""
+    g1, g2, pts = pair
+    never = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(max_residual=1e-30)))
+    f1, f2 = never.prepare(g1, g1), never.prepare(g2, g2)
+    _, status = never.solve(SolveKind.FORWARD, f1, f2, pts)
+    assert not status.any()
+    new, status = never.solve(SolveKind.STEREO, f1, f2, pts)
+    assert status.all() and np.abs(new - pts - SHIFT).max() < 0.1
+
+
+def test_a_temporal_solve_takes_its_own_shift_limit(pair: tuple[np.ndarray, ...]) -> None:
+    """From a start 1.5 px off, a temporal step is kept under ``temporal_max_shift`` and refused over it;
+    ``max_shift`` does not apply to it."""
+    g1, g2, pts = pair
+    im1, im2 = gray_level(g1), gray_level(g2)
+    start = pts + SHIFT + np.array([1.5, 0.0])
+    ones = np.ones(len(pts), bool)
+    wide = IntensityRefinement(max_shift=1.0)
+    assert refine(im1, im2, pts, start, ones, replace(wide, max_shift=wide.temporal_max_shift)).kept.all()
+    assert not refine(im1, im2, pts, start, ones, wide).kept.any()
+    for limit, kept in ((4.0, True), (1.0, False)):
+        method = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(temporal_max_shift=limit)))
+        assert method._temporal_step is not None
+        assert method._temporal_step.max_shift == limit
+        out = refine(im1, im2, pts, start, ones, method._temporal_step)
+        assert out.kept.all() if kept else not out.kept.any()
 
 
 def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) -> None:
