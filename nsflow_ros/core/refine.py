@@ -52,6 +52,12 @@ class IntensityRefinement:
         max_residual: the step is kept only when its residual ratio (the residual's energy over the
             template's contrast, after gain and offset) is below this: above it the light changed inside
             the window in a way a gain and an offset do not explain.
+        residual_floor: ``max_residual`` is raised to this many times the median ratio of the solve's
+            points, up to ``residual_ceiling``: sensor noise raises every window's ratio alike (in the
+            ``dark`` perturbation the median is 11x the clean one), and within 5x of it the step was as
+            precise as the descriptors' remaining levels; 0 = ``max_residual`` alone.
+        residual_ceiling: the most the floor raises the limit to, so that windows of other content
+            (ratio about 1) are refused even where every window is.
         min_eigen: the smallest eigenvalue of the window's gradient matrix per pixel below which the image
             does not pin the point down (a flat or edge-only window): the descriptors' answer stands.
         coarse_eps: the stop tolerance of the descriptor levels before the step (the LM solver's ``eps``):
@@ -78,6 +84,8 @@ class IntensityRefinement:
     temporal_max_shift: float = 4.0
     retrack_refused: bool = False
     max_residual: float = 0.2
+    residual_floor: float = 5.0
+    residual_ceiling: float = 0.4
     min_eigen: float = 1e-5
     coarse_eps: float = 0.2
     checks: bool = False
@@ -94,6 +102,11 @@ class IntensityRefinement:
         for name in ("max_shift", "temporal_max_shift", "max_residual", "coarse_eps"):
             if not getattr(self, name) > 0:
                 raise CoreError(f"IntensityRefinement.{name} must be > 0, got {getattr(self, name)}")
+        if not self.residual_floor >= 0:
+            raise CoreError(f"IntensityRefinement.residual_floor must be >= 0, got {self.residual_floor}")
+        if not self.residual_ceiling >= self.max_residual:
+            raise CoreError(f"IntensityRefinement.residual_ceiling must be >= max_residual "
+                            f"({self.max_residual}), got {self.residual_ceiling}")
         if not self.min_eigen >= 0:
             raise CoreError(f"IntensityRefinement.min_eigen must be >= 0, got {self.min_eigen}")
 
@@ -428,8 +441,14 @@ def refine(
     new = p + flow
     min_eig = 0.5 * (sxx + syy - np.sqrt((sxx - syy) ** 2 + 4.0 * sxy * sxy))
     inside = (new[:, 0] >= 0) & (new[:, 0] <= w - 1) & (new[:, 1] >= 0) & (new[:, 1] <= h - 1)
+    limit = config.max_residual
+    if config.residual_floor > 0:  # the solve's own noise floor
+        finite = ratio[np.isfinite(ratio)]
+        if finite.size:
+            noisy = min(config.residual_floor * float(np.median(finite)), config.residual_ceiling)
+            limit = max(limit, noisy)
     kept = (np.isfinite(new).all(axis=1) & inside & (min_eig / (win * win) >= config.min_eigen)
-            & (np.hypot(*(new - positions[idx]).T) < config.max_shift) & (ratio <= config.max_residual))
+            & (np.hypot(*(new - positions[idx]).T) < config.max_shift) & (ratio <= limit))
     out.positions[idx[kept]] = new[kept]
     out.kept[idx] = kept
     out.hessian[idx] = np.stack([sxx, sxy, syy], axis=1)

@@ -128,6 +128,25 @@ def test_other_content_is_not_kept(pair: tuple[np.ndarray, ...]) -> None:
     np.testing.assert_array_equal(out.positions, start)
 
 
+def test_a_noisy_frame_raises_the_residual_limit_to_its_ceiling() -> None:
+    """Low contrast under sensor noise raises every window's residual ratio alike (here 0.24-0.35): the
+    step is kept there, within its noise of the truth, and refused with the floor off; windows of other
+    content (ratio about 1) stay refused whatever the floor."""
+    tex = _texture()
+    pts = np.array([[40.0, 40.0], [80.5, 60.25], [120.0, 80.0], [60.0, 90.0], [30.0, 70.0], [100.0, 30.0]])
+    rng = np.random.default_rng(1)
+    dim = [128 + 0.15 * (t - 128) for t in (tex, _shifted(tex, SHIFT))]
+    g1, g2 = (gray_level(_u8(d + rng.normal(0, 2.0, d.shape))) for d in dim)
+    start, ones = pts + SHIFT + 0.3, np.ones(len(pts), bool)
+    out = refine(g1, g2, pts, start, ones, IntensityRefinement())
+    ratio = 2 * out.cost / out.contrast
+    assert (ratio > 0.2).all() and (ratio < 0.4).all()
+    assert out.kept.all() and np.abs(out.positions - pts - SHIFT).max() < 0.25
+    assert not refine(g1, g2, pts, start, ones, IntensityRefinement(residual_floor=0.0)).kept.any()
+    other = gray_level(_u8(_texture(seed=7)))
+    assert not refine(g1, other, pts, start, ones, IntensityRefinement(residual_floor=100.0)).kept.any()
+
+
 def test_flat_window_and_lost_points_are_left_alone(pair: tuple[np.ndarray, ...]) -> None:
     g1, g2, pts = pair
     flat = np.full_like(g1, 128)
@@ -157,7 +176,8 @@ def test_empty_input() -> None:
 
 
 @pytest.mark.parametrize("kwargs", [{"window": 4}, {"window": 1}, {"iterations": 0}, {"max_shift": 0.0},
-                                    {"temporal_max_shift": -1.0},
+                                    {"temporal_max_shift": -1.0}, {"residual_floor": -1.0},
+                                    {"residual_ceiling": 0.1},
                                     {"max_residual": -1.0}, {"min_eigen": -1.0}, {"coarse_eps": 0.0}])
 def test_settings_out_of_range(kwargs: dict[str, float]) -> None:
     with pytest.raises(CoreError, match=next(iter(kwargs))):
@@ -214,7 +234,8 @@ def test_points_the_step_rejects_get_the_descriptors_last_level(
     """No point kept: the coarse levels (at the plain solve's tolerance), then the last level on its own, are
     the plain method's solve (a stereo match always, a temporal point with ``retrack_refused``)."""
     g1, g2, pts = pair
-    step = IntensityRefinement(max_residual=1e-30, coarse_eps=DEPLOYED_LM.eps, retrack_refused=retrack)
+    step = IntensityRefinement(max_residual=1e-30, residual_floor=0.0, coarse_eps=DEPLOYED_LM.eps,
+                               retrack_refused=retrack)
     never = make_method(replace(METHODS["nsflow"], refine=step))
     plain = make_method(replace(METHODS["nsflow"], refine=None))
     a = never.solve_with_covariance(kind, never.prepare(g1, g1), never.prepare(g2, g2), pts)
@@ -227,7 +248,8 @@ def test_a_temporal_point_the_step_refuses_ends_its_track(pair: tuple[np.ndarray
     """By default a temporal point the step refuses is lost (the detector replaces it), whatever the
     descriptors would say; the stereo solve of the same pair keeps every point."""
     g1, g2, pts = pair
-    never = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(max_residual=1e-30)))
+    step = IntensityRefinement(max_residual=1e-30, residual_floor=0.0)
+    never = make_method(replace(METHODS["nsflow"], refine=step))
     f1, f2 = never.prepare(g1, g1), never.prepare(g2, g2)
     _, status = never.solve(SolveKind.FORWARD, f1, f2, pts)
     assert not status.any()
