@@ -419,9 +419,12 @@ class LMMethod(TrackingMethod):
         self.policy: SolvePolicy = spec.policy
         self.pyramid_smoothing = pyramid_smoothing(encoder)
         self.refinement: IntensityRefinement | None = spec.refine
-        # A temporal solve's step, with its own shift limit, settled once.
-        self._temporal_step = (None if spec.refine is None
-                               else replace(spec.refine, max_shift=spec.refine.temporal_max_shift))
+        # The step of each kind of solve, settled once: a temporal track the step refuses ends, so its
+        # step takes a wider shift and the noise floor; a refused stereo match (or check) gets the
+        # descriptors' levels instead, which beat the step above the plain residual limit.
+        r = spec.refine
+        self._temporal_step, self._step = (None, None) if r is None else (
+            replace(r, max_shift=r.temporal_max_shift), replace(r, residual_floor=0.0))
         self._template_memo: tuple[DescriptorPyramid, StepTemplate] | None = None
 
     @staticmethod
@@ -524,7 +527,7 @@ class LMMethod(TrackingMethod):
         eps = step.coarse_eps if finest and not kind.is_check else None
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
         temporal = kind is SolveKind.FORWARD
-        config = (self._temporal_step or step) if temporal else step
+        config = (self._temporal_step if temporal else self._step) or step
         done = refine(frame1.image, frame2.image, pts, new, status, config, self._step_template(frame1, pts))
         new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()

@@ -55,7 +55,9 @@ class IntensityRefinement:
         residual_floor: ``max_residual`` is raised to this many times the median ratio of the solve's
             points, up to ``residual_ceiling``: sensor noise raises every window's ratio alike (in the
             ``dark`` perturbation the median is 11x the clean one), and within 5x of it the step was as
-            precise as the descriptors' remaining levels; 0 = ``max_residual`` alone.
+            precise as the descriptors' remaining levels; 0 = ``max_residual`` alone. The tracker
+            applies it to temporal solves only, whose refused points would end (a stereo match gets the
+            descriptors' levels, more precise there).
         residual_ceiling: the most the floor raises the limit to, so that windows of other content
             (ratio about 1) are refused even where every window is.
         min_eigen: the smallest eigenvalue of the window's gradient matrix per pixel below which the image

@@ -267,6 +267,10 @@ def test_a_temporal_solve_takes_its_own_shift_limit(pair: tuple[np.ndarray, ...]
     wide = IntensityRefinement(max_shift=1.0)
     assert refine(im1, im2, pts, start, ones, replace(wide, max_shift=wide.temporal_max_shift)).kept.all()
     assert not refine(im1, im2, pts, start, ones, wide).kept.any()
+    method = make_method("nsflow")
+    assert method._temporal_step is not None and method._step is not None
+    # the noise floor serves temporal solves only: a refused stereo match gets the descriptors' levels
+    assert method._temporal_step.residual_floor > 0 and method._step.residual_floor == 0
     for limit, kept in ((4.0, True), (1.0, False)):
         method = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(temporal_max_shift=limit)))
         assert method._temporal_step is not None
