@@ -50,8 +50,9 @@ def test_the_fast_model_keeps_klts_track_quality(tmp_path):
     res = run_tracker_benchmark(4.0, ["nsflow"], ["stereo"], model="fast", cache_dir=tmp_path, threads=1,
                                 opencv_threads=1)
     fast, klt = res["stereo"]["nsflow"], res["stereo"]["klt"]
-    # as many features carried and matched on the right image, about as accurately (exact flow)
-    assert fast["carried_share"] >= klt["carried_share"] - 0.01
+    # about as many features carried (a track the image step refuses ends by design: 2-5 % a frame, the
+    # least precise ones, docs/benchmarks.md) and as many matched on the right image, as accurately
+    assert fast["carried_share"] >= klt["carried_share"] - 0.04
     assert fast["stereo_matched_share"] >= klt["stereo_matched_share"] - 0.01
     assert fast["error_median_px"] <= 1.25 * klt["error_median_px"]
     assert fast["stereo_error_median_px"] <= 1.25 * klt["stereo_error_median_px"]
