@@ -536,8 +536,7 @@ class LMMethod(TrackingMethod):
         status = status.copy()
         if rest.size and temporal and not step.retrack_refused:
             status[rest] = False  # the track ends here; the detector fills its place
-            rest = rest[:0]
-        if rest.size:  # the descriptors' own last levels, from where the coarse levels left them
+        elif rest.size:  # the descriptors' own last levels, from where the coarse levels left them
             p = self.policy
             fine_new, fine_status, fine = (
                 self._track_pair(frame1, frame2, pts[rest], new[rest], finest, jacobian=p.check_jacobian,
