@@ -50,14 +50,15 @@ def test_the_fast_model_keeps_klts_track_quality(tmp_path):
     res = run_tracker_benchmark(4.0, ["nsflow"], ["stereo"], model="fast", cache_dir=tmp_path, threads=1,
                                 opencv_threads=1)
     fast, klt = res["stereo"]["nsflow"], res["stereo"]["klt"]
-    # about as many features carried (a track the image step refuses ends by design: 2-5 % a frame, the
-    # least precise ones, docs/benchmarks.md) and as many matched on the right image, as accurately
-    assert fast["carried_share"] >= klt["carried_share"] - 0.04
-    assert fast["stereo_matched_share"] >= klt["stereo_matched_share"] - 0.01
-    assert fast["error_median_px"] <= 1.25 * klt["error_median_px"]
-    assert fast["stereo_error_median_px"] <= 1.25 * klt["stereo_error_median_px"]
-    assert fast["error_over_1px_share"] <= klt["error_over_1px_share"] + 0.005
-    assert fast["stereo_error_over_1px_share"] <= klt["stereo_error_over_1px_share"] + 0.005
+    # fewer features carried and matched on the right image by design (a track the image step refuses
+    # ends, and one whose covariance is wider than 0.15 px, a stereo match's wider than 0.2 px: the least
+    # precise ones, docs/design.md), and at least as accurately as klt's
+    assert fast["carried_share"] >= klt["carried_share"] - 0.15
+    assert fast["stereo_matched_share"] >= klt["stereo_matched_share"] - 0.07
+    assert fast["error_median_px"] <= klt["error_median_px"]
+    assert fast["stereo_error_median_px"] <= klt["stereo_error_median_px"]
+    assert fast["error_over_1px_share"] <= klt["error_over_1px_share"]
+    assert fast["stereo_error_over_1px_share"] <= klt["stereo_error_over_1px_share"]
 
 
 def test_a_method_that_cannot_take_the_model_is_left_out_and_said(tmp_path):

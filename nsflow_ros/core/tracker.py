@@ -547,7 +547,7 @@ class FeatureTracker:
         if gate is None:  # VINS's check: every live point back, or none without flow_back
             reverse = status.copy() if s.flow_back else np.zeros_like(status)
         else:
-            status &= gate.keep(cov[0], status)
+            status &= gate.keep(cov[0], status, stereo=kind is SolveKind.STEREO)
             if kind is SolveKind.STEREO and self.stereo_geometry is not None and status.any():
                 idx = np.flatnonzero(status)
                 left = self.cameras[0].lift_rays(pts[idx]) if rays is None else rays[idx]

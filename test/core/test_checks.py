@@ -20,7 +20,8 @@ def _pose(rot_vec=(0.0, 0.0, 0.0), t=(-0.11, 0.0, 0.0)) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("field", ["max_sigma", "relative", "max_epipolar", "max_departure"])
+@pytest.mark.parametrize("field", [
+    "max_sigma", "stereo_max_sigma", "relative", "max_epipolar", "max_departure"])
 @pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), float("inf")])
 def test_check_bounds_must_be_finite_and_positive(field, value):
     with pytest.raises(CoreError, match=f"CovarianceCheck.{field}"):
@@ -49,7 +50,24 @@ def test_the_bound_rises_with_the_solves_median_sigma():
     np.testing.assert_array_equal(CovarianceCheck(relative=1.0).keep(cov, live), [True] * 4 + [False] * 3)
     few = np.zeros(7, bool)
     few[:3] = True  # the live points' median is 0.22: the floor holds
-    np.testing.assert_array_equal(CovarianceCheck().keep(cov, few), [True] * 4 + [False] * 3)
+    np.testing.assert_array_equal(CovarianceCheck(max_sigma=0.3, relative=1.0).keep(cov, few),
+                                  [True] * 4 + [False] * 3)
+
+
+def test_a_stereo_match_has_its_own_floor():
+    sigma = np.array([0.04, 0.05, 0.05, 0.06, 0.14, 0.18, 0.29])
+    cov = np.c_[sigma**2, np.zeros(7), sigma**2]
+    live = np.ones(7, bool)
+    check = CovarianceCheck(max_sigma=0.15, stereo_max_sigma=0.2)
+    np.testing.assert_array_equal(check.keep(cov, live), [True] * 5 + [False] * 2)
+    np.testing.assert_array_equal(check.keep(cov, live, stereo=True), [True] * 6 + [False])
+
+
+def test_the_default_floor_drops_a_clean_solves_widest_tracks():
+    # a clean solve: median sigma 0.05, so the 0.15 px floor bounds (2x the median is 0.1)
+    sigma = np.array([0.04, 0.05, 0.05, 0.06, 0.14, 0.16, 0.29])
+    cov = np.c_[sigma**2, np.zeros(7), sigma**2]
+    np.testing.assert_array_equal(CovarianceCheck().keep(cov, np.ones(7, bool)), [True] * 5 + [False] * 2)
 
 
 def test_a_match_on_its_epipolar_line_is_at_zero_and_a_row_off_at_its_offset():

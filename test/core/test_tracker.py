@@ -602,24 +602,30 @@ def test_max_sigma_drops_and_counts_wide_points(pan):
         _classical(max_sigma=-1.0)
 
 
-def _checked(stereo: bool = False, **kw) -> tuple[TrackerSettings, object]:
-    """The classical method with the covariance check (as ``nsflow`` has it), and its settings."""
+def _checked(stereo: bool = False, check: object = None, **kw) -> tuple[TrackerSettings, object]:
+    """The classical method with the covariance check (as ``nsflow`` has it; None: the default one), and
+    its settings."""
     from nsflow_ros.core.checks import CovarianceCheck
 
     settings = _classical(stereo=stereo, **kw)
-    return settings, make_method(replace(METHODS["classical"], check=CovarianceCheck()))
+    return settings, make_method(replace(METHODS["classical"], check=check or CovarianceCheck()))
 
 
-def test_the_covariance_check_keeps_about_as_many_tracks_as_the_reverse_solves():
+@pytest.mark.parametrize(("max_sigma", "per_frame", "overall"), [(0.3, 0.85, 0.92), (None, 0.7, 0.75)])
+def test_the_covariance_check_keeps_most_tracks_the_reverse_solves_keep(max_sigma, per_frame, overall):
+    from nsflow_ros.core.checks import CovarianceCheck
+
     seq = _occluded()
-    settings, method = _checked()
+    # at 0.3 px about as many; the default bound (0.15 px) also ends the widest-sigma tracks, here about a
+    # fifth more than the reverse solves do
+    settings, method = _checked(check=None if max_sigma is None else CovarianceCheck(max_sigma=max_sigma))
     res = _run(FeatureTracker([syn.camera()], settings, method=method), seq)
     reverse = _run(FeatureTracker([syn.camera()], _classical()), seq)
     # frames away from the occluder; the first one's tracks are all new corners
     kept, kept_reverse = (np.array([np.isin(r[k - 1].cameras[0].ids, r[k].cameras[0].ids).sum()
                                     for k in (1, 2, 4, 5)]) for r in (res, reverse))
-    assert (kept >= 0.85 * kept_reverse).all(), (kept, kept_reverse)
-    assert kept.sum() >= 0.92 * kept_reverse.sum(), (kept, kept_reverse)
+    assert (kept >= per_frame * kept_reverse).all(), (kept, kept_reverse)
+    assert kept.sum() >= overall * kept_reverse.sum(), (kept, kept_reverse)
 
 
 def test_the_covariance_check_solves_in_reverse_only_unsure_points_unless_reverse_checks(monkeypatch):
