@@ -8,7 +8,9 @@ with its covariance (:meth:`~nsflow_ros.core.methods.TrackingMethod.solve_with_c
 back by the flow-back check's solve. Against the truth:
 
 * calibration on inliers (error < 2 px): share inside the 68 % / 95 % ellipses (d^2 <= 2.279 / 5.991),
-  RMS error over predicted sigma per decile of sigma, Gaussian NLL against the best constant sigma;
+  RMS error over predicted sigma per decile of sigma, Gaussian NLL against the best constant sigma; on all
+  the data, and on what the tracker would publish (the method's track check passed), since a check that
+  ends the widest tracks leaves a different top decile;
 * ranking of all tracked points by sigma (trace of Sigma) and by the signals the tracker already has
   (final cost, minus the Shi-Tomasi minimum eigenvalue, forward-backward distance): AUSE over random's
   (sparsification by mean endpoint error, Ilg et al. 2018) and the AUROC of errors over 1 px;
@@ -133,6 +135,8 @@ class Samples:
         error: (N, 2) tracked minus true position (px). cov: (N, 3) [uu, uv, vv] px^2 with the method's
         scale. cost: (N,) final window cost. min_eigen: (N,) Shi-Tomasi minimum eigenvalue at the point.
         fb: (N,) forward-backward distance (px, inf where the check solve lost it).
+        published: (N,) what the tracker would publish: the method's track check passed (its covariance
+        check, else the 0.5 px flow-back check).
         rotation: per sample-sequence frame pair, (isotropic, weighted) rotation error in degrees.
     """
 
@@ -141,6 +145,7 @@ class Samples:
     cost: list[np.ndarray] = field(default_factory=list)
     min_eigen: list[np.ndarray] = field(default_factory=list)
     fb: list[np.ndarray] = field(default_factory=list)
+    published: list[np.ndarray] = field(default_factory=list)
     rotation: list[tuple[float, float]] = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -149,7 +154,8 @@ class Samples:
             return np.concatenate(x) if x else np.zeros((0, width) if width else 0)
 
         return {"error": cat(self.error, 2), "cov": cat(self.cov, 3), "cost": cat(self.cost, 0),
-                "min_eigen": cat(self.min_eigen, 0), "fb": cat(self.fb, 0)}
+                "min_eigen": cat(self.min_eigen, 0), "fb": cat(self.fb, 0),
+                "published": cat(self.published, 0).astype(bool)}
 
 
 @dataclass(frozen=True)
@@ -339,6 +345,7 @@ def collect(
     Raises:
         EvaluationError: a method or the sample sequence fails.
     """
+    from nsflow_ros.core.tracker import FLOW_BACK_THRESHOLD_PX
     from nsflow_ros.evaluation.sequences import F_THRESHOLD_PX, FrameSource
 
     seq = sample_sequence(ctx, KEY, setup.sequence_seed, setup.duration, stereo=False, images=False,
@@ -360,6 +367,8 @@ def collect(
                 if status.any():
                     back, ok = m.core.solve(SolveKind.FLOW_BACK, f2, f1, new[status], pair.points[status])
                     fb[status] = np.where(ok, np.hypot(*(back - pair.points[status]).T), np.inf)
+                check = m.core.spec.check
+                passed = (check.keep(cov, status) if check is not None else fb <= FLOW_BACK_THRESHOLD_PX)
             except CoreError as err:
                 raise EvaluationError(f"{m.name}: {err}") from err
             s = out[m.name].setdefault(pair.group, Samples())
@@ -369,9 +378,10 @@ def collect(
             s.cost.append(cost[ok])
             s.min_eigen.append(min_eig[ok])
             s.fb.append(fb[ok])
+            s.published.append(passed[ok])
             if pair.rotation is not None:
                 cam = pair.camera
-                used = ok & (fb <= 0.5)  # what the tracker would publish: the flow-back check passed
+                used = ok & passed
                 x1, x2 = cam.lift(pair.points[used]), cam.lift(new[used])
                 thr = F_THRESHOLD_PX / float(np.mean([cam.fx, cam.fy]))
                 got = weighted_rotation_error(x1, x2, _normalised_cov(cov[used], cam), pair.rotation, thr,
@@ -571,7 +581,8 @@ def _pool(groups: dict[str, Samples], prefix: str) -> dict[str, np.ndarray]:
 
 
 def _pools(groups: dict[str, Samples]) -> dict[str, dict[str, np.ndarray]]:
-    """The report's rows: each pair subset (all strengths), each sequence level, and everything."""
+    """The report's rows: each pair subset (all strengths), each sequence level, everything, and of
+    everything what the tracker would publish (its track check passed)."""
     from nsflow_ros.evaluation.pairs import SUBSETS
 
     names = [*SUBSETS, *(f"sequence {lv}" for lv in LEVELS), ""]
@@ -580,6 +591,9 @@ def _pools(groups: dict[str, Samples]) -> dict[str, dict[str, np.ndarray]]:
         pooled = _pool(groups, name)
         if pooled and len(pooled["error"]):
             out[name or "all"] = pooled
+    if "all" in out and out["all"]["published"].any():
+        keep = out["all"]["published"]
+        out["published"] = {k: v[keep] for k, v in out["all"].items()}
     return out
 
 
@@ -750,10 +764,12 @@ def run(ctx: EvalContext) -> Section:
         "tracked from zero flow by each method's forward solve, then back by its flow-back solve. "
         "Calibration on inliers (< 2 px); ranking on every tracked point (sigma = trace of Sigma; cost = "
         "final window cost; min-eig = minus the Shi-Tomasi minimum eigenvalue at the point; FB = "
-        "forward-backward distance)." + quick_note(ctx.quick),
+        "forward-backward distance). Row published: of all the data, the points the tracker would publish "
+        "(the method's track check passed: the covariance check for a method with one, else the 0.5 px "
+        "flow-back check)." + quick_note(ctx.quick),
         _tables(results),
         "\n".join(_verdict(results)),
-        "Relative rotation of each sample-sequence frame pair from the points that pass the flow-back check: "
+        "Relative rotation of each sample-sequence frame pair from the points the tracker would publish: "
         "5-point RANSAC, then Sampson refinement over its inliers with one variance for all points "
         "(isotropic) or with each point's Sigma (weighted), against the true rotation:",
         _rotation_table(rot),

@@ -89,6 +89,18 @@ def ctx(tmp_path_factory):
                        extra={"covariance": {"cache_dir": str(root / "cache")}})
 
 
+def test_the_published_row_keeps_what_the_track_check_passed():
+    err, cov = _gaussian(300)
+    passed = np.arange(300) % 3 != 0
+    s = cv.Samples([err], [cov], [np.zeros(300)], [np.zeros(300)], [np.zeros(300)], [passed])
+    rows = cv._pools({"sequence none": s})
+    assert set(rows) == {"sequence none", "all", "published"}
+    np.testing.assert_array_equal(rows["published"]["error"], err[passed])
+    np.testing.assert_array_equal(rows["published"]["cov"], cov[passed])
+    s.published = [np.zeros(300, bool)]  # nothing passed: no row rather than an empty one
+    assert "published" not in cv._pools({"sequence none": s})
+
+
 def test_quick_run_reports_every_metric_per_method(ctx):
     assert "covariance" in [a.key for a in ANALYSES]
     sec = cv.run(ctx)
@@ -99,6 +111,7 @@ def test_quick_run_reports_every_metric_per_method(ctx):
         assert set(pooled["ranking"]) == set(cv.SIGNALS)
         assert 0.0 <= pooled["calibration"]["inside_68"] <= pooled["calibration"]["inside_95"] <= 1.0
         assert sec.data["rotation"][name]  # weighted and isotropic rotation errors per level
+        assert 0 < sec.data["results"][name]["published"]["points"] <= pooled["points"]
     assert "AUROC" in sec.markdown and "Quick mode" in sec.markdown
     scale, source, floor = sec.data["scales"][NSFLOW]
     assert scale > 1 and source.endswith(".covariance.json")  # the shipped model's fitted scale
