@@ -32,13 +32,10 @@ class CovarianceCheck:
         max_sigma: a point is dropped when the standard deviation along its covariance's major axis
             exceeds this (px of the tracking resolution, where the reverse check's 0.5 px is measured)
             and ``relative`` times the solve's median: the window does not pin it down, or its residual
-            says it matched something else. At 0.15 (clean images: about the 95th percentile of the
-            kept tracks' sigma) the check ends 2-10 % more tracks than at 0.3, and puts fewer features
-            over 1 px than the reverse solves do on 4 scenes x 2 rates, steady light and the large
-            perturbation (docs/design.md).
-        stereo_max_sigma: ``max_sigma`` of a stereo match, which also has the epipolar test: at 0.15 px
-            7-8 % of the right matches went (their features then have no depth in their first frame), at
-            0.2 px 1-4 % fewer than at 0.3 with fewer over 1 px than the reverse solves in the same cells.
+            says it matched something else. About a clean solve's 95th percentile: the bound at which
+            fewer features over 1 px pass than the reverse solves let through (docs/design.md).
+        stereo_max_sigma: ``max_sigma`` of a stereo match, looser since it also has the epipolar test and
+            a dropped match leaves its feature without depth in its first frame (docs/design.md).
         relative: how far above the solve's median sigma a point may stand: image noise (a dark frame)
             raises every sigma alike, and a fixed bound would then cut the tracks short.
         max_epipolar: a stereo match is dropped when it lies farther than this (px of camera 1) from the
