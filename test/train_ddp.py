@@ -7,6 +7,7 @@ from datetime import timedelta
 import torch
 
 from nsflow_ros.train.data import PairConfig
+from nsflow_ros.train.distributed import leave_distributed
 from nsflow_ros.train.model import EncoderSpec
 from nsflow_ros.train.sources import MixedSource, PhotoSource
 from nsflow_ros.train.trainer import TrainConfig, TrainData, train
@@ -63,10 +64,11 @@ def worker(rank: int, port: int, out: str, result: str) -> None:
         MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2",
         TORCHELASTIC_USE_AGENT_STORE="True",
     )
+    clean = False
     try:
         losses, params = run(out, batch=1)
         assert dist.is_initialized() and dist.get_backend() == "gloo"
         torch.save({"losses": losses, "params": params}, f"{result}{rank}.pt")
+        clean = True
     finally:
-        if dist.is_initialized():
-            dist.destroy_process_group()
+        leave_distributed(clean)

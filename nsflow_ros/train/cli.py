@@ -260,17 +260,18 @@ def main(args: list[str] | None = None) -> int:
     argv = sys.argv[1:] if args is None else args
     opts = parse(argv)
     from nsflow_ros.errors import NSFlowError
+    from nsflow_ros.train.distributed import leave_distributed
 
+    clean = False
     try:
-        return _run(opts, argv)
+        code = _run(opts, argv)
+        clean = True
+        return code
     except NSFlowError as err:
         print(f"nsflow-train: error: {err}", file=sys.stderr)
         return 1
     finally:
-        import torch.distributed as dist
-
-        if dist.is_available() and dist.is_initialized():
-            dist.destroy_process_group()
+        leave_distributed(clean)
 
 
 def _run(opts: argparse.Namespace, argv: list[str]) -> int:

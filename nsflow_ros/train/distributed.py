@@ -15,7 +15,7 @@ import torch.distributed as dist
 
 from nsflow_ros.train.errors import TrainError
 
-__all__ = ["World", "all_mean", "broadcast_flag", "init_distributed", "shard"]
+__all__ = ["World", "all_mean", "broadcast_flag", "init_distributed", "leave_distributed", "shard"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,21 @@ def init_distributed(device: torch.device, backend: str | None = None) -> World:
         dist.init_process_group(backend)
     comm = device if backend == "nccl" else torch.device("cpu")
     return World(dist.get_world_size(), dist.get_rank(), comm)
+
+
+def leave_distributed(clean: bool = True) -> None:
+    """Leave the process group (if one was joined).
+
+    Args:
+        clean: this rank got through its run; it waits for the others first, because a peer that tears
+            its gloo pairs down while another still writes or talks can abort that process natively
+            (SIGABRT, no Python traceback). After an error no rank waits: the others may never come.
+    """
+    if not (dist.is_available() and dist.is_initialized()):
+        return
+    if clean:
+        dist.barrier()
+    dist.destroy_process_group()
 
 
 def shard(step: int, batch: int, world: World) -> list[int]:

@@ -34,3 +34,13 @@ def test_two_processes_follow_one_process_with_the_double_batch(tmp_path):
     torch.testing.assert_close(r0["params"], params, rtol=1e-5, atol=1e-6)
     assert not torch.equal(params[0], params[-1])  # the weights did move
     assert (tmp_path / "ddp" / "encoder.pt").is_file() and (tmp_path / "ddp" / "train.csv").is_file()
+
+
+def test_leaving_without_a_process_group_does_nothing():
+    import torch.distributed as dist
+
+    from nsflow_ros.train.distributed import leave_distributed
+
+    leave_distributed(True)
+    leave_distributed(False)
+    assert not dist.is_initialized()
