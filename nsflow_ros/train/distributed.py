@@ -62,7 +62,8 @@ def leave_distributed(clean: bool = True) -> None:
     Args:
         clean: this rank got through its run; it waits for the others first, because a peer that tears
             its gloo pairs down while another still writes or talks can abort that process natively
-            (SIGABRT, no Python traceback). After an error no rank waits: the others may never come.
+            (SIGABRT, no Python traceback). After an error this rank does not wait, since the others may
+            never come; ranks that finished then wait for it until ``torchrun`` stops them on its exit.
     """
     if not (dist.is_available() and dist.is_initialized()):
         return
