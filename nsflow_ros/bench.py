@@ -407,6 +407,9 @@ def _parser() -> argparse.ArgumentParser:
     add("--node-seconds", type=non_negative_float, default=20.0, help="seconds of the stereo sample replayed "
         "at camera rate (20 Hz) into a tracker node process over DDS, for nsflow and klt: pairs received / "
         "processed / dropped and latency (default 20; 0 = skip)")
+    add("--node-rounds", type=positive_int, default=3, metavar="N", help="node runs per method, the methods "
+        "alternating (nsflow, klt, nsflow, ...), so a load that drifts over the minutes meets both alike; "
+        "their latencies pooled (default 3)")
     add("--compress", default="none", help="comma-separated image transports of the node benchmark, one run "
         "each: none (raw), jpeg (quality 90), png; none,jpeg,png compares the compressed runs' features "
         "with the raw run's (default none)")
@@ -453,7 +456,7 @@ def _measure(opts: argparse.Namespace, node_threads: int | None) -> dict[str, An
                   "late_frame_ms": opts.late_frame_ms, "model_path": opts.model, "num_threads": node_threads}
         res["node_live"] = run_live_benchmark(
             opts.node_seconds, ("nsflow", "klt"), progress=not opts.json, compress=opts.compress.split(","),
-            background_load=opts.background_load, load_nice=opts.load_nice,
+            background_load=opts.background_load, load_nice=opts.load_nice, rounds=opts.node_rounds,
             params={k: v for k, v in params.items() if v is not None},
         )
     if not opts.no_stages:
@@ -518,17 +521,25 @@ def bench_tables(res: dict[str, Any]) -> list[dict[str, Any]]:
     if "node_live" in res:
         s, keys = res["node_live"]["setup"], ("frames_sent", "tracker_received", "tracker_processed",
                                               "tracker_unchecked", "tracker_superseded")
+        runs = {m: f for m, f in res["node_live"].items() if m != "setup"}
+        rounds = int(s.get("rounds", 1))
         rows_ = [[m, *(str(f.get(k, "?")) for k in keys), "{:.1f} / {:.1f}".format(
             f.get("tracker_latency_ms_p50", 0), f.get("tracker_latency_ms_p90", 0)),
-            f"{f.get('tracker_cpu_ms_per_frame', 0):.1f}"] for m, f in res["node_live"].items()
-            if m != "setup"]
+            ", ".join(f"{v:.1f}" for v in f.get("round_latency_ms_p90") or [] if v is not None) or "-",
+            f"{f.get('tracker_cpu_ms_per_frame', 0):.1f}"] for m, f in runs.items()]
+        ratio, base = "", (s.get("methods") or [None])[-1]  # the last method is the baseline
+        p90 = {m: f.get("tracker_latency_ms_p90") for m, f in runs.items()}
+        if p90.get(base) and len(p90) > 1:
+            ratio = f" p90 over {base}'s: " + ", ".join(
+                f"{m} {v / p90[base]:.2f}x" for m, v in p90.items() if m != base and v) + "."
         tables.append(table(
             f"Tracker node at 20 Hz stereo over DDS, background load {s.get('background_load_cores', 0):g} "
             "core",
             ["method", "sent", "received", "processed", "late", "superseded", "latency p50 / p90 ms",
-             "CPU ms per pair"], rows_,
-            f"{s['seconds']:g} s of the stereo sample replayed; late: tracked without the reverse checks "
-            "(late_frame_ms); superseded: given up for a newer pair while the tracker was busy."))
+             "p90 per round ms", "CPU ms per pair"], rows_,
+            f"{rounds} x {s['seconds']:g} s of the stereo sample replayed, the methods' runs alternating; "
+            "latency pooled over the rounds; late: tracked without the reverse checks (late_frame_ms); "
+            f"superseded: given up for a newer pair while the tracker was busy.{ratio}"))
     if "setup" in res:
         stages = [(f"{mode} {st}", res[mode][st]) for mode in ("nsflow", "classical") if mode in res
                   for st in ("encoder", "solver", "detection", "total")]

@@ -76,6 +76,7 @@ def run_demo(
                     ctx, seq, config, method, out_dir / f"tracker_{method}_{level}.log",
                     level=level, seed=seed, rate=rate,
                 )
+                figs.pop("tracker_latencies_ms", None)  # the summary keeps the node's p50 / p90
                 results.setdefault(level, {})[method] = figs
                 if dbg is not None:
                     sheet.append(image_for_tracker(dbg))

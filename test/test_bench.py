@@ -58,7 +58,10 @@ def test_node_options_reach_the_node_runs_as_parameters(monkeypatch, capsys):
 
     def fake_run(seconds, methods, **kwargs):
         seen.update(kwargs["params"])
+        rounds.append(kwargs["rounds"])
         return {"setup": {}}
+
+    rounds = []
 
     monkeypatch.setattr(bench_live, "run_live_benchmark", fake_run)
     monkeypatch.setattr(bench_live, "format_live_table", lambda res: "")
@@ -71,6 +74,8 @@ def test_node_options_reach_the_node_runs_as_parameters(monkeypatch, capsys):
     seen.clear()
     assert main(args) == 0
     assert seen == {}  # the node's own defaults
+    assert main([*args, "--node-rounds", "2"]) == 0
+    assert rounds == [3, 3, 2]  # three alternating rounds unless told
     capsys.readouterr()
 
 
@@ -99,3 +104,22 @@ def test_solver_cost_model_counts_the_work_of_real_frames():
     blank = [np.zeros((240, 320, 3), np.uint8)] * 2
     with pytest.raises(NSFlowError, match="no corners"):
         solver_cost_model(method, blank, points=30)
+
+
+def test_the_node_table_shows_the_rounds_and_each_method_against_the_baseline():
+    from nsflow_ros.bench import bench_tables
+
+    def run(p50, p90, rounds):
+        return {"frames_sent": 1200, "tracker_received": 1200, "tracker_processed": 1200,
+                "tracker_unchecked": 0, "tracker_superseded": 0, "tracker_latency_ms_p50": p50,
+                "tracker_latency_ms_p90": p90, "tracker_cpu_ms_per_frame": 15.0,
+                "round_latency_ms_p90": rounds}
+
+    res = {"node_live": {"setup": {"seconds": 20, "rounds": 3, "methods": ["nsflow", "klt"],
+                                   "background_load_cores": 0.7},
+                         "nsflow": run(14.0, 18.0, [17.0, 18.5, 18.2]),
+                         "klt": run(12.0, 15.0, [14.0, 16.0, 15.1])}}
+    (t,) = bench_tables(res)
+    assert t["columns"][7] == "p90 per round ms"
+    assert t["rows"][0][6:8] == ["14.0 / 18.0", "17.0, 18.5, 18.2"]
+    assert "3 x 20 s" in t["notes"] and "p90 over klt's: nsflow 1.20x." in t["notes"]

@@ -3,7 +3,9 @@
 Per method a ``tracker`` process runs the shipped EuRoC stereo config while this process replays the
 sample's two 752x480 image topics with sensor-data QoS, as a camera driver would. The node's counters and
 latency (image callback to publication, queueing and decoding included) come from its summary file; a
-background load can share the cores, standing in for the estimator.
+background load can share the cores, standing in for the estimator. With several rounds the methods' runs
+alternate (A, B, A, B, ...), so a machine whose load drifts over the minutes hits every method alike, as
+the whole-tracker benchmark's frame-by-frame interleaving does; their latencies are pooled.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 
 from nsflow_ros.errors import NSFlowError
 
-__all__ = ["STEREO_TOPICS", "feature_agreement", "format_live_table", "run_live_benchmark"]
+__all__ = ["STEREO_TOPICS", "feature_agreement", "format_live_table", "merge_rounds", "run_live_benchmark"]
 
 STEREO_TOPICS = ("/cam0/image_raw", "/cam1/image_raw")
 
@@ -37,23 +39,26 @@ def run_live_benchmark(
     background_load: float = 0.0,
     load_nice: int = 0,
     params: dict[str, Any] | None = None,
+    rounds: int = 1,
 ) -> dict[str, Any]:
-    """Replay ``seconds`` of the stereo sample at ``rate`` into a tracker node per method.
+    """Replay ``seconds`` of the stereo sample at ``rate`` into a tracker node per method and round.
 
     Args:
         seconds: length of the sample sequence (20 Hz stereo).
-        methods: tracking methods, one node run each, in this order.
+        methods: tracking methods, one node run each per round, in this order.
         rate: replay speed (1.0 = camera rate).
         cache_dir: where the sample is rendered and reused; None = a temporary folder.
         compress: image transports, one node run each per method: ``none`` (raw), ``jpeg``, ``png``.
         background_load: CPU cores of synthetic load during every replay (0 = none).
         load_nice: the load's niceness (> 0: below the tracker's priority).
         params: further tracker node parameters, e.g. ``{"queue_size": 1}``.
+        rounds: how many times every run is repeated, the methods alternating; its figures are the
+            rounds' merged (:func:`merge_rounds`).
 
     Returns:
         ``{"setup": ..., run: figures}`` where a run is the method's name, or ``<method>/jpeg<quality>`` /
-        ``<method>/png``, whose figures also hold ``"agreement"`` with the method's raw run
-        (:func:`feature_agreement`); :func:`format_live_table` shows them.
+        ``<method>/png``, whose figures also hold ``"agreement"`` with the method's raw run of the same
+        round (:func:`feature_agreement`); :func:`format_live_table` shows them.
 
     Raises:
         NSFlowError: a tracker node did not come up, or bad arguments.
@@ -71,6 +76,8 @@ def run_live_benchmark(
 
     if not seconds > 0 or not rate > 0:
         raise NSFlowError(f"seconds and rate must be > 0, got {seconds} and {rate}")
+    if rounds < 1:
+        raise NSFlowError(f"rounds must be >= 1, got {rounds}")
     bad = [c for c in compress if c not in ("none", "jpeg", "png")]
     if bad or not compress:
         raise NSFlowError(f"compress takes none, jpeg and png, got {', '.join(compress) or 'nothing'}")
@@ -81,7 +88,8 @@ def run_live_benchmark(
     out: dict[str, Any] = {"setup": {"seconds": seconds, "rate": rate, "size": [752, 480], "stereo": True,
                                      "config": STEREO_CONFIG, "compress": list(compress),
                                      "jpeg_quality": jpeg_quality, "background_load_cores": background_load,
-                                     "background_load_nice": load_nice,
+                                     "background_load_nice": load_nice, "rounds": rounds,
+                                     "methods": list(methods),
                                      "params": dict(params or {})}}
     try:
         root = Path(tmp.name if tmp else cache_dir)
@@ -93,31 +101,78 @@ def run_live_benchmark(
         ctx = rclpy.Context()
         rclpy.init(context=ctx)
         try:
-            for method in methods:
-                raw: dict[int, dict[int, np.ndarray]] | None = None
-                for codec in compress:
-                    name = method if codec == "none" else f"{method}/{codec}"
-                    name += f"{jpeg_quality}" if codec == "jpeg" else ""
-                    if progress:
-                        print(f"[bench] node {name}: {seconds:g} s stereo at rate {rate:g} ...",
-                              file=sys.stderr, flush=True)
-                    frames: dict[int, dict[int, np.ndarray]] = {}
-                    with load(background_load, nice=load_nice):
-                        figs, _ = run_live(
-                            ctx, seq, config, method, root / f"live_{name.replace('/', '_')}.log", seed=seed,
-                            rate=rate, topics=STEREO_TOPICS, show_track=False, compress=codec,
-                            jpeg_quality=jpeg_quality, frames_out=frames, params=params,
-                        )
-                    if codec == "none":
-                        raw = frames
-                    elif raw is not None:
-                        figs["agreement"] = feature_agreement(raw, frames)
-                    out[name] = figs
+            runs: dict[str, list[dict[str, Any]]] = {}
+            for r in range(rounds):
+                for method in methods:
+                    raw: dict[int, dict[int, np.ndarray]] | None = None
+                    for codec in compress:
+                        name = method if codec == "none" else f"{method}/{codec}"
+                        name += f"{jpeg_quality}" if codec == "jpeg" else ""
+                        if progress:
+                            print(f"[bench] node {name}, round {r + 1} of {rounds}: {seconds:g} s stereo at "
+                                  f"rate {rate:g} ...", file=sys.stderr, flush=True)
+                        frames: dict[int, dict[int, np.ndarray]] = {}
+                        log = root / f"live_{name.replace('/', '_')}_{r}.log"
+                        with load(background_load, nice=load_nice):
+                            figs, _ = run_live(
+                                ctx, seq, config, method, log, seed=seed, rate=rate, topics=STEREO_TOPICS,
+                                show_track=False, compress=codec, jpeg_quality=jpeg_quality,
+                                frames_out=frames, params=params,
+                            )
+                        if codec == "none":
+                            raw = frames
+                        elif raw is not None:
+                            figs["agreement"] = feature_agreement(raw, frames)
+                        runs.setdefault(name, []).append(figs)
+            out.update({name: merge_rounds(figs) for name, figs in runs.items()})
         finally:
             rclpy.shutdown(context=ctx)
     finally:
         if tmp is not None:
             tmp.cleanup()
+    return out
+
+
+_COUNTS = ("frames_sent", "frames", "tracker_received", "tracker_processed", "tracker_unchecked",
+           "tracker_dropped", "tracker_superseded")
+
+
+def merge_rounds(rounds: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """One method's node runs merged: counts summed, latencies pooled, CPU per pair over all the pairs.
+
+    Args:
+        rounds: :func:`~nsflow_ros.ros.live.run_live` figures, each with the node's per-pair latencies
+            (``tracker_latencies_ms``; a run without them counts for its counts and CPU only).
+
+    Returns:
+        The first round's figures with the counts summed over the rounds, ``tracker_latency_ms_p50`` /
+        ``_p90`` over every pair's latency, ``tracker_cpu_ms_per_frame`` weighted by pairs tracked,
+        ``rounds`` and ``round_latency_ms_p90`` (each round's own p90: the spread), ``agreement`` the
+        rounds' mean share; without the latencies list.
+
+    Raises:
+        NSFlowError: no rounds.
+    """
+    if not rounds:
+        raise NSFlowError("no node runs to merge")
+    out = {k: v for k, v in rounds[0].items() if k != "tracker_latencies_ms"}
+    for key in _COUNTS:
+        values = [f.get(key) for f in rounds]
+        out[key] = None if any(v is None for v in values) else int(sum(values))
+    lat = [np.asarray(f.get("tracker_latencies_ms") or [], np.float64) for f in rounds]
+    pooled = np.concatenate(lat)
+    if pooled.size:
+        out["tracker_latency_ms_p50"] = float(np.percentile(pooled, 50))
+        out["tracker_latency_ms_p90"] = float(np.percentile(pooled, 90))
+    cpu = [(f.get("tracker_cpu_ms_per_frame"), f.get("tracker_processed") or 0) for f in rounds]
+    if all(c is not None for c, _ in cpu) and sum(n for _, n in cpu):
+        out["tracker_cpu_ms_per_frame"] = sum(c * n for c, n in cpu) / sum(n for _, n in cpu)
+    out["rounds"] = len(rounds)
+    out["round_latency_ms_p90"] = [f.get("tracker_latency_ms_p90") for f in rounds]
+    shares = [f["agreement"]["same_share"] for f in rounds
+              if (f.get("agreement") or {}).get("same_share") is not None]
+    if shares:
+        out["agreement"] = {**rounds[0]["agreement"], "same_share": float(np.mean(shares))}
     return out
 
 

@@ -183,6 +183,7 @@ def run_live(
     for key in ("frames_received", "frames_processed", "frames_unchecked", "frames_dropped",
                 "frames_superseded", "latency_ms_p50", "latency_ms_p90", "cpu_ms_per_frame"):
         figures[f"tracker_{key.removeprefix('frames_')}"] = counters.get(key)
+    figures["tracker_latencies_ms"] = counters.get("latencies_ms")
     # the debug image of the sequence's middle frame (or the nearest one drawn): the same frame for every run
     target = int(seq.stamps_ns[len(seq) // 2])
     mid = min(debug, key=lambda t: abs(t - target)) if debug else None

@@ -484,11 +484,14 @@ class TrackerNode(Node):
             self._worker.join(timeout)
 
     def write_summary_file(self) -> Path | None:
-        """Write :meth:`counters` as JSON to the summary_file parameter's path, if one is set."""
+        """Write :meth:`counters` as JSON to the summary_file parameter's path, if one is set, with the last
+        frames' latencies (``latencies_ms``, at most 2000), which a benchmark pools over several runs."""
         target = str(self._params["summary_file"])
         if not target:
             return None
-        return write_summary(Path(target), self.counters())
+        with self._lat_lock:
+            lat = [round(x, 3) for x in self.latencies_ms]
+        return write_summary(Path(target), {**self.counters(), "latencies_ms": lat})
 
     def destroy_node(self) -> None:
         self.stop_worker()

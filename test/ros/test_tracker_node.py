@@ -478,6 +478,9 @@ def test_summary_file_has_the_counters(tmp_path, prefix, pan):
         data = json.loads(out.read_text())
         assert data["frames_received"] == data["frames_processed"] == data["frames_published"] == 3
         assert data["frames_dropped"] == 0 and data["latency_ms_p90"] > 0
+        # every tracked frame's latency, which a benchmark pools over runs: the same p90
+        assert len(data["latencies_ms"]) == 3
+        assert abs(np.percentile(data["latencies_ms"], 90) - data["latency_ms_p90"]) < 1e-2
     finally:
         h.close()
 
