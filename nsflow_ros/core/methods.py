@@ -34,7 +34,14 @@ from nsflow_ros.core.covariance import (
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
-from nsflow_ros.core.refine import IntensityRefinement, StepTemplate, gray_level, refine, step_template
+from nsflow_ros.core.refine import (
+    IntensityRefinement,
+    RefineResult,
+    StepTemplate,
+    gray_level,
+    refine,
+    step_template,
+)
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
 __all__ = [
@@ -399,6 +406,12 @@ def declared_residual(lm: LMConfig, encoder: Encoder) -> LMConfig:
     return replace(lm, gain=True, gain_levels=levels)
 
 
+def _median_ratio(done: RefineResult, status: np.ndarray, last: float) -> float:
+    """The median residual ratio (2 cost / contrast) of the points a step refined; ``last`` where none."""
+    ok = status & (done.contrast > 0)
+    return float(np.median(2.0 * done.cost[ok] / done.contrast[ok])) if ok.any() else last
+
+
 class LMMethod(TrackingMethod):
     """An encoder's descriptor pyramid through the LM solver (``nsflow``, ``classical``).
 
@@ -421,10 +434,18 @@ class LMMethod(TrackingMethod):
         self.refinement: IntensityRefinement | None = spec.refine
         # The step of each kind of solve, settled once: a temporal track the step refuses ends, so its
         # step takes a wider shift and the noise floor; a refused stereo match (or check) gets the
-        # descriptors' levels instead, which beat the step above the plain residual limit.
+        # descriptors' levels instead, which beat the step above the plain residual limit. Each has a
+        # variant in the noisy window, taken while the camera's images are noisy (:attr:`noise`).
         r = spec.refine
-        self._temporal_step, self._step = (None, None) if r is None else (
-            replace(r, max_shift=r.temporal_max_shift), replace(r, residual_floor=0.0))
+        self._steps: dict[tuple[bool, bool], IntensityRefinement] = {}
+        if r is not None:
+            kinds = {True: replace(r, max_shift=r.temporal_max_shift), False: replace(r, residual_floor=0.0)}
+            for temporal, base in kinds.items():
+                self._steps[temporal, False] = base
+                self._steps[temporal, True] = replace(base, window=r.noisy_window)
+        self.noise = 0.0
+        """The last temporal step's median residual ratio: the images' noise, which chooses the next
+        steps' window (:attr:`IntensityRefinement.noisy_ratio`)."""
         self._template_memo: tuple[DescriptorPyramid, StepTemplate] | None = None
 
     @staticmethod
@@ -527,8 +548,11 @@ class LMMethod(TrackingMethod):
         eps = step.coarse_eps if finest and not kind.is_check else None
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
         temporal = kind is SolveKind.FORWARD
-        config = (self._temporal_step if temporal else self._step) or step
-        done = refine(frame1.image, frame2.image, pts, new, status, config, self._step_template(frame1, pts))
+        config = self._steps[temporal, self.noise > step.noisy_ratio]
+        done = refine(frame1.image, frame2.image, pts, new, status, config,
+                      self._step_template(frame1, pts, config.window))
+        if temporal:
+            self.noise = _median_ratio(done, status, self.noise)
         new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
         contrast = res.contrast.copy()
@@ -546,7 +570,7 @@ class LMMethod(TrackingMethod):
             flow[rest], hessian[rest], cost[rest] = fine.flow, fine.hessian, fine.cost
             contrast[rest] = fine.contrast
         dof = self.lm.window * self.lm.window * frame2.channels - 2
-        win = step.window
+        win = config.window
         flow[kept] = new[kept] - pts[kept]
         hessian[kept] = done.hessian[kept]
         cost[kept] = done.cost[kept] * dof / (win * win - 2)
@@ -554,15 +578,16 @@ class LMMethod(TrackingMethod):
         merged = TrackResult(flow, status, cost, res.iterations, contrast, res.history, hessian)
         return new, status, merged
 
-    def _step_template(self, frame1: DescriptorPyramid, pts: np.ndarray) -> StepTemplate:
-        """:func:`~nsflow_ros.core.refine.step_template` of ``frame1`` at ``pts``, kept for the next call: a
-        stereo solve's template (this frame's left image at its features) is the next frame's temporal
-        one, so the tracker reads each left window once."""
+    def _step_template(self, frame1: DescriptorPyramid, pts: np.ndarray, window: int) -> StepTemplate:
+        """:func:`~nsflow_ros.core.refine.step_template` of ``frame1`` at ``pts`` in ``window``, kept for the
+        next call: a stereo solve's template (this frame's left image at its features) is the next frame's
+        temporal one, so the tracker reads each left window once."""
         assert self.refinement is not None and frame1.image is not None
         memo = self._template_memo
-        if memo is not None and memo[0] is frame1 and np.array_equal(memo[1].points, pts):
+        if (memo is not None and memo[0] is frame1 and memo[1].rows.shape[-1] == window * window
+                and np.array_equal(memo[1].points, pts)):
             return memo[1]
-        template = step_template(frame1.image, pts, self.refinement.window, self.refinement.affine)
+        template = step_template(frame1.image, pts, window, self.refinement.affine)
         self._template_memo = (frame1, template)
         return template
 

@@ -178,7 +178,8 @@ def test_empty_input() -> None:
 @pytest.mark.parametrize("kwargs", [{"window": 4}, {"window": 1}, {"iterations": 0}, {"max_shift": 0.0},
                                     {"temporal_max_shift": -1.0}, {"residual_floor": -1.0},
                                     {"residual_ceiling": 0.1},
-                                    {"max_residual": -1.0}, {"min_eigen": -1.0}, {"coarse_eps": 0.0}])
+                                    {"max_residual": -1.0}, {"min_eigen": -1.0}, {"coarse_eps": 0.0},
+                                    {"noisy_window": 13}, {"noisy_window": 22}, {"noisy_ratio": 0.0}])
 def test_settings_out_of_range(kwargs: dict[str, float]) -> None:
     with pytest.raises(CoreError, match=next(iter(kwargs))):
         IntensityRefinement(**kwargs)
@@ -268,15 +269,56 @@ def test_a_temporal_solve_takes_its_own_shift_limit(pair: tuple[np.ndarray, ...]
     assert refine(im1, im2, pts, start, ones, replace(wide, max_shift=wide.temporal_max_shift)).kept.all()
     assert not refine(im1, im2, pts, start, ones, wide).kept.any()
     method = make_method("nsflow")
-    assert method._temporal_step is not None and method._step is not None
     # the noise floor serves temporal solves only: a refused stereo match gets the descriptors' levels
-    assert method._temporal_step.residual_floor > 0 and method._step.residual_floor == 0
+    assert method._steps[True, False].residual_floor > 0 and method._steps[False, False].residual_floor == 0
     for limit, kept in ((4.0, True), (1.0, False)):
         method = make_method(replace(METHODS["nsflow"], refine=IntensityRefinement(temporal_max_shift=limit)))
-        assert method._temporal_step is not None
-        assert method._temporal_step.max_shift == limit
-        out = refine(im1, im2, pts, start, ones, method._temporal_step)
+        assert method._steps[True, False].max_shift == method._steps[True, True].max_shift == limit
+        out = refine(im1, im2, pts, start, ones, method._steps[True, False])
         assert out.kept.all() if kept else not out.kept.any()
+
+
+def _noisy(img: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    return _u8(img + np.random.default_rng(seed).normal(0.0, sigma, img.shape))
+
+
+def test_a_wider_window_is_more_precise_on_noisy_images() -> None:
+    """Where sensor noise limits the step, the noisy window's more pixels average it: on a pure shift with
+    8 gray levels of noise its median error is below the plain window's."""
+    tex = _texture(3, (160, 200))
+    pts = np.array([[x, y] for x in range(30, 175, 12) for y in range(30, 135, 12)], float)
+    g1, g2 = gray_level(_noisy(tex, 8.0, 1)), gray_level(_noisy(_shifted(tex, SHIFT), 8.0, 2))
+    start = pts + SHIFT + np.random.default_rng(4).normal(0.0, 0.3, pts.shape)
+    err = {}
+    for window in (15, 21):
+        out = refine(g1, g2, pts, start, np.ones(len(pts), bool),
+                     IntensityRefinement(window=window, noisy_window=window, max_residual=0.4))
+        assert out.kept.mean() > 0.9
+        err[window] = np.median(np.hypot(*(out.positions - pts - SHIFT)[out.kept].T))
+    assert err[21] < 0.85 * err[15]
+
+
+@pytest.mark.parametrize(("sigma", "window"), [(0.0, 15), (10.0, 21)])
+def test_the_images_noise_chooses_the_next_steps_window(
+    pair: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch, sigma: float, window: int,
+) -> None:
+    """A temporal step measures the images' noise (its median residual ratio); the steps after one over
+    ``noisy_ratio`` read their templates in ``noisy_window``, those after a clean one in ``window``."""
+    import nsflow_ros.core.methods as methods_mod
+
+    g1, g2, pts = pair
+    g1, g2 = (_noisy(g.astype(np.float64), sigma, k) if sigma else g for k, g in enumerate((g1, g2)))
+    windows = []
+    monkeypatch.setattr(methods_mod, "step_template", lambda *a: windows.append(a[2]) or step_template(*a))
+    method = make_method("nsflow")
+    f1, f2 = method.prepare(g1, g1), method.prepare(g2, g2)
+    assert method.noise == 0.0
+    method.solve(SolveKind.FORWARD, f1, f2, pts)
+    step = method.refinement
+    assert step is not None and (method.noise > step.noisy_ratio) == (window == step.noisy_window)
+    method.solve(SolveKind.STEREO, f1, f2, pts + 1.0)
+    method.solve(SolveKind.FORWARD, f2, f1, pts + 2.0)
+    assert windows == [15, window, window]
 
 
 def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) -> None:
