@@ -444,8 +444,9 @@ class LMMethod(TrackingMethod):
                 self._steps[temporal, False] = base
                 self._steps[temporal, True] = replace(base, window=r.noisy_window)
         self.noise = 0.0
-        """The last temporal step's median residual ratio: the images' noise, which chooses the next
-        steps' window (:attr:`IntensityRefinement.noisy_ratio`)."""
+        """The last temporal step's median residual ratio: the images' noise, which chooses the window of
+        the steps that go on from its frame 2 (:attr:`IntensityRefinement.noisy_ratio`)."""
+        self._noise_frame: DescriptorPyramid | None = None  # that step's frame 2
         self._template_memo: tuple[DescriptorPyramid, StepTemplate] | None = None
 
     @staticmethod
@@ -548,11 +549,14 @@ class LMMethod(TrackingMethod):
         eps = step.coarse_eps if finest and not kind.is_check else None
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
         temporal = kind is SolveKind.FORWARD
-        config = self._steps[temporal, self.noise > step.noisy_ratio]
+        # The stream's noise applies where the stream goes on (this frame 1 is the last temporal step's
+        # frame 2), so a solve of unrelated images gets the plain window whatever came before it.
+        noisy = frame1 is self._noise_frame and self.noise > step.noisy_ratio
+        config = self._steps[temporal, noisy]
         done = refine(frame1.image, frame2.image, pts, new, status, config,
                       self._step_template(frame1, pts, config.window))
         if temporal:
-            self.noise = _median_ratio(done, status, self.noise)
+            self.noise, self._noise_frame = _median_ratio(done, status, self.noise), frame2
         new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
         contrast = res.contrast.copy()

@@ -60,10 +60,11 @@ class IntensityRefinement:
             descriptors' levels, more precise there).
         residual_ceiling: the most the floor raises the limit to, so that windows of other content
             (ratio about 1) are refused even where every window is.
-        noisy_window: the window side (odd, >= ``window``) of a frame whose last temporal step's median
-            residual ratio was above ``noisy_ratio``: sensor noise, not the warp, then limits the step's
-            precision, and more pixels average it (in the ``dark`` perturbation 21 px halved the default's
-            median error excess over `klt`'s; in steady light the ratio stays under a third of the limit).
+        noisy_window: the window side (odd, >= ``window``) of the steps from a frame whose temporal step
+            (the one into it) had a median residual ratio above ``noisy_ratio``: the next temporal step
+            and the frame's stereo step. Sensor noise, not the warp, then limits the step's precision,
+            and more pixels average it (in the ``dark`` perturbation 21 px took the default's median
+            error from 1.1-1.3x `klt`'s to 0.9x; steady light stays under a third of ``noisy_ratio``).
         noisy_ratio: the median residual ratio above which the step takes ``noisy_window`` (clean images
             0.01-0.02, the ``dark`` perturbation about 0.12); inf = never.
         min_eigen: the smallest eigenvalue of the window's gradient matrix per pixel below which the image

@@ -302,8 +302,9 @@ def test_a_wider_window_is_more_precise_on_noisy_images() -> None:
 def test_the_images_noise_chooses_the_next_steps_window(
     pair: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch, sigma: float, window: int,
 ) -> None:
-    """A temporal step measures the images' noise (its median residual ratio); the steps after one over
-    ``noisy_ratio`` read their templates in ``noisy_window``, those after a clean one in ``window``."""
+    """A temporal step measures the images' noise (its median residual ratio); the steps that go on from
+    its frame 2 after one over ``noisy_ratio`` read their templates in ``noisy_window``, after a clean one
+    in ``window``; a solve from another frame reads them in ``window`` whatever came before."""
     import nsflow_ros.core.methods as methods_mod
 
     g1, g2, pts = pair
@@ -316,9 +317,11 @@ def test_the_images_noise_chooses_the_next_steps_window(
     method.solve(SolveKind.FORWARD, f1, f2, pts)
     step = method.refinement
     assert step is not None and (method.noise > step.noisy_ratio) == (window == step.noisy_window)
-    method.solve(SolveKind.STEREO, f1, f2, pts + 1.0)
-    method.solve(SolveKind.FORWARD, f2, f1, pts + 2.0)
-    assert windows == [15, window, window]
+    method.solve(SolveKind.STEREO, f2, f1, pts + 1.0)  # the frame's stereo step
+    method.solve(SolveKind.FORWARD, f2, f1, pts + 2.0)  # the stream's next temporal step
+    other = method.prepare(g1, g1)
+    method.solve(SolveKind.STEREO, other, f2, pts + 3.0)  # an unrelated pair
+    assert windows == [15, window, window, 15]
 
 
 def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) -> None:
