@@ -120,11 +120,6 @@ def run_live(
     Raises:
         NSFlowError: the tracker node did not come up.
     """
-    collector = _Collector(ctx, "/feature_tracker/feature")
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(collector.node)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
     summary_file = log.with_suffix(".summary.json")
     summary_file.unlink(missing_ok=True)
     cmd = [
@@ -138,10 +133,18 @@ def run_live(
     if compress != "none":
         cmd += ["-p", "image_transport:=compressed"]
         topics = tuple(f"{t}/compressed" for t in topics)
-    with log.open("wb") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+    collector = _Collector(ctx, "/feature_tracker/feature")
+    executor = SingleThreadedExecutor(context=ctx)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    proc: subprocess.Popen[bytes] | None = None
     sent = 0
+    # everything from the spin thread's start on is undone in the finally: a stop signal (the demo's
+    # Ctrl-C) may arrive at any line, and a spin thread or tracker process left behind aborts the exit
     try:
+        executor.add_node(collector.node)
+        spin.start()
+        with log.open("wb") as out:
+            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
         node = collector.node
         if not _wait_for(lambda: all(node.count_subscribers(t) > 0 for t in topics), 60.0, proc):
             tail = log.read_text(errors="replace")[-2000:]
@@ -164,13 +167,15 @@ def run_live(
         _wait_for(lambda: len(collector.frames) >= frames_sent, 5.0)
         time.sleep(0.3)
     finally:
-        if proc.poll() is None:
+        if proc is not None and proc.poll() is None:
             proc.send_signal(signal.SIGINT)
             try:
                 proc.wait(10)
             except subprocess.TimeoutExpired:
                 proc.kill()
         executor.shutdown()
+        if spin.is_alive():  # out of rclpy's wait before its node goes
+            spin.join(5.0)
         collector.node.destroy_node()
     with collector.lock:
         frames, debug = dict(collector.frames), dict(collector.debug)
