@@ -34,14 +34,7 @@ from nsflow_ros.core.covariance import (
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
-from nsflow_ros.core.refine import (
-    IntensityRefinement,
-    RefineResult,
-    StepTemplate,
-    gray_level,
-    refine,
-    step_template,
-)
+from nsflow_ros.core.refine import IntensityRefinement, StepTemplate, gray_level, refine, step_template
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
 __all__ = [
@@ -406,12 +399,6 @@ def declared_residual(lm: LMConfig, encoder: Encoder) -> LMConfig:
     return replace(lm, gain=True, gain_levels=levels)
 
 
-def _median_ratio(done: RefineResult, status: np.ndarray, last: float) -> float:
-    """The median residual ratio (2 cost / contrast) of the points a step refined; ``last`` where none."""
-    ok = status & (done.contrast > 0)
-    return float(np.median(2.0 * done.cost[ok] / done.contrast[ok])) if ok.any() else last
-
-
 class LMMethod(TrackingMethod):
     """An encoder's descriptor pyramid through the LM solver (``nsflow``, ``classical``).
 
@@ -555,8 +542,9 @@ class LMMethod(TrackingMethod):
         config = self._steps[temporal, noisy]
         done = refine(frame1.image, frame2.image, pts, new, status, config,
                       self._step_template(frame1, pts, config.window))
-        if temporal:
-            self.noise, self._noise_frame = _median_ratio(done, status, self.noise), frame2
+        if temporal:  # a step that refined nothing leaves the stream's noise as it was
+            self.noise = done.median_ratio if np.isfinite(done.median_ratio) else self.noise
+            self._noise_frame = frame2
         new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
         contrast = res.contrast.copy()

@@ -11,7 +11,7 @@ descriptors' answer stands.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -137,6 +137,8 @@ class RefineResult:
         hessian: (N, 3) the template's gradient matrix [h11, h12, h22] (zero-mean, per window).
         cost: (N,) half the residual energy at the last iterate, after gain and offset.
         contrast: (N,) the template's energy about its mean.
+        median_ratio: the median residual ratio (2 cost / contrast) of the refined points: the images'
+            noise, which the noise floor and the next steps' window go by; nan where none was refined.
     """
 
     positions: np.ndarray
@@ -144,6 +146,7 @@ class RefineResult:
     hessian: np.ndarray
     cost: np.ndarray
     contrast: np.ndarray
+    median_ratio: float = float("nan")
 
 
 def gray_level(gray: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -457,16 +460,15 @@ def refine(
     new = p + flow
     min_eig = 0.5 * (sxx + syy - np.sqrt((sxx - syy) ** 2 + 4.0 * sxy * sxy))
     inside = (new[:, 0] >= 0) & (new[:, 0] <= w - 1) & (new[:, 1] >= 0) & (new[:, 1] <= h - 1)
+    finite = ratio[np.isfinite(ratio)]
+    median_ratio = float(np.median(finite)) if finite.size else float("nan")
     limit = config.max_residual
-    if config.residual_floor > 0:  # the solve's own noise floor
-        finite = ratio[np.isfinite(ratio)]
-        if finite.size:
-            noisy = min(config.residual_floor * float(np.median(finite)), config.residual_ceiling)
-            limit = max(limit, noisy)
+    if config.residual_floor > 0 and finite.size:  # the solve's own noise floor
+        limit = max(limit, min(config.residual_floor * median_ratio, config.residual_ceiling))
     kept = (np.isfinite(new).all(axis=1) & inside & (min_eig / (win * win) >= config.min_eigen)
             & (np.hypot(*(new - positions[idx]).T) < config.max_shift) & (ratio <= limit))
     out.positions[idx[kept]] = new[kept]
     out.kept[idx] = kept
     out.hessian[idx] = np.stack([sxx, sxy, syy], axis=1)
     out.cost[idx], out.contrast[idx] = cost, contrast
-    return out
+    return replace(out, median_ratio=median_ratio)
