@@ -421,15 +421,17 @@ class LMMethod(TrackingMethod):
         self.refinement: IntensityRefinement | None = spec.refine
         # The step of each kind of solve, settled once: a temporal track the step refuses ends, so its
         # step takes a wider shift and the noise floor; a refused stereo match (or check) gets the
-        # descriptors' levels instead, which beat the step above the plain residual limit. Each has a
-        # variant in the noisy window, taken while the camera's images are noisy (:attr:`noise`).
+        # descriptors' levels instead, which beat the step above the plain residual limit. While the
+        # camera's images are noisy (:attr:`noise`) the stereo step (and the temporal one with
+        # ``noisy_temporal``) takes the noisy window.
         r = spec.refine
         self._steps: dict[tuple[bool, bool], IntensityRefinement] = {}
         if r is not None:
             kinds = {True: replace(r, max_shift=r.temporal_max_shift), False: replace(r, residual_floor=0.0)}
             for temporal, base in kinds.items():
                 self._steps[temporal, False] = base
-                self._steps[temporal, True] = replace(base, window=r.noisy_window)
+                widen = not temporal or r.noisy_temporal
+                self._steps[temporal, True] = replace(base, window=r.noisy_window) if widen else base
         self.noise = 0.0
         """The last temporal step's median residual ratio: the images' noise, which chooses the window of
         the steps that go on from its frame 2 (:attr:`IntensityRefinement.noisy_ratio`)."""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from nsflow_ros.core.errors import CoreError
-from nsflow_ros.core.methods import DEPLOYED_LM, METHODS, SolveKind, klt_track, make_method
+from nsflow_ros.core.methods import DEPLOYED_LM, METHODS, LMMethod, SolveKind, klt_track, make_method
 from nsflow_ros.core.refine import IntensityRefinement, gray_level, refine, step_template
 
 SHIFT = np.array([2.37, -1.61])
@@ -298,20 +298,26 @@ def test_a_wider_window_is_more_precise_on_noisy_images() -> None:
     assert err[21] < 0.85 * err[15]
 
 
+@pytest.mark.parametrize("noisy_temporal", [False, True])
 @pytest.mark.parametrize(("sigma", "window"), [(0.0, 15), (10.0, 21)])
 def test_the_images_noise_chooses_the_next_steps_window(
     pair: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch, sigma: float, window: int,
+    noisy_temporal: bool,
 ) -> None:
-    """A temporal step measures the images' noise (its median residual ratio); the steps that go on from
-    its frame 2 after one over ``noisy_ratio`` read their templates in ``noisy_window``, after a clean one
-    in ``window``; a solve from another frame reads them in ``window`` whatever came before."""
+    """A temporal step measures the images' noise (its median residual ratio); the frame's stereo step
+    after one over ``noisy_ratio`` reads its templates in ``noisy_window`` (the next temporal step too
+    with ``noisy_temporal``), after a clean one in ``window``; a solve from another frame reads them in
+    ``window`` whatever came before."""
     import nsflow_ros.core.methods as methods_mod
 
     g1, g2, pts = pair
     g1, g2 = (_noisy(g.astype(np.float64), sigma, k) if sigma else g for k, g in enumerate((g1, g2)))
     windows = []
     monkeypatch.setattr(methods_mod, "step_template", lambda *a: windows.append(a[2]) or step_template(*a))
-    method = make_method("nsflow")
+    base = make_method("nsflow")
+    assert base.spec.refine is not None and not base.spec.refine.noisy_temporal  # the default
+    refine_cfg = replace(base.spec.refine, noisy_temporal=noisy_temporal)
+    method = LMMethod(replace(base.spec, refine=refine_cfg), base.encoder)
     f1, f2 = method.prepare(g1, g1), method.prepare(g2, g2)
     assert method.noise == 0.0
     method.solve(SolveKind.FORWARD, f1, f2, pts)
@@ -321,7 +327,7 @@ def test_the_images_noise_chooses_the_next_steps_window(
     method.solve(SolveKind.FORWARD, f2, f1, pts + 2.0)  # the stream's next temporal step
     other = method.prepare(g1, g1)
     method.solve(SolveKind.STEREO, other, f2, pts + 3.0)  # an unrelated pair
-    assert windows == [15, window, window, 15]
+    assert windows == [15, window, window if noisy_temporal else 15, 15]
 
 
 def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) -> None:
