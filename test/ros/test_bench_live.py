@@ -61,7 +61,10 @@ def test_rounds_alternate_and_their_latencies_are_pooled(sample_dir):
     assert fig["frames_sent"] == 40 and fig["tracker_received"] == 40 and fig["tracker_processed"] >= 36
     assert len(fig["round_latency_ms_p90"]) == 2 and "tracker_latencies_ms" not in fig
     lo, hi = min(fig["round_latency_ms_p90"]), max(fig["round_latency_ms_p90"])
-    assert lo <= fig["tracker_latency_ms_p90"] <= hi
+    # The pooled samples' p90 lies between the rounds' own, up to the interpolation between neighbouring
+    # samples (numpy's linear percentile: a few microseconds here).
+    slack = 0.05 * hi
+    assert lo - slack <= fig["tracker_latency_ms_p90"] <= hi + slack
 
 
 def test_rounds_alternate_the_methods(sample_dir, monkeypatch):
