@@ -434,7 +434,8 @@ class LMMethod(TrackingMethod):
                 self._steps[temporal, True] = replace(base, window=r.noisy_window) if widen else base
         self.noise = 0.0
         """The last temporal step's median residual ratio: the images' noise, which chooses the window of
-        the steps that go on from its frame 2 (:attr:`IntensityRefinement.noisy_ratio`)."""
+        the stereo step from its frame 2 (and of the next temporal step with ``noisy_temporal``;
+        :attr:`IntensityRefinement.noisy_ratio`)."""
         self._noise_frame: DescriptorPyramid | None = None  # that step's frame 2
         self._template_memo: tuple[DescriptorPyramid, StepTemplate] | None = None
 

@@ -61,14 +61,10 @@ class IntensityRefinement:
         residual_ceiling: the most the floor raises the limit to, so that windows of other content
             (ratio about 1) are refused even where every window is.
         noisy_window: the window side (odd, >= ``window``) of the stereo step of a frame whose temporal
-            step (the one into it) had a median residual ratio above ``noisy_ratio``. Sensor noise, not
-            the warp, then limits the step's precision, and more pixels average it (in the ``dark``
-            perturbation the stereo median error fell from 1.06-1.24x `klt`'s to 0.88-1.12x; steady
-            light stays under a third of ``noisy_ratio``).
-        noisy_temporal: the next temporal step takes ``noisy_window`` too. Its features are more
-            precise per frame (temporal median 0.88-1.32x `klt`'s -> 0.74-1.18x in the ``dark``
-            perturbation), but the estimator's trajectory was not: at 20 Hz, where tracks live longest,
-            it lost in 2 cells more (docs/design.md).
+            step (the one into it) had a median residual ratio above ``noisy_ratio``: sensor noise, not
+            the warp, then limits the step's precision, and more pixels average it (docs/design.md).
+        noisy_temporal: the next temporal step takes ``noisy_window`` too: more precise per frame, but
+            its tracks drift more over their life and the estimator's trajectory lost (docs/design.md).
         noisy_ratio: the median residual ratio above which the step takes ``noisy_window`` (clean images
             0.01-0.02, the ``dark`` perturbation about 0.12); inf = never.
         min_eigen: the smallest eigenvalue of the window's gradient matrix per pixel below which the image
