@@ -12,6 +12,12 @@ and stored with the model: its ONNX metadata key :data:`METADATA_KEY`, else a JS
 number, as older files hold, is a scale with floor 0); the methods without a model keep theirs in their
 registry entry (:attr:`~nsflow_ros.core.methods.MethodSpec.covariance_scale`).
 
+A solve's own sigma describes its local minimum, not the chance that it settled in a wrong one, which grows
+with sigma: past a knee (the covariance check's limit, where tracks end) the published covariance is
+inflated by ``(sigma / knee)^(2 power)`` (:meth:`CovarianceScale.expected`, ``"knee"`` and ``"power"`` in
+the same entry, power fitted by maximum likelihood with the scale and floor held). The checks read the
+calibration without it (:meth:`CovarianceScale.apply`), so a fitted tail changes no track.
+
 The LM methods take J^T J and S from the solver's own last step
 (:attr:`~nsflow_ros.core.solver.TrackResult.hessian`); OpenCV's LK keeps J^T J to itself, so
 :func:`klt_covariance` reads it from the template's window once and takes sigma_hat^2 from OpenCV's own
@@ -63,28 +69,39 @@ rounding error is uniform over one pixel."""
 
 @dataclass(frozen=True)
 class CovarianceScale:
-    """The calibration of a method's raw covariances, Sigma = scale * Sigma_raw + floor * I, and its source.
+    """The calibration of a method's raw covariances, Sigma = scale * Sigma_raw + floor * I, its tail above
+    a knee, and its source.
 
     The floor is a variance every feature has whatever its window says (px^2 per axis: interpolation,
     the uint8 quantisation, a model that is not exactly a translation), which a scale alone cannot give:
-    without it the raw covariance's dynamic range is wider than the error's.
+    without it the raw covariance's dynamic range is wider than the error's. The tail is the published
+    covariance's growth above ``knee`` (:meth:`expected`): beyond it a solve's sigma no longer reaches
+    its error (a wrong minimum's 1-2 px), which the checks already act on.
 
     Attributes:
         scale: s (> 0); 1.0 when no fitted value was found.
         source: "metadata", a sidecar file's name, "registry", or "uncalibrated" (with the reason when a
             sidecar's scale was fitted on another model file: its ``model_sha256`` differs).
         floor: f (px^2, >= 0); 0 for a scale fitted alone (an older sidecar) or none fitted.
+        knee: sigma (px, > 0) above which the tail applies; inf = no tail.
+        power: the tail's exponent (>= 0); 0 = no tail.
     """
 
     scale: float = 1.0
     source: str = "uncalibrated"
     floor: float = 0.0
+    knee: float = math.inf
+    power: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.scale) and self.scale > 0):
             raise CoreError(f"covariance scale must be a finite number > 0, got {self.scale!r}")
         if not (math.isfinite(self.floor) and self.floor >= 0):
             raise CoreError(f"covariance floor must be a finite number >= 0 (px^2), got {self.floor!r}")
+        if not (self.knee > 0 and not math.isnan(self.knee)):
+            raise CoreError(f"covariance knee must be a number > 0 (px; inf = no tail), got {self.knee!r}")
+        if not (math.isfinite(self.power) and self.power >= 0):
+            raise CoreError(f"covariance power must be a finite number >= 0, got {self.power!r}")
 
     @property
     def calibrated(self) -> bool:
@@ -97,6 +114,20 @@ class CovarianceScale:
         out[:, 0] += self.floor
         out[:, 2] += self.floor
         return out
+
+    def expected(self, cov: np.ndarray) -> np.ndarray:
+        """The published covariances of (N, 3) calibrated ones (:meth:`apply`'s): each multiplied by
+        ``max(1, sigma / knee)^(2 power)``, sigma its major axis (:func:`max_sigma`); a new array.
+
+        Monotone in sigma and the identity below the knee, so it reorders no feature and moves none of
+        the checks, which read :meth:`apply`'s covariance.
+        """
+        out = np.array(cov, dtype=np.float64)
+        if self.power == 0 or not math.isfinite(self.knee) or out.size == 0:
+            return out
+        with np.errstate(invalid="ignore"):
+            grow = np.maximum(1.0, max_sigma(out) / self.knee) ** (2.0 * self.power)
+        return out * np.where(np.isfinite(grow), grow, 1.0)[:, None]  # inf / NaN covariances stay as they are
 
     def raw(self, cov: np.ndarray) -> np.ndarray:
         """The raw covariances that :meth:`apply` turns into ``cov`` (for a new fit)."""
@@ -112,22 +143,26 @@ def sidecar_path(model: str | Path) -> Path:
     return p.with_name(p.stem + SIDECAR_SUFFIX)
 
 
-def _entry(table: Mapping[str, Any], method: str, where: str) -> tuple[float, float] | None:
-    """A method's (scale, floor) from a table of entries: a number (a scale alone, floor 0, as older
-    files hold) or ``{"scale": s, "floor": f}``; None when the method has none."""
+def _entry(table: Mapping[str, Any], method: str, where: str) -> tuple[float, float, float, float] | None:
+    """A method's (scale, floor, knee, power) from a table of entries: a number (a scale alone, floor 0, as
+    older files hold) or ``{"scale": s, "floor": f, "knee": k, "power": p}`` (knee and power optional: no
+    tail); None when the method has none."""
     value = table.get(method)
     if value is None:
         return None
     if isinstance(value, dict):
         scale, floor = value.get("scale"), value.get("floor", 0.0)
+        knee, power = value.get("knee", math.inf), value.get("power", 0.0)
     else:
-        scale, floor = value, 0.0
-    for name, v, low_ok in (("scale", scale, False), ("floor", floor, True)):
+        scale, floor, knee, power = value, 0.0, math.inf, 0.0
+    for name, v, low_ok in (("scale", scale, False), ("floor", floor, True), ("knee", knee, False),
+                            ("power", power, True)):
         bad = isinstance(v, bool) or not isinstance(v, int | float)
-        if bad or not math.isfinite(v) or v < 0 or (v == 0 and not low_ok):
+        absent_knee = name == "knee" and v == math.inf  # no tail stored
+        if bad or not (math.isfinite(v) or absent_knee) or v < 0 or (v == 0 and not low_ok):
             need = "a finite number >= 0" if low_ok else "a finite number > 0"
             raise CoreError(f"{where}: covariance {name} of {method!r} must be {need}, got {v!r}")
-    return float(scale), float(floor)
+    return float(scale), float(floor), float(knee), float(power)
 
 
 def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: str | Path | None = None,
@@ -143,11 +178,12 @@ def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: st
             None = none.
 
     Returns:
-        the scale, floor and source; ``CovarianceScale()`` (1.0, floor 0, uncalibrated) when none is found.
+        the scale, floor, tail and source; ``CovarianceScale()`` (1.0, floor 0, no tail, uncalibrated) when
+        none is found.
 
     Raises:
-        CoreError: malformed JSON or a scale that is not a number > 0 or a floor that is not a number
-            >= 0 (naming the file or key).
+        CoreError: malformed JSON or a scale or knee that is not a number > 0 or a floor or power that is
+            not a number >= 0 (naming the file or key).
     """
     if metadata and METADATA_KEY in metadata:
         where = f"model metadata {METADATA_KEY!r}"
@@ -159,7 +195,7 @@ def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: st
             raise CoreError(f"{where} must be a JSON object of scales by method, got {table!r}")
         found = _entry(table, method, where)
         if found is not None:
-            return CovarianceScale(found[0], "metadata", found[1])
+            return CovarianceScale(found[0], "metadata", *found[1:])
     if model is not None:
         side = sidecar_path(model)
         if side.is_file():
@@ -176,7 +212,7 @@ def read_scale(method: str, metadata: Mapping[str, str] | None = None, model: st
                 # a model replaced under the same name: its calibration must be fitted again
                 return CovarianceScale(1.0, f"uncalibrated ({side.name} was fitted on another model file)")
             if found is not None:
-                return CovarianceScale(found[0], side.name, found[1])
+                return CovarianceScale(found[0], side.name, *found[1:])
     if isinstance(registry, CovarianceScale):
         return registry
     if registry is not None:

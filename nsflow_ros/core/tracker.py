@@ -116,8 +116,8 @@ class TrackerSettings:
         tensorrt_cache: folder of TensorRT's engine cache; None = no cache.
         downsample: track on images decimated by this factor (1, 2 or 4), publish at full resolution.
         publish_covariance: give every feature its calibrated covariance (:attr:`CameraFeatures.covariance`,
-            :mod:`~nsflow_ros.core.covariance`), for the feature message.
-        max_sigma: drop a tracked point whose predicted standard deviation along its major axis exceeds this
+            :mod:`~nsflow_ros.core.covariance`, with its tail), for the feature message.
+        max_sigma: drop a tracked point whose published standard deviation along its major axis exceeds this
             (px of the full-resolution image), as the reverse checks drop one (counted in
             :attr:`FrameFeatures.gated`); 0 = off.
 
@@ -562,12 +562,15 @@ class FeatureTracker:
             status[idx] = ok & (np.hypot(*(back - pts[idx]).T) <= FLOW_BACK_THRESHOLD_PX)
         if not cov:
             return new, status, np.full((len(pts), 3), np.nan), new_rays
-        if self.settings.max_sigma > 0:
+        if not s.covariance:  # computed for the check only: not published
+            return new, status, cov[0], new_rays
+        published = m.covariance_scale.expected(cov[0])  # the check above read it without the tail
+        if s.max_sigma > 0:
             # sigma in tracking pixels against a limit in full-resolution pixels; NaN / inf count as wide
-            wide = status & ~(max_sigma(cov[0]) * self._down <= self.settings.max_sigma)
+            wide = status & ~(max_sigma(published) * self._down <= s.max_sigma)
             self._gated += int(wide.sum())
             status &= ~wide
-        return new, status, cov[0], new_rays
+        return new, status, published, new_rays
 
     def _predict(self, gyro: np.ndarray | None, stamp: float) -> np.ndarray | None:
         if not self.settings.use_imu_prediction or gyro is None:

@@ -17,9 +17,13 @@ back by the flow-back check's solve. Against the truth:
 * use: the relative rotation of each sample-sequence frame pair (5-point RANSAC, then a Sampson
   refinement over its inliers) with isotropic weights against weights from Sigma.
 
-``python -m nsflow_ros.evaluation.covariance fit [--model M]`` fits each method's scale and variance floor on
-training data (the training photos' pairs and a sample sequence of another seed) and writes the model's
-beside it (:func:`~nsflow_ros.core.covariance.sidecar_path`).
+The covariance measured is the one the tracker publishes
+(:meth:`~nsflow_ros.core.covariance.CovarianceScale.expected`, with its tail above the check's limit); the
+track check reads it without the tail, as the tracker's does.
+
+``python -m nsflow_ros.evaluation.covariance fit [--model M] [--keep-scale]`` fits each method's scale,
+variance floor and tail on training data (the training photos' pairs and a sample sequence of another
+seed) and writes the model's beside it (:func:`~nsflow_ros.core.covariance.sidecar_path`).
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from nsflow_ros.core.covariance import sidecar_path
+from nsflow_ros.core.covariance import CovarianceScale, sidecar_path
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.methods import KLTMethod, LMMethod, SolveKind
 from nsflow_ros.evaluation.context import EvalContext, new_figure, sample_sequence, save_figure
@@ -59,6 +63,7 @@ __all__ = [
     "collect",
     "fit_calibration",
     "fit_scale",
+    "fit_tail",
     "main",
     "run",
     "weighted_rotation_error",
@@ -340,7 +345,7 @@ def collect(
     """Track every pair with every method of ``ctx``: ``{method: {group: Samples}}``.
 
     ``scaled`` False undoes each covariance's current calibration (the raw Gauss-Newton one, for the
-    fit).
+    fit); True gives the published one, the tail included.
 
     Raises:
         EvaluationError: a method or the sample sequence fails.
@@ -369,6 +374,8 @@ def collect(
                     fb[status] = np.where(ok, np.hypot(*(back - pair.points[status]).T), np.inf)
                 check = m.core.spec.check
                 passed = (check.keep(cov, status) if check is not None else fb <= FLOW_BACK_THRESHOLD_PX)
+                if scaled:  # the check read it without the tail, as the tracker's does
+                    cov = m.core.covariance_scale.expected(cov)
             except CoreError as err:
                 raise EvaluationError(f"{m.name}: {err}") from err
             s = out[m.name].setdefault(pair.group, Samples())
@@ -474,6 +481,29 @@ def fit_calibration(error: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
     if profile(0.0) <= profile(floor):
         return s0, 0.0
     return best_scale(floor), floor
+
+
+def fit_tail(error: np.ndarray, cov: np.ndarray, knee: float, top: float = 3.0) -> float:
+    """The power p of the tail above ``knee`` (:meth:`~nsflow_ros.core.covariance.CovarianceScale.expected`)
+    that maximises the likelihood of the inliers' errors under calibrated covariances ``cov`` (scale and
+    floor applied), searched on [0, ``top``] (golden section).
+
+    Returns:
+        p; 0 where a tail does not raise the likelihood or no inlier lies above the knee.
+
+    Shape:
+        error: (N, 2). cov: (N, 3). Raises EvaluationError with no inlier.
+    """
+    inl = (np.hypot(*error.T) < INLIER_PX) & np.isfinite(cov).all(axis=1)
+    e, c = error[inl], cov[inl]
+    if len(e) == 0:
+        raise EvaluationError("no inlier to fit the covariance tail on")
+
+    def nll(power: float) -> float:
+        return _nll(e, CovarianceScale(knee=knee, power=power).expected(c), 1.0, 0.0)
+
+    power = _golden(nll, 0.0, top)
+    return power if nll(power) < nll(0.0) else 0.0
 
 
 def calibration(error: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
@@ -749,14 +779,18 @@ def run(ctx: EvalContext) -> Section:
         curves["random"] = np.full(len(oracle), float(np.mean(err)))
     fig = _figure(results, curves, ctx.out_dir / f"{KEY}.png")
     cals = {m.name: m.core.covariance_scale for m in ctx.methods}
-    scales = {n: (c.scale, c.source, c.floor) for n, c in cals.items()}
-    scale_text = ", ".join(f"{n} {c.scale:.3g} / {c.floor:.2g} ({c.source})" for n, c in cals.items())
+    scales = {n: (c.scale, c.source, c.floor, c.knee, c.power) for n, c in cals.items()}
+    scale_text = ", ".join(f"{n} {c.scale:.3g} / {c.floor:.2g}"
+                           + (f" / {c.power:.2g} above {c.knee:g} px" if c.power > 0 else "")
+                           + f" ({c.source})" for n, c in cals.items())
     w, h = setup.pair_size
     md = "\n\n".join([
         "Sigma = s sigma_hat^2 (J^T J)^-1 + f I per tracked feature (the LM methods: the solver's own final "
         "J^T J and cost; the OpenCV LK methods: the template's gradients over the 21x21 window at the "
-        "rounded point and OpenCV's own err, the mean absolute window difference at the solution). "
-        f"Scale s / floor f (px^2): {scale_text}. Data held out from the fit: homography pairs of the photos "
+        "rounded point and OpenCV's own err, the mean absolute window difference at the solution), times "
+        "(sigma / k)^(2 p) above a knee k (the tail, as published; the track check reads Sigma without it). "
+        f"Scale s / floor f (px^2) / tail p above k: {scale_text}. "
+        "Data held out from the fit: homography pairs of the photos "
         f"{', '.join(setup.photos)} ({w}x{h}, {setup.pair_levels} strengths per subset) and every "
         f"{setup.stride}. frame pair of the sample sequence seed {setup.sequence_seed} "
         f"({setup.duration:g} s, "
@@ -802,36 +836,61 @@ def _jsonable(x: Any) -> Any:
 # -- the fit ------------------------------------------------------------------------------------------
 
 
-def fit(ctx: EvalContext, setup: CovarianceSetup) -> dict[str, tuple[float, float]]:
-    """Each method's maximum-likelihood (scale, floor) (:func:`fit_calibration`) on ``setup``'s data, all
-    groups pooled.
+def fit(ctx: EvalContext, setup: CovarianceSetup, keep_scale: bool = False) -> dict[str, CovarianceScale]:
+    """Each method's maximum-likelihood scale and floor (:func:`fit_calibration`) on ``setup``'s data, all
+    groups pooled, then its tail (:func:`fit_tail`) above its covariance check's ``max_sigma`` (none for
+    a method without that check).
 
     Every method gets a floor: without one the default model's largest predicted sigmas are too large
     (top decile 0.69) and too many inliers fall inside the 68 % ellipse (docs/evaluation.md). It evens out
     the weights of the best-localised features, so weighting gains less than with a scale alone, but
-    still meets its targets.
+    still meets its targets. The tail is fitted with the scale and floor held: the checks read those.
+
+    Args:
+        keep_scale: keep each method's current scale and floor (what its checks were tuned on) and fit
+            the tail alone.
     """
     data = collect(ctx, setup, scaled=False)
     out = {}
     for m in ctx.methods:
         pooled = _pool(data[m.name], "")
-        out[m.name] = fit_calibration(pooled["error"], pooled["cov"])
+        current = m.core.covariance_scale
+        scale, floor = ((current.scale, current.floor) if keep_scale
+                        else fit_calibration(pooled["error"], pooled["cov"]))
+        base = CovarianceScale(scale, "fit", floor)
+        check = m.core.spec.check
+        if check is None:
+            out[m.name] = base
+            continue
+        power = fit_tail(pooled["error"], base.apply(pooled["cov"]), check.max_sigma)
+        out[m.name] = replace(base, knee=check.max_sigma, power=power)
     return out
 
 
+def _entry_of(cal: CovarianceScale) -> dict[str, float]:
+    """A sidecar entry: scale and floor, and the tail where there is one."""
+    entry = {"scale": cal.scale, "floor": cal.floor}
+    if cal.power > 0:
+        entry |= {"knee": cal.knee, "power": cal.power}
+    return entry
+
+
 def main(args: Sequence[str] | None = None) -> int:
-    """``python -m nsflow_ros.evaluation.covariance fit``: fit the scales and floors on training data; the
-    learned methods' go into the JSON beside the model, the others' are printed for their registry
-    entries."""
+    """``python -m nsflow_ros.evaluation.covariance fit``: fit the scales, floors and tails on training
+    data; the learned methods' go into the JSON beside the model, the others' are printed for their
+    registry entries."""
     from nsflow_ros.core.encoder import model_file
     from nsflow_ros.evaluation.methods import VARIANTS, usable_methods
 
     parser = argparse.ArgumentParser(prog="python -m nsflow_ros.evaluation.covariance",
-                                     description="Fit the per-feature covariance scales and floors on "
+                                     description="Fit the per-feature covariance scales, floors and tails on "
                                                  "training data.")
     parser.add_argument("command", choices=["fit"])
     parser.add_argument("--model", default=None, help="ONNX encoder (file or shipped name; default: default)")
     parser.add_argument("--out", default="out/covariance_fit", help="folder for the sample-sequence cache")
+    parser.add_argument("--keep-scale", action="store_true",
+                        help="keep each method's current scale and floor (its checks read them) and fit the "
+                             "tail alone")
     parser.add_argument("--quick", action="store_true", help="tiny data (tests)")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--no-write", action="store_true", help="print the scales, write nothing")
@@ -846,13 +905,14 @@ def main(args: Sequence[str] | None = None) -> int:
         ctx = EvalContext(methods=methods, model=model, quick=opts.quick, out_dir=out, progress=False)
         setup = replace(QUICK if opts.quick else FIT, photos=_training()[:1] if opts.quick else _training(),
                         sequence_seed=1, seed=1)
-        scales = fit(ctx, setup)
+        scales = fit(ctx, setup, keep_scale=opts.keep_scale)
     except (EvaluationError, CoreError, OSError) as err:
         print(f"covariance fit: {err}", file=sys.stderr)
         return 1
-    by_method = {VARIANTS[label].method: {"scale": s, "floor": f} for label, (s, f) in scales.items()}
+    by_method = {VARIANTS[label].method: _entry_of(c) for label, c in scales.items()}
     for name, cal in by_method.items():
-        print(f"{name}: scale {cal['scale']:.4g} floor {cal['floor']:.4g} px^2")
+        tail = f", tail power {cal['power']:.3g} above {cal['knee']:g} px" if "knee" in cal else ""
+        print(f"{name}: scale {cal['scale']:.4g} floor {cal['floor']:.4g} px^2{tail}")
     # each learned method's calibration goes beside the model it was fitted with
     files: dict[Path, dict[str, dict[str, float]]] = {}
     for m in methods:
@@ -870,7 +930,8 @@ def main(args: Sequence[str] | None = None) -> int:
         doc = {"scales": {**kept, **learned}, "model_sha256": sha,
                "fitted_on": "training photos' homography pairs and sample sequence seed 1, every level",
                "command": "python -m nsflow_ros.evaluation.covariance fit"
-               + (f" --model {path.name}" if model is not None else "")}
+               + (f" --model {path.name}" if model is not None else "")
+               + (" --keep-scale" if opts.keep_scale else "")}
         side.write_text(json.dumps(doc, indent=2) + "\n")
         print(f"wrote {side}")
     return 0

@@ -255,6 +255,27 @@ def test_calibration_applies_scale_and_floor_and_inverts():
         CovarianceScale(float("nan"))
 
 
+def test_the_tail_grows_the_published_covariance_above_the_knee_only():
+    cal = CovarianceScale(1.0, "registry", 0.0, knee=0.15, power=0.5)
+    cov = np.array([[0.01, 0.0, 0.01], [0.04, 0.0, 0.01], [0.09, 0.03, 0.09], [np.inf, 0.0, np.inf],
+                    [np.nan, np.nan, np.nan]])
+    got = cal.expected(cov)
+    np.testing.assert_array_equal(got[0], cov[0])  # sigma 0.1: below the knee, as calibrated
+    # sigma 0.2 along x: the whole covariance times (0.2 / 0.15)^(2 * 0.5), its shape kept
+    np.testing.assert_allclose(got[1], cov[1] * 0.2 / 0.15)
+    np.testing.assert_allclose(max_sigma(got[2:3]), max_sigma(cov[2:3]) ** 1.5 / 0.15**0.5)
+    assert np.isinf(got[3, 0]) and np.isnan(got[4]).all()  # unbounded and unknown stay so
+    order = np.argsort(max_sigma(cov[:3]))
+    np.testing.assert_array_equal(np.argsort(max_sigma(got[:3])), order)  # monotone: no feature reordered
+    for plain in (CovarianceScale(2.0, "registry", 0.1), CovarianceScale(knee=0.15)):
+        np.testing.assert_array_equal(plain.expected(cov[:3]), cov[:3])  # no tail: the identity
+    assert cal.expected(np.zeros((0, 3))).shape == (0, 3)
+    with pytest.raises(CoreError, match="knee must be a number > 0"):
+        CovarianceScale(knee=0.0)
+    with pytest.raises(CoreError, match="power must be a finite number >= 0, got -1"):
+        CovarianceScale(power=-1.0)
+
+
 def test_sidecar_with_a_floor_and_an_older_one_without(tmp_path):
     model = tmp_path / "enc.onnx"
     model.write_bytes(b"model")
@@ -273,6 +294,10 @@ def test_sidecar_with_a_floor_and_an_older_one_without(tmp_path):
     assert (stale.scale, stale.floor, stale.calibrated) == (1.0, 0.0, False)
     meta = {METADATA_KEY: json.dumps({"nsflow": {"scale": 3.0, "floor": 0.5}})}
     assert read_scale("nsflow", meta).floor == 0.5
+    assert read_scale("nsflow", meta).expected(np.array([[9.0, 0.0, 9.0]]))[0, 0] == 9.0  # no tail stored
+    meta = {METADATA_KEY: json.dumps({"nsflow": {"scale": 3.0, "floor": 0.5, "knee": 0.15, "power": 0.4}})}
+    tail = read_scale("nsflow", meta)
+    assert (tail.knee, tail.power) == (0.15, 0.4)
     reg = CovarianceScale(2.0, "registry", 0.1)
     assert read_scale("klt", registry=reg) is reg
 
@@ -282,6 +307,11 @@ def test_sidecar_with_a_floor_and_an_older_one_without(tmp_path):
     ({"scale": 2.0, "floor": "x"}, r"covariance floor of 'nsflow' must be a finite number >= 0, got 'x'"),
     ({"floor": 0.1}, r"covariance scale of 'nsflow' must be a finite number > 0, got None"),
     ({"scale": 0, "floor": 0.1}, r"covariance scale of 'nsflow' must be a finite number > 0, got 0"),
+    ({"scale": 2.0, "knee": 0, "power": 0.5},
+     r"covariance knee of 'nsflow' must be a finite number > 0, got 0"),
+    ({"scale": 2.0, "knee": 0.15, "power": -0.5},
+     r"covariance power of 'nsflow' must be a finite number >= 0, got -0\.5"),
+    ({"scale": 2.0, "knee": 0.15, "power": True}, r"covariance power of 'nsflow' must be"),
 ])
 def test_bad_stored_floors_are_named(entry, match):
     with pytest.raises(CoreError, match=match):

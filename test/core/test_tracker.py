@@ -628,6 +628,31 @@ def test_the_covariance_check_keeps_most_tracks_the_reverse_solves_keep(max_sigm
     assert kept.sum() >= overall * kept_reverse.sum(), (kept, kept_reverse)
 
 
+def test_the_published_covariance_has_the_tail_the_check_does_not_read():
+    from nsflow_ros.core.checks import CovarianceCheck
+    from nsflow_ros.core.covariance import max_sigma
+
+    seq = _occluded()
+    base = METHODS["classical"].covariance_scale
+    # a knee low enough that many tracks lie above it: the check still reads the calibration without it
+    tail = replace(base, knee=0.02, power=0.5)
+    runs = []
+    for cal in (base, tail):
+        method = make_method(replace(METHODS["classical"], check=CovarianceCheck(), covariance_scale=cal))
+        runs.append(_run(FeatureTracker([syn.camera()], _classical(publish_covariance=True), method=method),
+                         seq))
+    above = 0
+    for a, b in zip(*runs, strict=True):
+        ca, cb = a.cameras[0], b.cameras[0]
+        np.testing.assert_array_equal(ca.ids, cb.ids)
+        np.testing.assert_array_equal(ca.pixels, cb.pixels)  # the same tracks
+        tracked = ca.track_counts > 1
+        np.testing.assert_allclose(cb.covariance[tracked], tail.expected(ca.covariance[tracked]))
+        np.testing.assert_array_equal(cb.covariance[~tracked], ca.covariance[~tracked])  # 1/12: detected
+        above += int((max_sigma(ca.covariance[tracked]) > tail.knee).sum())
+    assert above > 20  # the tail was live
+
+
 def test_the_covariance_check_solves_in_reverse_only_unsure_points_unless_reverse_checks(monkeypatch):
     from nsflow_ros.core.methods import SolveKind
 

@@ -50,6 +50,21 @@ def test_fit_calibration_recovers_a_scale_and_a_floor():
         cv.fit_calibration(np.full((3, 2), 5.0), cov[:3])
 
 
+def test_fit_tail_recovers_the_power_of_errors_that_outgrow_their_sigma():
+    err, cov = _gaussian(20000, seed=3)
+    # errors drawn with sigma^1.5 / 0.15^0.5 above a 0.15 px knee: the true tail has power 0.5
+    truth = cv.CovarianceScale(knee=0.15, power=0.5)
+    grow = np.sqrt(truth.expected(cov)[:, 0] / cov[:, 0])
+    p = cv.fit_tail(err * grow[:, None], cov, 0.15)
+    assert p == pytest.approx(0.5, abs=0.05)
+    assert cv.fit_tail(err, cov, 0.15) < 0.03  # Gaussian errors under their own covariance: (almost) none
+    big = cv.calibration(err * grow[:, None], cov)
+    fitted = cv.calibration(err * grow[:, None], cv.CovarianceScale(knee=0.15, power=p).expected(cov))
+    assert big["decile_ratio_max"] > 1.3 and fitted["decile_ratio_max"] < 1.1  # the top deciles mended
+    with pytest.raises(cv.EvaluationError, match="no inlier"):
+        cv.fit_tail(np.full((3, 2), 5.0), cov[:3], 0.15)
+
+
 def test_ranking_metrics_on_known_orders():
     err = np.linspace(0, 3, 301)
     bad = err > 1.0
@@ -113,9 +128,10 @@ def test_quick_run_reports_every_metric_per_method(ctx):
         assert sec.data["rotation"][name]  # weighted and isotropic rotation errors per level
         assert 0 < sec.data["results"][name]["published"]["points"] <= pooled["points"]
     assert "AUROC" in sec.markdown and "Quick mode" in sec.markdown
-    scale, source, floor = sec.data["scales"][NSFLOW]
+    scale, source, floor, knee, power = sec.data["scales"][NSFLOW]
     assert scale > 1 and source.endswith(".covariance.json")  # the shipped model's fitted scale
     assert floor > 0  # every method's calibration has a variance floor
+    assert knee == 0.15 and power > 0  # and the default's a tail above its covariance check's limit
 
 
 def test_fit_command_prints_each_method_s_scale(tmp_path, capsys):

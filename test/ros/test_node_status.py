@@ -7,6 +7,7 @@ from nsflow_ros.ros.node_status import (
     ArrivalStamps,
     StampGaps,
     StatusWindow,
+    covariance_line,
     period_line,
     status_level,
     summary_line,
@@ -48,3 +49,19 @@ def test_frames_lost_before_the_node_are_inferred_from_stamp_gaps():
     stamps = [0.05 * k for k in range(10)] + [0.05 * k for k in (12, 13, 17, 18)]  # 2, then 3 frames lost
     assert [gaps.add(t) for t in stamps] == [0] * 10 + [2, 0, 3, 0]
     assert gaps.add(0.1) == 0  # time going back is not a gap
+
+
+def test_covariance_line_names_the_calibration_and_its_tail_where_there_is_one():
+    from types import SimpleNamespace
+
+    from nsflow_ros.core.covariance import CovarianceScale
+
+    def line(scale: CovarianceScale) -> str:
+        tracker = SimpleNamespace(settings=SimpleNamespace(max_sigma=0.0), method=SimpleNamespace(
+            covariance_scale=scale))
+        return covariance_line(tracker)
+
+    plain = line(CovarianceScale(19.78, "registry", 1.5e-3))
+    assert plain == "covariance scale 19.78, floor 0.0015 px^2 (registry), max_sigma 0 px (0 = off)"
+    tail = line(CovarianceScale(6.48, "m.covariance.json", 5.8e-4, knee=0.15, power=0.434))
+    assert "tail power 0.434 above 0.15 px (m.covariance.json)" in tail
