@@ -849,7 +849,15 @@ def fit(ctx: EvalContext, setup: CovarianceSetup, keep_scale: bool = False) -> d
     Args:
         keep_scale: keep each method's current scale and floor (what its checks were tuned on) and fit
             the tail alone.
+
+    Raises:
+        EvaluationError: ``keep_scale`` with a method that has no fitted scale; no inlier to fit on.
     """
+    if keep_scale:
+        for m in ctx.methods:
+            if not m.core.covariance_scale.calibrated:
+                raise EvaluationError(f"--keep-scale: {m.name} has no fitted scale and floor to keep "
+                                      f"({m.core.covariance_scale.source}); fit without --keep-scale")
     data = collect(ctx, setup, scaled=False)
     out = {}
     for m in ctx.methods:

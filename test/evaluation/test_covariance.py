@@ -139,3 +139,15 @@ def test_fit_command_prints_each_method_s_scale(tmp_path, capsys):
     out = capsys.readouterr().out
     for name in ("nsflow", "nsflow_lk", "classical", "klt"):
         assert f"{name}: scale" in out and "floor" in out
+
+
+def test_fit_keep_scale_refuses_a_method_without_a_fitted_scale(tmp_path):
+    from dataclasses import replace
+
+    from nsflow_ros.core.covariance import CovarianceScale
+
+    m = eval_method(KLT)
+    m.core._covariance_scale = CovarianceScale()  # as a model without its sidecar loads
+    ctx = EvalContext(methods=[m], quick=True, out_dir=tmp_path, progress=False, threads=1)
+    with pytest.raises(cv.EvaluationError, match=r"--keep-scale: OpenCV KLT has no fitted scale"):
+        cv.fit(ctx, replace(cv.QUICK, photos=("x",)), keep_scale=True)
