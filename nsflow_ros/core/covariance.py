@@ -115,6 +115,11 @@ class CovarianceScale:
         out[:, 2] += self.floor
         return out
 
+    @property
+    def tail_text(self) -> str:
+        """``", tail power p above k px"``, or ``""`` without a tail (for log lines)."""
+        return f", tail power {self.power:.3g} above {self.knee:g} px" if self.power > 0 else ""
+
     def expected(self, cov: np.ndarray) -> np.ndarray:
         """The published covariances of (N, 3) calibrated ones (:meth:`apply`'s): each multiplied by
         ``max(1, sigma / knee)^(2 power)``, sigma its major axis (:func:`max_sigma`); a new array.

@@ -408,6 +408,15 @@ def _mahalanobis(error: np.ndarray, cov: np.ndarray) -> np.ndarray:
         return (cov[:, 2] * ex * ex - 2 * cov[:, 1] * ex * ey + cov[:, 0] * ey * ey) / det
 
 
+def _inliers(error: np.ndarray, cov: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """The errors under 2 px with a finite covariance, and those covariances; EvaluationError naming
+    ``what`` was to be fitted when there is none."""
+    inl = (np.hypot(*error.T) < INLIER_PX) & np.isfinite(cov).all(axis=1)
+    if not inl.any():
+        raise EvaluationError(f"no inlier to fit the {what} on")
+    return error[inl], cov[inl]
+
+
 def fit_scale(error: np.ndarray, cov: np.ndarray) -> float:
     """The scale s that minimises the Gaussian NLL of the inliers' errors under s * cov: mean(d^2) / 2.
 
@@ -463,10 +472,7 @@ def fit_calibration(error: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
     Shape:
         error: (N, 2). cov: (N, 3). Raises EvaluationError with no inlier.
     """
-    inl = (np.hypot(*error.T) < INLIER_PX) & np.isfinite(cov).all(axis=1)
-    e, c = error[inl], cov[inl]
-    if len(e) == 0:
-        raise EvaluationError("no inlier to fit the covariance calibration on")
+    e, c = _inliers(error, cov, "covariance calibration")
     s0 = fit_scale(e, c)
     top = float(np.mean(e**2))  # a floor beyond the errors' own variance cannot help
 
@@ -494,10 +500,7 @@ def fit_tail(error: np.ndarray, cov: np.ndarray, knee: float, top: float = 3.0) 
     Shape:
         error: (N, 2). cov: (N, 3). Raises EvaluationError with no inlier.
     """
-    inl = (np.hypot(*error.T) < INLIER_PX) & np.isfinite(cov).all(axis=1)
-    e, c = error[inl], cov[inl]
-    if len(e) == 0:
-        raise EvaluationError("no inlier to fit the covariance tail on")
+    e, c = _inliers(error, cov, "covariance tail")
 
     def nll(power: float) -> float:
         return _nll(e, CovarianceScale(knee=knee, power=power).expected(c), 1.0, 0.0)
@@ -918,9 +921,8 @@ def main(args: Sequence[str] | None = None) -> int:
         print(f"covariance fit: {err}", file=sys.stderr)
         return 1
     by_method = {VARIANTS[label].method: _entry_of(c) for label, c in scales.items()}
-    for name, cal in by_method.items():
-        tail = f", tail power {cal['power']:.3g} above {cal['knee']:g} px" if "knee" in cal else ""
-        print(f"{name}: scale {cal['scale']:.4g} floor {cal['floor']:.4g} px^2{tail}")
+    for label, c in scales.items():
+        print(f"{VARIANTS[label].method}: scale {c.scale:.4g} floor {c.floor:.4g} px^2{c.tail_text}")
     # each learned method's calibration goes beside the model it was fitted with
     files: dict[Path, dict[str, dict[str, float]]] = {}
     for m in methods:

@@ -367,9 +367,8 @@ def covariance_line(tracker: Any) -> str:
     """What the covariance channels are scaled by, and whether the scale was fitted (start-up)."""
     s = tracker.settings
     scale = tracker.method.covariance_scale
-    tail = f", tail power {scale.power:.3g} above {scale.knee:g} px" if scale.power > 0 else ""
-    return (f"covariance scale {scale.scale:.4g}, floor {scale.floor:.3g} px^2{tail} ({scale.source}), "
-            f"max_sigma {s.max_sigma:g} px (0 = off)")
+    return (f"covariance scale {scale.scale:.4g}, floor {scale.floor:.3g} px^2{scale.tail_text} "
+            f"({scale.source}), max_sigma {s.max_sigma:g} px (0 = off)")
 
 
 def run_counters(node: str, session: Any, stats: NodeCounters, cpu_s: float, latencies: list[float],
