@@ -136,7 +136,11 @@ class SolvePolicy:
     Attributes:
         prior_levels: levels for points with a prior (previous flow / disparity); 0 = ignore priors.
         fill_levels: levels for the points of a prior solve without a prior of their own (started from
-            the median of the others' flows); 0 = the full pyramid.
+            their neighbours' flows, ``fill_neighbours``); 0 = the full pyramid.
+        fill_neighbours: such a point starts from the median flow of this many nearest points with a
+            prior; 0 = of all of them. The flow varies across the image with depth and rotation: from
+            the median of all, a new corner started 3.3 px off in the median and most ended at their
+            first step (docs/design.md).
         stereo_levels: levels of a stereo solve without any prior (a first frame's matches); 0 = the full
             pyramid. A disparity is bounded by the baseline, and the levels a temporal solve from zero
             needs made the coarse alignment of a left / right pair under unequal light worse.
@@ -153,13 +157,14 @@ class SolvePolicy:
 
     prior_levels: int = 2
     fill_levels: int = 3
+    fill_neighbours: int = 5
     stereo_levels: int = 4
     max_residual: float = 0.5
     check_jacobian: Jacobian = Jacobian.FORWARD
     check_eps: float = 0.01
 
     def __post_init__(self) -> None:
-        for label in ("prior_levels", "fill_levels", "stereo_levels"):
+        for label in ("prior_levels", "fill_levels", "fill_neighbours", "stereo_levels"):
             if getattr(self, label) < 0:
                 raise CoreError(f"SolvePolicy.{label} must be >= 0, got {getattr(self, label)}")
         if not self.max_residual > 0:
@@ -366,11 +371,23 @@ class TrackingMethod(ABC):
         the status is False."""
 
 
-def _fill_prior(pts: np.ndarray, prior: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """Flows from a prior known where ``known`` (at least one point); the others take the median flow."""
+def _fill_prior(pts: np.ndarray, prior: np.ndarray, known: np.ndarray, neighbours: int = 0) -> np.ndarray:
+    """Flows from a prior known where ``known`` (at least one point); each other point takes the median
+    flow of its ``neighbours`` nearest points with a prior (0, or fewer of them: of all).
+
+    Shape:
+        pts, prior: (N, 2). known: (N,). Returns (N, 2).
+    """
     flow = np.empty((pts.shape[0], 2))
     flow[known] = prior[known] - pts[known]
-    flow[~known] = np.median(flow[known], axis=0)
+    unknown = np.flatnonzero(~known)
+    if not 0 < neighbours < int(known.sum()):
+        flow[unknown] = np.median(flow[known], axis=0)
+        return flow
+    # (unknown x known) squared distances: a few thousand per frame, far below one solve's cost
+    gap = pts[unknown, None, :] - pts[None, known, :]
+    nearest = np.argpartition(np.einsum("ukd,ukd->uk", gap, gap), neighbours - 1, axis=1)[:, :neighbours]
+    flow[unknown] = np.median(flow[known][nearest], axis=1)
     return flow
 
 
@@ -403,8 +420,9 @@ class LMMethod(TrackingMethod):
     """An encoder's descriptor pyramid through the LM solver (``nsflow``, ``classical``).
 
     A check starts at the point it must return to; a forward or stereo solve starts points with a prior
-    from it on fewer levels and the others from the median flow; only a solve without any prior runs from
-    zero flow with the coarse window, on the whole pyramid (a stereo one on ``policy.stereo_levels``).
+    from it on fewer levels and the others from their nearest neighbours' median flow; only a solve
+    without any prior runs from zero flow with the coarse window, on the whole pyramid (a stereo one on
+    ``policy.stereo_levels``).
 
     Raises:
         CoreError: a spec without LM settings or solve policy.
@@ -610,7 +628,7 @@ class LMMethod(TrackingMethod):
             levels = p.stereo_levels if kind is SolveKind.STEREO else 0
             return self._track_pair(frame1, frame2, pts, levels=levels or None, residual_test=True,
                                     finest_level=finest, eps=eps)
-        flow0 = _fill_prior(pts, prior, known)
+        flow0 = _fill_prior(pts, prior, known, p.fill_neighbours)
         first = np.where(known, p.prior_levels, p.fill_levels or self.lm.levels).astype(np.int64) - 1
         # Every point starts near its answer: the coarse window, there for starts far off, is not needed.
         return self._track_pair(frame1, frame2, pts, pts + flow0, first_level=first, residual_test=True,

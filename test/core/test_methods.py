@@ -98,6 +98,8 @@ def test_solve_policy_and_specs_reject_bad_values():
         SolvePolicy(prior_levels=-1)
     with pytest.raises(CoreError, match="fill_levels"):
         SolvePolicy(fill_levels=-1)
+    with pytest.raises(CoreError, match="fill_neighbours must be >= 0, got -1"):
+        SolvePolicy(fill_neighbours=-1)
     with pytest.raises(CoreError, match="stereo_levels"):
         SolvePolicy(stereo_levels=-1)
     with pytest.raises(CoreError, match="max_residual"):
@@ -247,6 +249,33 @@ def test_residual_test_drops_a_point_tracked_onto_something_else(pair):
     untested = make_method(replace(spec, policy=replace(spec.policy, max_residual=float("inf"))))
     _, ok_untested = untested.solve(SolveKind.FORWARD, fa, fb, pts, prior=other)
     assert (ok_untested & wrong).sum() > 5 * max(1, (ok & wrong).sum())
+
+
+def test_fill_prior_takes_the_nearest_known_flows():
+    from nsflow_ros.core.methods import _fill_prior
+
+    # the left half of the image moves 10 px right, the right half 4 px down (a depth step, a turn)
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([0, 0], [640, 480], size=(60, 2))
+    left = pts[:, 0] < 320
+    flow = np.where(left[:, None], [10.0, 0.0], [0.0, 4.0])
+    prior = pts + flow
+    known = np.ones(60, bool)
+    known[::6] = False  # new points: no prior of their own
+    prior[~known] = np.nan
+    near = _fill_prior(pts, prior, known, neighbours=5)
+    np.testing.assert_allclose(near[known], flow[known])  # a prior stays as it is
+    far = ~known & (np.abs(pts[:, 0] - 320) > 80)  # new points well inside their half
+    np.testing.assert_allclose(near[far], flow[far])
+    # 0 neighbours: every new point takes the median of all, whichever half it is in
+    every = _fill_prior(pts, prior, known, neighbours=0)
+    np.testing.assert_array_equal(every[~known], np.broadcast_to(np.median(flow[known], axis=0), (10, 2)))
+    assert (np.hypot(*(every[far] - flow[far]).T) > 4).any()
+    # fewer known points than neighbours: the median of all of them
+    few = np.zeros(60, bool)
+    few[1:4] = True
+    np.testing.assert_array_equal(_fill_prior(pts, prior, few, neighbours=5)[~few],
+                                  np.broadcast_to(np.median(flow[1:4], axis=0), (57, 2)))
 
 
 def test_forward_prior_and_checks_use_fewer_levels_than_a_blind_solve(pair, monkeypatch):
@@ -419,8 +448,8 @@ def test_the_registry_deploys_what_the_tracker_deployed_before_the_registry_exis
         coarse_window=21, coarse_from=2,
     )
     assert METHODS["classical"].lm == spec.lm
-    assert spec.policy == SolvePolicy(prior_levels=2, fill_levels=3, stereo_levels=4, max_residual=0.5,
-                                      check_jacobian=Jacobian.FORWARD, check_eps=0.01)
+    assert spec.policy == SolvePolicy(prior_levels=2, fill_levels=3, fill_neighbours=5, stereo_levels=4,
+                                      max_residual=0.5, check_jacobian=Jacobian.FORWARD, check_eps=0.01)
     assert (CHECK_LEVELS, PREDICTED_LEVELS) == (2, 1)
     vins = (tr.GFTT_QUALITY, tr.FLOW_BACK_THRESHOLD_PX, tr.BORDER_PX, tr.PREDICTION_MIN_TRACKED)
     assert vins == (0.01, 0.5, 1, 10)
