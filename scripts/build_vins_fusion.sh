@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Build the stock VINS-Fusion estimator (ROS 1, `vins_node`) on Debian 12 from Debian's own ROS 1
-# packages, to score feature bags with (docs/evaluation.md, "Building the estimator").
+# packages, to score feature bags with (docs/vins_fusion.md, "Building the estimator").
 #
 #   scripts/build_vins_fusion.sh [WORKSPACE]            # default: $HOME/vins_ws
 #
