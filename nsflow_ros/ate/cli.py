@@ -19,7 +19,7 @@ import json
 import sys
 from pathlib import Path
 
-from nsflow_ros.argtypes import finite_float, names, positive_int, program_name
+from nsflow_ros.argtypes import finite_float, names, non_negative_float, positive_int, program_name
 from nsflow_ros.ate.align import ALIGN_METHODS
 from nsflow_ros.ate.batch import (
     FAIL_POLICIES,
@@ -109,6 +109,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--n-align", type=positive_int, metavar="N", help="fit the alignment on the first N matched poses"
     )
     ape.add_argument(
+        "--skip",
+        type=non_negative_float,
+        default=0.0,
+        metavar="S",
+        help="leave out the estimate's first S seconds, an estimator's start (default 0)",
+    )
+    ape.add_argument(
         "--rpe-delta",
         type=positive_int,
         metavar="N",
@@ -192,6 +199,7 @@ def _run_ape(ns: argparse.Namespace) -> int:
         offset=ns.offset,
         rpe_delta=ns.rpe_delta,
         rpe_all_pairs=ns.rpe_all_pairs,
+        skip=ns.skip,
     )
     if ns.plot is not None:
         from nsflow_ros.ate.plot import plot_top_view

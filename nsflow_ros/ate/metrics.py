@@ -208,6 +208,7 @@ def evaluate_ape(
     rpe_delta: int | None = None,
     rpe_all_pairs: bool = False,
     min_matches: int = MIN_MATCHES,
+    skip: float = 0.0,
 ) -> APEResult:
     """Associate, align and score an estimate against a reference.
 
@@ -221,11 +222,16 @@ def evaluate_ape(
         rpe_delta: also compute the relative pose error over this many matched poses (``None``: skip).
         rpe_all_pairs: use every start index for the RPE.
         min_matches: fewest matched poses accepted (at least 3).
+        skip: leave out the estimate's first ``skip`` seconds (an estimator's start), before matching.
 
     Raises:
         ATEError: for empty trajectories, no overlapping stamps, fewer than ``min_matches`` matched poses,
             a degenerate alignment, or invalid options.
     """
+    if not np.isfinite(skip) or skip < 0:
+        raise ATEError(f"skip must be a finite number of seconds >= 0, got {skip}")
+    if skip > 0 and len(est):
+        est = est.take(np.flatnonzero(est.stamps >= est.stamps.min() + skip))
     pairs = associate(ref, est, max_diff=max_diff, offset=offset)
     need = max(int(min_matches), MIN_MATCHES)
     if len(pairs) < need:

@@ -51,6 +51,16 @@ def test_explicit_subcommand_formats_and_rpe(pair, capsys):
     assert obj["rpe"]["delta"] == 10 and obj["rpe"]["translation"]["n"] == 59
 
 
+def test_skip_scores_fewer_poses(pair, capsys):
+    gt, vio = pair
+    assert main([str(gt), str(vio), "--json"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    assert main([str(gt), str(vio), "--skip", "5", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n"] == whole["n"] - 100  # 20 Hz
+    assert main([str(gt), str(vio), "--skip", "-1"]) == 2
+    assert "--skip" in capsys.readouterr().err
+
+
 def test_text_output_and_plot(pair, capsys, tmp_path):
     gt, vio = pair
     png = tmp_path / "top.png"

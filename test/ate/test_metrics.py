@@ -62,6 +62,20 @@ def test_known_constant_offset_without_alignment(gt):
     np.testing.assert_allclose(position_errors(gt, est), 0.5)
 
 
+def test_skip_leaves_out_the_estimators_start(gt):
+    # The first second 1 m off: it carries the whole error until skipped.
+    start = gt.stamps < gt.stamps[0] + 1.0
+    est = Trajectory(gt.stamps, gt.positions + np.where(start[:, None], [1.0, 0.0, 0.0], 0.0), gt.quaternions)
+    assert evaluate_ape(gt, est, align="none").stats.max == pytest.approx(1.0)
+    skipped = evaluate_ape(gt, est, align="none", skip=1.0)
+    assert skipped.stats.max == pytest.approx(0.0, abs=1e-12)
+    assert skipped.stats.n == len(gt) - start.sum()
+    assert evaluate_ape(gt, est, align="none", skip=0.5).stats.n == len(gt) - start.sum() // 2
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ATEError, match=f"skip must be .* got {bad}"):
+            evaluate_ape(gt, est, skip=bad)
+
+
 def test_fewer_than_three_matches(gt):
     est = gt.take([0, 1]).renamed("short")
     pattern = r"only 2 matched poses between gt and short \(need at least 3"
