@@ -65,8 +65,10 @@ class IntensityRefinement:
             the warp, then limits the step's precision, and more pixels average it (docs/design.md).
         noisy_temporal: the next temporal step takes ``noisy_window`` too: more precise per frame, but
             its tracks drift more over their life and the estimator's trajectory lost (docs/design.md).
-        noisy_ratio: the median residual ratio above which the step takes ``noisy_window`` (clean images
-            0.01-0.02, the ``dark`` perturbation about 0.12); inf = never.
+        noisy_ratio: the median residual ratio of a temporal step above which the frame's stereo step takes
+            ``noisy_window`` (per frame under the affine step: clean images and the light perturbations
+            0.003-0.012, the ``dark`` perturbation 0.03-0.10, over 0.05 in 57-95 % of a dark sequence's
+            frames); inf = never.
         min_eigen: the smallest eigenvalue of the window's gradient matrix per pixel below which the image
             does not pin the point down (a flat or edge-only window): the descriptors' answer stands.
         coarse_eps: the stop tolerance of the descriptor levels before the step (the LM solver's ``eps``):

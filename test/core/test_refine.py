@@ -330,6 +330,16 @@ def test_the_images_noise_chooses_the_next_steps_window(
     assert windows == [15, window, window if noisy_temporal else 15, 15]
 
 
+def test_the_light_perturbations_are_not_noise(pair: tuple[np.ndarray, ...]) -> None:
+    """A gain and an offset between the frames (the illumination perturbations) leave the step's residual
+    ratio far under ``noisy_ratio``: only sensor noise widens the stereo window."""
+    g1, g2, pts = pair
+    method = make_method("nsflow")
+    lit = _u8(0.6 * g2.astype(np.float64) + 40.0)
+    method.solve(SolveKind.FORWARD, method.prepare(g1, g1), method.prepare(lit, lit), pts)
+    assert method.refinement is not None and 0 < method.noise < 0.5 * method.refinement.noisy_ratio
+
+
 def test_kept_points_carry_the_steps_covariance(pair: tuple[np.ndarray, ...]) -> None:
     g1, g2, pts = pair
     method = make_method("nsflow")
