@@ -34,7 +34,14 @@ from nsflow_ros.core.covariance import (
 from nsflow_ros.core.encoder import Encoder, ExecutionProviders, IntensityEncoder, load_encoder
 from nsflow_ros.core.errors import CoreError, UnsupportedEncoderError
 from nsflow_ros.core.pyramid import DescriptorPyramid, Smoothing, build_pyramid
-from nsflow_ros.core.refine import IntensityRefinement, StepTemplate, gray_level, refine, step_template
+from nsflow_ros.core.refine import (
+    IntensityRefinement,
+    StepTemplate,
+    blurred_level,
+    gray_level,
+    refine,
+    step_template,
+)
 from nsflow_ros.core.solver import Jacobian, LMConfig, TrackResult, track
 
 __all__ = [
@@ -440,8 +447,8 @@ class LMMethod(TrackingMethod):
         # The step of each kind of solve, settled once: a temporal track the step refuses ends, so its
         # step takes a wider shift and the noise floor; a refused stereo match (or check) gets the
         # descriptors' levels instead, which beat the step above the plain residual limit. While the
-        # camera's images are noisy (:attr:`noise`) the stereo step (and the temporal one with
-        # ``noisy_temporal``) takes the noisy window.
+        # camera's images are noisy (:attr:`noise`) every step compares them blurred, and the stereo
+        # step (and the temporal one with ``noisy_temporal``) takes the noisy window.
         r = spec.refine
         self._steps: dict[tuple[bool, bool], IntensityRefinement] = {}
         if r is not None:
@@ -451,11 +458,14 @@ class LMMethod(TrackingMethod):
                 widen = not temporal or r.noisy_temporal
                 self._steps[temporal, True] = replace(base, window=r.noisy_window) if widen else base
         self.noise = 0.0
-        """The last temporal step's median residual ratio: the images' noise, which chooses the window of
-        the stereo step from its frame 2 (and of the next temporal step with ``noisy_temporal``;
-        :attr:`IntensityRefinement.noisy_ratio`)."""
+        """The last temporal step's median residual ratio, in the plain images' units: the images' noise,
+        which decides whether the steps from its frame 2 on compare blurred images (and the stereo step's
+        window; :attr:`IntensityRefinement.noisy_ratio`)."""
+        self.noisy = False
+        """Whether the stream is noisy: :attr:`noise` over ``noisy_ratio``, or over half of it once noisy."""
         self._noise_frame: DescriptorPyramid | None = None  # that step's frame 2
-        self._template_memo: tuple[DescriptorPyramid, StepTemplate] | None = None
+        self._template_memo: tuple[DescriptorPyramid, bool, StepTemplate] | None = None
+        self._blur_memo: list[tuple[DescriptorPyramid, tuple[np.ndarray, ...]]] = []
 
     @staticmethod
     def residual_ratio(result: TrackResult) -> np.ndarray:
@@ -559,12 +569,16 @@ class LMMethod(TrackingMethod):
         temporal = kind is SolveKind.FORWARD
         # The stream's noise applies where the stream goes on (this frame 1 is the last temporal step's
         # frame 2), so a solve of unrelated images gets the plain window whatever came before it.
-        noisy = frame1 is self._noise_frame and self.noise > step.noisy_ratio
+        noisy = frame1 is self._noise_frame and self.noisy
         config = self._steps[temporal, noisy]
-        done = refine(frame1.image, frame2.image, pts, new, status, config,
-                      self._step_template(frame1, pts, config.window))
+        blur = noisy and step.noisy_blur > 0
+        images = (self._blurred(frame1), self._blurred(frame2)) if blur else (frame1.image, frame2.image)
+        template = self._step_template(frame1, pts, config.window, blur)
+        done = refine(*images, pts, new, status, config, template)
         if temporal:  # a step that refined nothing leaves the stream's noise as it was
-            self.noise = done.median_ratio if np.isfinite(done.median_ratio) else self.noise
+            if np.isfinite(done.median_ratio):
+                self.noise = done.median_ratio / (step.noisy_blur_ratio if blur else 1.0)
+            self.noisy = self.noise > step.noisy_ratio * (0.5 if noisy else 1.0)
             self._noise_frame = frame2
         new, kept = done.positions, done.kept
         flow, hessian, cost = res.flow.copy(), res.hessian.copy(), res.cost.copy()
@@ -591,18 +605,32 @@ class LMMethod(TrackingMethod):
         merged = TrackResult(flow, status, cost, res.iterations, contrast, res.history, hessian)
         return new, status, merged
 
-    def _step_template(self, frame1: DescriptorPyramid, pts: np.ndarray, window: int) -> StepTemplate:
-        """:func:`~nsflow_ros.core.refine.step_template` of ``frame1`` at ``pts`` in ``window``, kept for the
-        next call: a stereo solve's template (this frame's left image at its features) is the next frame's
-        temporal one, so the tracker reads each left window once."""
+    def _step_template(
+        self, frame1: DescriptorPyramid, pts: np.ndarray, window: int, blur: bool = False
+    ) -> StepTemplate:
+        """:func:`~nsflow_ros.core.refine.step_template` of ``frame1`` (``blur``: its blurred image) at
+        ``pts`` in ``window``, kept for the next call: a stereo solve's template (this frame's left image at
+        its features) is the next frame's temporal one, so the tracker reads each left window once."""
         assert self.refinement is not None and frame1.image is not None
         memo = self._template_memo
-        if (memo is not None and memo[0] is frame1 and memo[1].rows.shape[-1] == window * window
-                and np.array_equal(memo[1].points, pts)):
-            return memo[1]
-        template = step_template(frame1.image, pts, window, self.refinement.affine)
-        self._template_memo = (frame1, template)
+        if (memo is not None and memo[0] is frame1 and memo[1] == blur
+                and memo[2].rows.shape[-1] == window * window and np.array_equal(memo[2].points, pts)):
+            return memo[2]
+        image = self._blurred(frame1) if blur else frame1.image
+        template = step_template(image, pts, window, self.refinement.affine)
+        self._template_memo = (frame1, blur, template)
         return template
+
+    def _blurred(self, frame: DescriptorPyramid) -> tuple[np.ndarray, ...]:
+        """``frame``'s image under the noisy streams' blur, kept for the frame's next steps (the last three
+        frames: a temporal step's two and the stereo step's right one)."""
+        assert self.refinement is not None and frame.image is not None
+        for kept, image in self._blur_memo:
+            if kept is frame:
+                return image
+        image = blurred_level(frame.image, self.refinement.noisy_blur)
+        self._blur_memo = [*self._blur_memo[-2:], (frame, image)]
+        return image
 
     def _descriptor_solve(
         self, kind: SolveKind, frame1: DescriptorPyramid, frame2: DescriptorPyramid, pts: np.ndarray,

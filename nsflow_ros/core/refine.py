@@ -29,7 +29,15 @@ from nsflow_ros.core.solver import (
     window_centres,
 )
 
-__all__ = ["IntensityRefinement", "RefineResult", "StepTemplate", "gray_level", "refine", "step_template"]
+__all__ = [
+    "IntensityRefinement",
+    "RefineResult",
+    "StepTemplate",
+    "blurred_level",
+    "gray_level",
+    "refine",
+    "step_template",
+]
 
 
 @dataclass(frozen=True)
@@ -60,15 +68,21 @@ class IntensityRefinement:
             descriptors' levels, more precise there).
         residual_ceiling: the most the floor raises the limit to, so that windows of other content
             (ratio about 1) are refused even where every window is.
-        noisy_window: the window side (odd, >= ``window``) of the stereo step of a frame whose temporal
-            step (the one into it) had a median residual ratio above ``noisy_ratio``: sensor noise, not
-            the warp, then limits the step's precision, and more pixels average it (docs/design.md).
-        noisy_temporal: the next temporal step takes ``noisy_window`` too: more precise per frame, but
-            its tracks drift more over their life and the estimator's trajectory lost (docs/design.md).
-        noisy_ratio: the median residual ratio of a temporal step above which the frame's stereo step takes
-            ``noisy_window`` (per frame under the affine step: clean images and the light perturbations
-            0.003-0.012, the ``dark`` perturbation 0.03-0.10, over 0.05 in 57-95 % of a dark sequence's
-            frames); inf = never.
+        noisy_blur: the Gaussian blur (sigma, px) of both images of every step while the stream is noisy
+            (its temporal step's median residual ratio over ``noisy_ratio``); 0 = none. Sensor noise then
+            makes gross errors, which cost the estimator more than the blur's loss of median precision
+            (docs/design.md).
+        noisy_blur_ratio: what the blur does to a step's residual ratio (0.30-0.35 at sigma 0.7, clean and
+            ``dark`` sequences alike): a blurred step's ratio is divided by it, so that the stream's noise
+            reads in the plain images' units whichever images its last step compared.
+        noisy_window: the window side (odd, >= ``window``) of the stereo step while the stream is noisy
+            (more pixels average the noise; ``window`` = the same as in clean images: with the blur the
+            estimator did better, docs/design.md).
+        noisy_temporal: the temporal step takes ``noisy_window`` too.
+        noisy_ratio: the median residual ratio of a temporal step above which the stream is noisy (per
+            frame under the affine step: clean images and the light perturbations 0.003-0.012, the
+            ``dark`` perturbation 0.03-0.10); once noisy it stays so while above half of this, so that a
+            dark stream's frames near the limit do not switch the images back and forth; inf = never.
         min_eigen: the smallest eigenvalue of the window's gradient matrix per pixel below which the image
             does not pin the point down (a flat or edge-only window): the descriptors' answer stands.
         coarse_eps: the stop tolerance of the descriptor levels before the step (the LM solver's ``eps``):
@@ -90,7 +104,9 @@ class IntensityRefinement:
     """
 
     window: int = 15
-    noisy_window: int = 21
+    noisy_blur: float = 0.7
+    noisy_blur_ratio: float = 0.33
+    noisy_window: int = 15
     noisy_ratio: float = 0.05
     noisy_temporal: bool = False
     iterations: int = 2
@@ -114,6 +130,11 @@ class IntensityRefinement:
                             f"got {self.noisy_window}")
         if not self.noisy_ratio > 0:
             raise CoreError(f"IntensityRefinement.noisy_ratio must be > 0, got {self.noisy_ratio}")
+        if not self.noisy_blur >= 0:
+            raise CoreError(f"IntensityRefinement.noisy_blur must be >= 0, got {self.noisy_blur}")
+        if not 0 < self.noisy_blur_ratio <= 1:
+            raise CoreError(f"IntensityRefinement.noisy_blur_ratio must be in (0, 1], "
+                            f"got {self.noisy_blur_ratio}")
         if self.iterations < 1:
             raise CoreError(f"IntensityRefinement.iterations must be >= 1, got {self.iterations}")
         if self.from_level < 1:
@@ -158,6 +179,11 @@ def gray_level(gray: np.ndarray) -> tuple[np.ndarray, ...]:
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise CoreError(f"the intensity step needs a (H, W) uint8 gray image, got {gray.dtype} {gray.shape}")
     return ((gray.astype(np.float32) * np.float32(1.0 / 255.0))[..., None],)
+
+
+def blurred_level(level: tuple[np.ndarray, ...], sigma: float) -> tuple[np.ndarray, ...]:
+    """A :func:`gray_level` under a Gaussian blur of ``sigma`` px (OpenCV's, borders reflected)."""
+    return (cv2.GaussianBlur(level[0][..., 0], (0, 0), sigma)[..., None],)
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 
 import cv2
@@ -10,7 +11,7 @@ import pytest
 
 from nsflow_ros.core.errors import CoreError
 from nsflow_ros.core.methods import DEPLOYED_LM, METHODS, LMMethod, SolveKind, klt_track, make_method
-from nsflow_ros.core.refine import IntensityRefinement, gray_level, refine, step_template
+from nsflow_ros.core.refine import IntensityRefinement, blurred_level, gray_level, refine, step_template
 
 SHIFT = np.array([2.37, -1.61])
 
@@ -179,10 +180,20 @@ def test_empty_input() -> None:
                                     {"temporal_max_shift": -1.0}, {"residual_floor": -1.0},
                                     {"residual_ceiling": 0.1},
                                     {"max_residual": -1.0}, {"min_eigen": -1.0}, {"coarse_eps": 0.0},
-                                    {"noisy_window": 13}, {"noisy_window": 22}, {"noisy_ratio": 0.0}])
+                                    {"noisy_window": 13}, {"noisy_window": 22}, {"noisy_ratio": 0.0},
+                                    {"noisy_blur": -0.5}, {"noisy_blur_ratio": 0.0},
+                                    {"noisy_blur_ratio": 1.5}])
 def test_settings_out_of_range(kwargs: dict[str, float]) -> None:
     with pytest.raises(CoreError, match=next(iter(kwargs))):
         IntensityRefinement(**kwargs)
+
+
+def test_blurred_level_is_a_gaussian_blur_of_the_gray_level() -> None:
+    level = gray_level(_u8(_texture()))
+    out = blurred_level(level, 0.7)
+    assert out[0].shape == level[0].shape and out[0].dtype == np.float32
+    np.testing.assert_array_equal(out[0][..., 0], cv2.GaussianBlur(level[0][..., 0], (0, 0), 0.7))
+    assert 0 < np.abs(out[0] - level[0]).mean() < 0.01  # smooth texture: little changes
 
 
 def test_gray_level_needs_uint8_gray() -> None:
@@ -299,35 +310,72 @@ def test_a_wider_window_is_more_precise_on_noisy_images() -> None:
 
 
 @pytest.mark.parametrize("noisy_temporal", [False, True])
-@pytest.mark.parametrize(("sigma", "window"), [(0.0, 15), (10.0, 21)])
-def test_the_images_noise_chooses_the_next_steps_window(
-    pair: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch, sigma: float, window: int,
+@pytest.mark.parametrize(("sigma", "noisy"), [(0.0, False), (10.0, True)])
+def test_the_images_noise_chooses_the_next_steps_images_and_window(
+    pair: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch, sigma: float, noisy: bool,
     noisy_temporal: bool,
 ) -> None:
-    """A temporal step measures the images' noise (its median residual ratio); the frame's stereo step
-    after one over ``noisy_ratio`` reads its templates in ``noisy_window`` (the next temporal step too
-    with ``noisy_temporal``), after a clean one in ``window``; a solve from another frame reads them in
-    ``window`` whatever came before."""
+    """A temporal step measures the images' noise (its median residual ratio); after one over
+    ``noisy_ratio`` the stream's next steps compare blurred images, the stereo step in ``noisy_window``
+    (the temporal step too with ``noisy_temporal``); after a clean one the plain images in ``window``; a
+    solve from another frame the plain images in ``window`` whatever came before. A blurred step's noise
+    reads in the plain images' units."""
     import nsflow_ros.core.methods as methods_mod
 
     g1, g2, pts = pair
     g1, g2 = (_noisy(g.astype(np.float64), sigma, k) if sigma else g for k, g in enumerate((g1, g2)))
-    windows = []
-    monkeypatch.setattr(methods_mod, "step_template", lambda *a: windows.append(a[2]) or step_template(*a))
     base = make_method("nsflow")
     assert base.spec.refine is not None and not base.spec.refine.noisy_temporal  # the default
-    refine_cfg = replace(base.spec.refine, noisy_temporal=noisy_temporal)
+    refine_cfg = replace(base.spec.refine, noisy_temporal=noisy_temporal, noisy_window=21)
     method = LMMethod(replace(base.spec, refine=refine_cfg), base.encoder)
-    f1, f2 = method.prepare(g1, g1), method.prepare(g2, g2)
-    assert method.noise == 0.0
+    f1, f2, other = method.prepare(g1, g1), method.prepare(g2, g2), method.prepare(g1, g1)
+    plain = [f.image[0] for f in (f1, f2, other) if f.image is not None]
+    reads: list[tuple[int, bool]] = []
+
+    def spy(image: tuple[np.ndarray, ...], *a: object) -> object:
+        reads.append((int(a[1]), not any(image[0] is p for p in plain)))  # (window, blurred)
+        return step_template(image, *a)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(methods_mod, "step_template", spy)
+    assert method.noise == 0.0 and not method.noisy
     method.solve(SolveKind.FORWARD, f1, f2, pts)
     step = method.refinement
-    assert step is not None and (method.noise > step.noisy_ratio) == (window == step.noisy_window)
+    first = method.noise
+    assert step is not None and method.noisy == noisy == (first > step.noisy_ratio)
     method.solve(SolveKind.STEREO, f2, f1, pts + 1.0)  # the frame's stereo step
     method.solve(SolveKind.FORWARD, f2, f1, pts + 2.0)  # the stream's next temporal step
-    other = method.prepare(g1, g1)
     method.solve(SolveKind.STEREO, other, f2, pts + 3.0)  # an unrelated pair
-    assert windows == [15, window, window if noisy_temporal else 15, 15]
+    wide = 21 if noisy else 15
+    assert reads == [(15, False), (wide, noisy), (wide if noisy_temporal else 15, noisy), (15, False)]
+    assert 0.5 < method.noise / first < 2.0  # blurred or not, the same units
+
+
+def test_a_noisy_stream_stays_noisy_down_to_half_the_limit(
+    pair: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Once noisy a stream stays so while its noise is over half of ``noisy_ratio`` (a blurred step's
+    ratio divided by ``noisy_blur_ratio``), so that a dark stream's frames near the limit do not switch
+    the images back and forth; under half it is clean again, and a clean stream becomes noisy only over
+    the limit."""
+    import nsflow_ros.core.methods as methods_mod
+
+    g1, g2, pts = pair
+    method = make_method("nsflow")
+    step = method.refinement
+    assert step is not None
+    limit, k = step.noisy_ratio, step.noisy_blur_ratio
+    # the ratio each temporal step reports (in the units of the images it compared)
+    reported = iter([1.2 * limit, 0.6 * limit * k, 0.4 * limit * k, 0.8 * limit, 1.2 * limit])
+    real = methods_mod.refine
+    monkeypatch.setattr(methods_mod, "refine",
+                        lambda *a, **kw: replace(real(*a, **kw), median_ratio=next(reported)))
+    frames = [method.prepare(g, g) for g in (g1, g2, g1, g2, g1, g2)]
+    states = []
+    for f_a, f_b in itertools.pairwise(frames):
+        method.solve(SolveKind.FORWARD, f_a, f_b, pts)
+        states.append(method.noisy)
+    assert states == [True, True, False, False, True]
+    assert method.noise == pytest.approx(1.2 * limit)
 
 
 def test_the_light_perturbations_are_not_noise(pair: tuple[np.ndarray, ...]) -> None:
