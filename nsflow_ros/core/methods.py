@@ -568,7 +568,7 @@ class LMMethod(TrackingMethod):
         new, status, res = self._descriptor_solve(kind, frame1, frame2, pts, start, prior, finest, eps)
         temporal = kind is SolveKind.FORWARD
         # The stream's noise applies where the stream goes on (this frame 1 is the last temporal step's
-        # frame 2), so a solve of unrelated images gets the plain window whatever came before it.
+        # frame 2), so a solve of unrelated images gets the plain images and window whatever came before.
         noisy = frame1 is self._noise_frame and self.noisy
         config = self._steps[temporal, noisy]
         blur = noisy and step.noisy_blur > 0
